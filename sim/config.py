@@ -1,0 +1,148 @@
+"""TOML tables -> frozen dataclasses, with errors that name the field.
+
+Every parameter dataclass in tether is built through :func:`build`: unknown
+keys are errors, types are checked, and ``__post_init__`` validation errors
+(ValueError) are re-raised with the full dotted field path. The CLI turns a
+:class:`ConfigError` into one line and exit code 2.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from typing import Any, get_args, get_origin, get_type_hints
+
+
+class ConfigError(ValueError):
+    """A scenario value is wrong; ``field`` is its dotted path."""
+
+    def __init__(self, field: str, problem: str):
+        super().__init__(f"{field}: {problem}")
+        self.field = field
+        self.problem = problem
+
+
+def _type_name(tp: Any) -> str:
+    if tp is float:
+        return "a number"
+    if tp is int:
+        return "an integer"
+    if tp is bool:
+        return "true or false"
+    if tp is str:
+        return "a string"
+    origin = get_origin(tp)
+    if origin in (tuple, list):
+        return "a list"
+    if dataclasses.is_dataclass(tp):
+        return "a table"
+    return getattr(tp, "__name__", str(tp))
+
+
+def _convert(value: Any, tp: Any, field: str) -> Any:
+    origin = get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        options = get_args(tp)
+        if value is None and type(None) in options:
+            return None
+        errors = []
+        for option in options:
+            if option is type(None):
+                continue
+            try:
+                return _convert(value, option, field)
+            except ConfigError as err:
+                errors.append(err)
+        # Report the most specific failure (deepest field path).
+        raise max(errors, key=lambda e: len(e.field))
+    if typing.get_origin(tp) is typing.Literal:
+        if value not in get_args(tp):
+            allowed = ", ".join(repr(a) for a in get_args(tp))
+            raise ConfigError(field, f"must be one of {allowed}, got {value!r}")
+        return value
+    if tp is Any:
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(field, f"must be true or false, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(field, f"must be a number, got {value!r}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(field, f"must be an integer, got {value!r}")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(field, f"must be a string, got {value!r}")
+        return value
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(field, f"must be a list, got {value!r}")
+        args = get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(v, args[0], f"{field}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(field, f"must have {len(args)} entries, got {len(value)}")
+        return tuple(_convert(v, a, f"{field}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+    if dataclasses.is_dataclass(tp):
+        return build(tp, value, field)
+    raise TypeError(f"unsupported config type {tp!r} at {field}")
+
+
+def build(cls: type, table: Any, field: str = "") -> Any:
+    """Build dataclass ``cls`` from a TOML table; errors name ``field.key``."""
+    if not isinstance(table, dict):
+        raise ConfigError(field or cls.__name__, f"must be a table, got {table!r}")
+    hints = get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    prefix = f"{field}." if field else ""
+    unknown = sorted(set(table) - names)
+    if unknown:
+        raise ConfigError(
+            f"{prefix}{unknown[0]}",
+            f"unknown key (allowed: {', '.join(sorted(names))})",
+        )
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        if f.name in table:
+            kwargs[f.name] = _convert(table[f.name], hints[f.name], prefix + f.name)
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise ConfigError(prefix + f.name, "is required")
+    try:
+        return cls(**kwargs)
+    except ConfigError as err:
+        if field and not err.field.startswith(prefix):
+            raise ConfigError(prefix + err.field, err.problem) from None
+        raise
+    except ValueError as err:
+        # Parameter classes raise ValueError("name: problem"); attach the path.
+        text = str(err)
+        name, sep, problem = text.partition(": ")
+        if sep and " " not in name:
+            raise ConfigError(prefix + name, problem) from None
+        raise ConfigError(field or cls.__name__, text) from None
+
+
+def to_table(obj: Any) -> Any:
+    """Dataclass -> plain dict/list tree suitable for TOML or JSON."""
+    if dataclasses.is_dataclass(obj):
+        return {
+            f.name: to_table(getattr(obj, f.name))
+            for f in dataclasses.fields(obj)
+            if f.init and getattr(obj, f.name) is not None
+        }
+    if isinstance(obj, (list, tuple)):
+        return [to_table(v) for v in obj]
+    return obj
+
+
+def require(condition: bool, field: str, problem: str) -> None:
+    """Raise ValueError('field: problem') for __post_init__ checks."""
+    if not condition:
+        raise ValueError(f"{field}: {problem}")

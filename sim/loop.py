@@ -1,0 +1,220 @@
+"""The step loop: sense -> strategy -> low-level control -> physics -> observers.
+
+``run`` is importable and headless; the CLI is a thin layer over it. One
+``np.random.Generator`` (seeded from the scenario) is created here and passed
+down in a fixed order: target motion noise, range noise, then the strategy.
+Observers only read, so video and recording never change the trajectory.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import mujoco
+import numpy as np
+
+from sim.actuation import LowLevelControl
+from sim.observers import Frame, LinkMetrics, TrackingMetrics
+from sim.registry import strategy_class
+from sim.scenario import Scenario
+from sim.sensing import RaySensors
+from sim.targets import TargetDriver, nominal_path_samples
+from sim.types import Observation, WorldInfo
+from sim.world import World, build_world
+
+_WARNINGS_THAT_DIVERGE = (
+    mujoco.mjtWarning.mjWARN_BADQACC,
+    mujoco.mjtWarning.mjWARN_BADQPOS,
+    mujoco.mjtWarning.mjWARN_BADQVEL,
+    mujoco.mjtWarning.mjWARN_BADCTRL,
+)
+
+
+@dataclass
+class RunResult:
+    status: str  # "completed" | "diverged"
+    metrics: dict[str, Any]
+    out_dir: Path | None
+    files: dict[str, str] = field(default_factory=dict)
+    trajectory: np.ndarray | None = None  # (ticks, N, 3) body positions, when asked
+
+
+class Simulation:
+    """Owns the world and the per-tick pieces; ``tick()`` advances one control period."""
+
+    def __init__(self, scenario: Scenario, rng: np.random.Generator | None = None):
+        self.scenario = scenario
+        self.rng = rng if rng is not None else np.random.default_rng(scenario.seed)
+        self.targets = TargetDriver(scenario, self.rng)
+        starts = self.targets.positions(0.0)
+        samples = [nominal_path_samples(t) for t in scenario.targets]
+        self.world: World = build_world(scenario, starts, samples)
+        self.sensors = RaySensors(self.world, scenario.sensing.comm_range_m, scenario.sensing.target_range_m,
+                                  scenario.sensing.range_noise)
+        self.control = LowLevelControl(self.world)
+        self.substeps = scenario.physics.substeps
+        self.world.model.opt.timestep = scenario.physics.timestep_s
+        self.dt = scenario.physics.control_period_s
+        self.tick_count = 0
+        self.time_s = 0.0
+        self._next_reading_s = 0.0
+        self._warnings = self._warning_count()
+        self.info = WorldInfo(
+            robot_names=self.world.robot_names, robot_kinds=self.world.robot_kinds,
+            obstacles=self.world.obstacles, bounds=self.world.bounds,
+            control_period_s=self.dt, comm_range_m=scenario.sensing.comm_range_m,
+            target_range_m=scenario.sensing.target_range_m, n_targets=self.targets.n_targets,
+        )
+        self._move_targets()
+        self.control.hover_ctrl()
+        mujoco.mj_forward(self.world.model, self.world.data)
+        self.strategy = strategy_class(scenario.strategy.kind)(scenario.strategy.params)
+        self.strategy.reset(self.info, self.observe(), self.rng)
+
+    def _warning_count(self) -> int:
+        return int(sum(self.world.data.warning[w].number for w in _WARNINGS_THAT_DIVERGE))
+
+    def _move_targets(self) -> np.ndarray:
+        positions = self.targets.positions(self.time_s)
+        if len(positions):
+            self.world.data.mocap_pos[self.world.target_mocap_ids] = positions
+        return positions
+
+    def observe(self) -> Observation:
+        """Read the state and sense (target ranges only at reading instants)."""
+        world, data = self.world, self.world.data
+        qpos, qvel = data.qpos, data.qvel
+        position = np.stack([qpos[a : a + 3] for a in world.qpos_adr])
+        quaternion = np.stack([qpos[a + 3 : a + 7] for a in world.qpos_adr])
+        velocity = np.stack([qvel[a : a + 3] for a in world.qvel_adr])
+        angular = np.stack([qvel[a + 3 : a + 6] for a in world.qvel_adr])
+        sensors = self.sensors.sensor_positions()
+        ranges, step = None, None
+        if self.targets.n_targets and self.time_s + 1e-9 >= self._next_reading_s:
+            ranges = self.sensors.target_ranges(sensors, data.mocap_pos[world.target_mocap_ids], self.rng)
+            step = int(round(self.time_s / self.scenario.target_motion.step_s))
+            self._next_reading_s += self.scenario.sensing.period_s
+        return Observation(
+            time_s=self.time_s, tick=self.tick_count, position=position, velocity=velocity,
+            quaternion=quaternion, angular_velocity=angular, sensor_position=sensors,
+            links=self.sensors.links(position), target_ranges=ranges, target_step=step,
+        )
+
+    def tick(self) -> tuple[Frame, bool]:
+        """One control period. Returns the frame (state before the step) and
+        whether the physics stayed finite and warning-free."""
+        observation = self.observe()
+        commands = self.strategy.step(observation)
+        self.control.apply(observation, commands)
+        frame = Frame(observation, commands, self.world.data.mocap_pos[self.world.target_mocap_ids].copy())
+        model, data = self.world.model, self.world.data
+        for _ in range(self.substeps):
+            mujoco.mj_step(model, data)
+        self.tick_count += 1
+        self.time_s = self.tick_count * self.dt
+        self._move_targets()
+        healthy = bool(np.all(np.isfinite(data.qpos)) and np.all(np.isfinite(data.qvel)))
+        warnings = self._warning_count()
+        healthy = healthy and warnings == self._warnings
+        return frame, healthy
+
+
+def _write_json(path: Path, payload: dict) -> None:
+    tmp = path.with_suffix(".json.tmp")
+    with open(tmp, "w") as f:
+        json.dump(payload, f, indent=2, sort_keys=False)
+        f.write("\n")
+    os.replace(tmp, path)
+
+
+def run(
+    scenario: Scenario,
+    out_dir: str | Path | None = None,
+    video: bool = False,
+    rrd: bool = False,
+    live: Any = None,
+    keep_trajectory: bool = False,
+    progress: Callable[[float], None] | None = None,
+) -> RunResult:
+    """Run a scenario headless; write metrics.json (+ video.mp4, run.rrd) to out_dir.
+
+    Validation errors (ConfigError) are raised before anything is written.
+    """
+    wall_start = time.perf_counter()
+    sim = Simulation(scenario)
+    out = Path(out_dir) if out_dir is not None else None
+    observers: list[Any] = []
+    tracking = TrackingMetrics(sim.world.robot_kinds)
+    links = LinkMetrics()
+    observers += [tracking, links]
+    files: dict[str, str] = {}
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        for stale in ("metrics.json", "video.mp4", "run.rrd"):
+            (out / stale).unlink(missing_ok=True)
+    if video:
+        from viz.video import VideoRecorder
+
+        files["video"] = str(out / "video.mp4")
+        observers.append(VideoRecorder(sim.world, scenario.video, files["video"]))
+    recorder = None
+    if rrd or live is not None:
+        from viz.recording import RerunRecorder
+
+        files["recording"] = str(out / "run.rrd")
+        recorder = RerunRecorder(sim.world, files["recording"], scenario.name, live_stream=live)
+        observers.append(recorder)
+
+    n_ticks = int(round(scenario.duration_s / sim.dt))
+    status = "completed"
+    trajectory = [] if keep_trajectory else None
+    message = ""
+    try:
+        for _ in range(n_ticks):
+            frame, healthy = sim.tick()
+            for observer in observers:
+                observer.on_tick(frame)
+            if trajectory is not None:
+                trajectory.append(frame.observation.position)
+            if not healthy:
+                status = "diverged"
+                message = f"physics diverged at t = {sim.time_s:.3f} s (non-finite state or MuJoCo warning)"
+                if recorder is not None:
+                    recorder.event(sim.time_s, message, level="ERROR")
+                break
+            if progress is not None and sim.tick_count % 100 == 0:
+                progress(sim.time_s / scenario.duration_s)
+    finally:
+        for observer in observers:
+            observer.close(status)
+
+    wall = time.perf_counter() - wall_start
+    metrics: dict[str, Any] = {
+        "scenario": scenario.name,
+        "strategy": scenario.strategy.kind,
+        "seed": scenario.seed,
+        "status": status,
+        "message": message,
+        "sim_time_s": sim.time_s,
+        "wall_time_s": wall,
+        "real_time_factor": sim.time_s / wall if wall > 0 else None,
+        "n_robots": sim.world.n_robots,
+        "n_quadrotors": int(len(sim.world.kind_index["quadrotor"])),
+        "n_ground_robots": int(len(sim.world.kind_index["ground"])),
+        "n_targets": sim.targets.n_targets,
+        "control_ticks": sim.tick_count,
+        **tracking.summary(),
+        **links.summary(),
+    }
+    summary = getattr(sim.strategy, "summary", None)
+    if callable(summary):
+        metrics.update(summary())
+    if out is not None:
+        files["metrics"] = str(out / "metrics.json")
+        _write_json(out / "metrics.json", metrics)
+    return RunResult(status, metrics, out, files, np.array(trajectory) if trajectory is not None else None)

@@ -1,0 +1,283 @@
+"""Scenario files: TOML -> a validated, frozen :class:`Scenario`.
+
+A scenario is a built-in name (``sim/scenarios/NAME.toml``) or a path to a
+TOML file. ``--set key=value`` overrides use dotted keys; list entries are
+addressed by index (``robots.0.count=6``). Checks that need the compiled
+world (robots inside walls, outside the scene) happen in :mod:`sim.world`.
+"""
+
+from __future__ import annotations
+
+import copy
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from sim.config import ConfigError, build, require
+from sim.registry import strategy_params_class, strategy_kinds
+
+SCENARIO_DIR = Path(__file__).parent / "scenarios"
+MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
+SCENE_DIR = MODELS_DIR / "scenes"
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class PhysicsConfig:
+    timestep_s: float = 0.002  # MuJoCo step, s
+    control_period_s: float = 0.01  # strategy + low-level control period, s
+
+    def __post_init__(self):
+        require(self.timestep_s > 0, "timestep_s", f"must be positive, got {self.timestep_s}")
+        require(self.control_period_s > 0, "control_period_s", f"must be positive, got {self.control_period_s}")
+        ratio = self.control_period_s / self.timestep_s
+        require(
+            ratio >= 1 and abs(ratio - round(ratio)) < 1e-6,
+            "control_period_s",
+            f"must be a whole multiple of timestep_s ({self.timestep_s}), got {self.control_period_s}",
+        )
+
+    @property
+    def substeps(self) -> int:
+        return int(round(self.control_period_s / self.timestep_s))
+
+
+@dataclass(frozen=True)
+class SensingConfig:
+    target_range_m: float = 5.0  # range sensor limit (seed 000: 5 m)
+    comm_range_m: float = 2.5  # robot-robot link range with line of sight, m
+    range_noise: bool = True  # add seed 000 eq. (12) noise to range readings
+    period_s: float = 1.0  # target range readings every period_s (seed 000's Delta t)
+
+    def __post_init__(self):
+        for name in ("target_range_m", "comm_range_m", "period_s"):
+            value = getattr(self, name)
+            require(value > 0, name, f"must be positive, got {value}")
+
+
+@dataclass(frozen=True)
+class RobotGroup:
+    """A group of robots of one kind: explicit ``starts`` or a grid of ``count``."""
+
+    kind: Literal["quadrotor", "ground"]
+    starts: tuple[Vec3, ...] = ()  # start positions, m (z ignored for ground robots)
+    count: int | None = None  # with spawn_center: a square grid of this many robots
+    spawn_center: Vec3 | None = None  # grid centre, m
+    spawn_spacing_m: float = 0.8  # grid spacing, m
+
+    def __post_init__(self):
+        if self.count is not None:
+            require(self.count >= 1, "count", f"must be at least 1, got {self.count}")
+            require(self.spawn_center is not None or len(self.starts) >= self.count,
+                    "spawn_center", "is required with count unless starts lists enough positions")
+        else:
+            require(len(self.starts) >= 1, "starts", "must list at least one start position (or give count)")
+        require(self.spawn_spacing_m > 0, "spawn_spacing_m", f"must be positive, got {self.spawn_spacing_m}")
+
+    def positions(self) -> list[Vec3]:
+        if self.count is None:
+            return list(self.starts)
+        if self.spawn_center is None or len(self.starts) >= self.count:
+            return list(self.starts[: self.count])
+        side = int(-(-self.count**0.5 // 1))
+        cx, cy, cz = self.spawn_center
+        offset = (side - 1) / 2
+        out = []
+        for i in range(self.count):
+            row, col = divmod(i, side)
+            out.append((cx + (col - offset) * self.spawn_spacing_m, cy + (row - offset) * self.spawn_spacing_m, cz))
+        return out
+
+
+@dataclass(frozen=True)
+class TargetConfig:
+    """One moving target (seed 000 eq. 11): linear back-and-forth, circular, or static."""
+
+    path: Literal["linear", "circular", "static"]
+    start: Vec3 | None = None  # linear/static: first point, m
+    end: Vec3 | None = None  # linear: second point, m
+    center: Vec3 | None = None  # circular: centre, m
+    radius_m: float = 0.5  # circular radius, m
+    speed_mps: float = 0.05  # speed along the path, m/s (sign = direction on circles)
+    phase_rad: float = 0.0  # circular start angle, rad
+
+    def __post_init__(self):
+        if self.path in ("linear", "static"):
+            require(self.start is not None, "start", f"is required for a {self.path} target")
+        if self.path == "linear":
+            require(self.end is not None, "end", "is required for a linear target")
+        if self.path == "circular":
+            require(self.center is not None, "center", "is required for a circular target")
+            require(self.radius_m > 0, "radius_m", f"must be positive, got {self.radius_m}")
+
+
+@dataclass(frozen=True)
+class TargetMotionConfig:
+    step_s: float = 1.0  # discrete time step of eq. (11), s
+    noise_std_m: float = 0.005  # process noise std per step and axis, m
+
+    def __post_init__(self):
+        require(self.step_s > 0, "step_s", f"must be positive, got {self.step_s}")
+        require(self.noise_std_m >= 0, "noise_std_m", f"must be non-negative, got {self.noise_std_m}")
+
+
+@dataclass(frozen=True)
+class VideoConfig:
+    width: int = 640  # px
+    height: int = 480  # px
+    fps: float = 30.0  # frames per second of sim time
+    camera: str = "top"  # a camera named in the scene, or "free" for a default view
+    shadows: bool = False
+
+    def __post_init__(self):
+        require(16 <= self.width <= 4096, "width", f"must be in [16, 4096] px, got {self.width}")
+        require(16 <= self.height <= 4096, "height", f"must be in [16, 4096] px, got {self.height}")
+        require(self.fps > 0, "fps", f"must be positive, got {self.fps}")
+
+
+@dataclass(frozen=True)
+class StrategyConfig:
+    kind: str
+    params: Any  # the kind's parameter dataclass
+
+
+@dataclass(frozen=True)
+class ScenarioBody:
+    """The scenario file's top level, the strategy table aside (its type
+    depends on ``strategy.kind``, so it is built through the registry)."""
+
+    name: str
+    scene: str  # built-in scene name or path to an MJCF file
+    robots: tuple[RobotGroup, ...]
+    description: str = ""
+    duration_s: float = 30.0  # simulated time, s
+    seed: int = 0  # seeds the run's single np.random.Generator
+    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
+    sensing: SensingConfig = field(default_factory=SensingConfig)
+    targets: tuple[TargetConfig, ...] = ()
+    target_motion: TargetMotionConfig = field(default_factory=TargetMotionConfig)
+    video: VideoConfig = field(default_factory=VideoConfig)
+
+    def __post_init__(self):
+        require(self.duration_s > 0, "duration_s", f"must be positive, got {self.duration_s}")
+        require(len(self.robots) >= 1, "robots", "must define at least one robot group")
+
+
+@dataclass(frozen=True)
+class Scenario(ScenarioBody):
+    strategy: StrategyConfig | None = None
+    source: str = ""  # the file it came from, to resolve relative scene paths
+
+    @property
+    def scene_path(self) -> Path:
+        return resolve_scene(self.scene, self.source)
+
+    def robot_starts(self) -> list[tuple[str, Vec3]]:
+        """(kind, start) for every robot, in robot order."""
+        return [(g.kind, p) for g in self.robots for p in g.positions()]
+
+
+def resolve_scene(scene: str, source: str = "") -> Path:
+    builtin = SCENE_DIR / f"{scene}.xml"
+    if builtin.is_file():
+        return builtin
+    path = Path(scene).expanduser()
+    if not path.is_absolute() and source:
+        candidate = Path(source).parent / path
+        if candidate.exists():
+            path = candidate
+    if not path.is_file():
+        names = ", ".join(builtin_scenes())
+        raise ConfigError("scene", f"'{scene}' is neither a built-in scene ({names}) nor an existing MJCF file")
+    return path
+
+
+def builtin_scenes() -> list[str]:
+    return sorted(p.stem for p in SCENE_DIR.glob("*.xml"))
+
+
+def builtin_scenarios() -> dict[str, str]:
+    """Built-in scenario name -> one-line description."""
+    out = {}
+    for path in sorted(SCENARIO_DIR.glob("*.toml")):
+        with open(path, "rb") as f:
+            out[path.stem] = tomllib.load(f).get("description", "")
+    return out
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text  # a bare word: take it as a string
+
+
+def apply_override(table: dict, assignment: str) -> None:
+    """Apply one ``key.path=value`` override in place."""
+    key, sep, text = assignment.partition("=")
+    key = key.strip()
+    if not sep or not key:
+        raise ConfigError("--set", f"expected key=value, got {assignment!r}")
+    parts = key.split(".")
+    node: Any = table
+    for i, part in enumerate(parts[:-1]):
+        where = ".".join(parts[: i + 1])
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                raise ConfigError(where, f"no list entry {part} (has {len(node)})")
+            node = node[int(part)]
+        else:
+            node = node.setdefault(part, {})
+        if not isinstance(node, (dict, list)):
+            raise ConfigError(where, "is a value, not a table")
+    last = parts[-1]
+    if isinstance(node, list):
+        if not last.isdigit() or int(last) >= len(node):
+            raise ConfigError(key, f"no list entry {last} (has {len(node)})")
+        node[int(last)] = _parse_value(text.strip())
+    else:
+        node[last] = _parse_value(text.strip())
+
+
+def read_table(name_or_path: str) -> tuple[dict, str]:
+    """The raw TOML table of a built-in name or a file, and its source path."""
+    builtin = SCENARIO_DIR / f"{name_or_path}.toml"
+    path = builtin if builtin.is_file() else Path(name_or_path).expanduser()
+    if not path.is_file():
+        names = ", ".join(builtin_scenarios())
+        raise ConfigError("scenario", f"'{name_or_path}' is neither a built-in scenario ({names}) nor a file")
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f), str(path)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError("scenario", f"{path} is not valid TOML: {err}") from None
+
+
+def from_table(table: dict, source: str = "") -> Scenario:
+    table = copy.deepcopy(table)
+    strategy_table = table.pop("strategy", None)
+    if not isinstance(strategy_table, dict) or "kind" not in strategy_table:
+        raise ConfigError("strategy.kind", f"is required (one of: {', '.join(strategy_kinds())})")
+    kind = strategy_table.pop("kind")
+    if kind not in strategy_kinds():
+        raise ConfigError("strategy.kind", f"unknown strategy {kind!r} (one of: {', '.join(strategy_kinds())})")
+    params = build(strategy_params_class(kind), strategy_table, "strategy")
+    table.setdefault("name", Path(source).stem if source else "scenario")
+    body = build(ScenarioBody, table)
+    fields = {k: getattr(body, k) for k in ScenarioBody.__dataclass_fields__}
+    return Scenario(**fields, strategy=StrategyConfig(kind, params), source=source)
+
+
+def load(name_or_path: str, overrides: list[str] = (), seed: int | None = None,
+         duration_s: float | None = None) -> Scenario:
+    """Load, override and validate a scenario (raises ConfigError)."""
+    table, source = read_table(name_or_path)
+    for assignment in overrides:
+        apply_override(table, assignment)
+    if seed is not None:
+        table["seed"] = seed
+    if duration_s is not None:
+        table["duration_s"] = duration_s
+    return from_table(table, source)

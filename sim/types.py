@@ -1,0 +1,96 @@
+"""Typed containers passed between the loop, strategies and observers.
+
+Pure numpy, no MuJoCo: strategies and controllers import these without
+depending on the simulator. All arrays are batched over robots (N first) or
+targets (M first). Units: m, s, rad; world frame, z up; quaternions w, x, y, z.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from sim.geometry import Boxes
+
+
+@dataclass(frozen=True)
+class WorldInfo:
+    """Static facts a strategy may use, fixed for the run."""
+
+    robot_names: tuple[str, ...]
+    robot_kinds: tuple[str, ...]  # "quadrotor" | "ground"
+    obstacles: Boxes  # static collision geometry, world frame
+    bounds: np.ndarray  # (2, 3) scene min / max corner, m
+    control_period_s: float
+    comm_range_m: float  # robot-robot link range (with line of sight), m
+    target_range_m: float  # range-sensor limit, m
+    n_targets: int
+
+    @property
+    def n_robots(self) -> int:
+        return len(self.robot_names)
+
+
+@dataclass(frozen=True)
+class Links:
+    """Robot-robot sensing/communication state, all (N, N), symmetric."""
+
+    distance: np.ndarray  # centre distance, m
+    line_of_sight: np.ndarray  # bool: segment free of obstacles (mj_ray)
+    clearance: np.ndarray  # segment distance to the nearest obstacle, m (inf if not computed)
+    adjacency: np.ndarray  # bool: within comm range and in line of sight, no self-loops
+
+    @property
+    def edges(self) -> np.ndarray:
+        """(E, 2) index pairs i < j of communicating robots."""
+        i, j = np.nonzero(np.triu(self.adjacency, 1))
+        return np.stack([i, j], axis=1)
+
+
+@dataclass(frozen=True)
+class Observation:
+    """What the robots sense at one control tick."""
+
+    time_s: float
+    tick: int
+    position: np.ndarray  # (N, 3) body position, m
+    velocity: np.ndarray  # (N, 3) linear velocity, m/s, world frame
+    quaternion: np.ndarray  # (N, 4) body orientation, w x y z
+    angular_velocity: np.ndarray  # (N, 3) body-frame angular velocity, rad/s
+    sensor_position: np.ndarray  # (N, 3) range-sensor site, m
+    links: Links
+    target_ranges: np.ndarray | None = None  # (N, M) noisy range, m; NaN = not seen; None = no reading this tick
+    target_step: int | None = None  # discrete target time step k of the readings
+
+
+@dataclass
+class Commands:
+    """A strategy's output: the reference ("virtual point") of every robot.
+
+    Quadrotors track position/velocity/acceleration and yaw; ground robots
+    track the horizontal reference as a single integrator.
+    """
+
+    position: np.ndarray  # (N, 3) m
+    velocity: np.ndarray  # (N, 3) m/s
+    acceleration: np.ndarray  # (N, 3) m/s^2
+    yaw: np.ndarray  # (N,) rad
+    info: dict[str, Any] = field(default_factory=dict)  # strategy figures for observers
+
+    def __post_init__(self):
+        n = len(self.position)
+        for name in ("position", "velocity", "acceleration"):
+            assert getattr(self, name).shape == (n, 3), (name, getattr(self, name).shape)
+        assert self.yaw.shape == (n,), self.yaw.shape
+
+
+class Strategy(Protocol):
+    """What the loop needs from a method; it never knows which one runs."""
+
+    def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
+        """Prepare for a run starting at ``initial``; keep ``rng`` for all randomness."""
+
+    def step(self, observation: Observation) -> Commands:
+        """References for every robot for the next control period."""

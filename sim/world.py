@@ -1,0 +1,227 @@
+"""World assembly: one scene + N robots + M targets, compiled once.
+
+Each robot file is attached N times through ``mujoco.MjSpec.attach`` with a
+name prefix (``quad0/``, ``ground3/``, ``target1/``); every id the loop needs
+is looked up by name here, once. Static collision geoms of the scene (group
+``OBSTACLE_GROUP``) become the :class:`~sim.geometry.Boxes` obstacle set that
+pure-math code (planners, clearance) uses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from sim.config import ConfigError
+from sim.geometry import Boxes, point_clearance
+from sim.scenario import MODELS_DIR, Scenario
+
+OBSTACLE_GROUP = 0  # scene geoms that collide and block line of sight
+ROBOT_FILES = {
+    "quadrotor": MODELS_DIR / "robots" / "quadrotor.xml",
+    "ground": MODELS_DIR / "robots" / "ground_robot.xml",
+}
+TARGET_FILE = MODELS_DIR / "robots" / "target.xml"
+ROBOT_PREFIX = {"quadrotor": "quad", "ground": "ground"}
+ROBOT_RADIUS_M = {"quadrotor": 0.25, "ground": 0.036}  # footprint radius for start checks
+SENSOR_SITE = {"quadrotor": "imu", "ground": "sensor"}
+INFINITE_PLANE_HALF_SIZE = 1e3  # m: a plane with size 0 is infinite
+PLANE_THICKNESS_M = 1.0  # planes become boxes this thick below their surface
+
+
+def obstacle_geomgroup() -> np.ndarray:
+    """mj_ray geomgroup mask that sees only static obstacles."""
+    mask = np.zeros(6, dtype=np.uint8)
+    mask[OBSTACLE_GROUP] = 1
+    return mask
+
+
+@dataclass
+class World:
+    """The compiled model plus the id tables of every robot and target."""
+
+    model: mujoco.MjModel
+    data: mujoco.MjData
+    scene_path: Path
+    robot_names: tuple[str, ...]
+    robot_kinds: tuple[str, ...]
+    body_ids: np.ndarray  # (N,) robot base bodies
+    qpos_adr: np.ndarray  # (N,) freejoint qpos start (x y z qw qx qy qz)
+    qvel_adr: np.ndarray  # (N,) freejoint qvel start (v_world, w_body)
+    sensor_site_ids: np.ndarray  # (N,)
+    actuator_ids: dict[str, np.ndarray]  # kind -> (N_kind, n_act) actuator ids
+    kind_index: dict[str, np.ndarray]  # kind -> robot indices of that kind
+    target_mocap_ids: np.ndarray  # (M,)
+    obstacles: Boxes
+    bounds: np.ndarray  # (2, 3)
+
+    @property
+    def n_robots(self) -> int:
+        return len(self.robot_names)
+
+
+def _attach(spec: mujoco.MjSpec, path: Path, prefix: str, pos) -> None:
+    child = mujoco.MjSpec.from_file(str(path))
+    for key in list(child.keys):  # robot keyframes are per-file; the loop sets state
+        child.delete(key)
+    frame = spec.worldbody.add_frame(pos=[float(v) for v in pos])
+    spec.attach(child, prefix=prefix, frame=frame)
+
+
+def load_scene_spec(scene_path: Path) -> mujoco.MjSpec:
+    try:
+        spec = mujoco.MjSpec.from_file(str(scene_path))
+        spec.compile()
+    except Exception as err:  # MuJoCo raises ValueError with a parser message
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ConfigError("scene", f"{scene_path} is not a valid MJCF scene: {first}") from None
+    return spec
+
+
+def extract_obstacles(model: mujoco.MjModel, data: mujoco.MjData) -> Boxes:
+    """Oriented boxes for every static obstacle geom (world body, obstacle group).
+
+    Boxes are exact; planes become thick slabs below their surface; other
+    shapes are replaced by their oriented bounding box (conservative).
+    """
+    centers, halves, rotations = [], [], []
+    for g in range(model.ngeom):
+        if model.geom_bodyid[g] != 0 or model.geom_group[g] != OBSTACLE_GROUP:
+            continue
+        if model.geom_contype[g] == 0 and model.geom_conaffinity[g] == 0:
+            continue
+        rot = data.geom_xmat[g].reshape(3, 3)
+        center = data.geom_xpos[g].copy()
+        gtype = model.geom_type[g]
+        if gtype == mujoco.mjtGeom.mjGEOM_BOX:
+            half = model.geom_size[g].copy()
+        elif gtype == mujoco.mjtGeom.mjGEOM_PLANE:
+            sx, sy = model.geom_size[g][:2]
+            half = np.array([sx or INFINITE_PLANE_HALF_SIZE, sy or INFINITE_PLANE_HALF_SIZE, PLANE_THICKNESS_M / 2])
+            center = center - rot[:, 2] * PLANE_THICKNESS_M / 2
+        else:
+            aabb = model.geom_aabb[g]  # local centre (3) then half sizes (3)
+            center = center + rot @ aabb[:3]
+            half = aabb[3:].copy()
+        centers.append(center)
+        halves.append(half)
+        rotations.append(rot.copy())
+    if not centers:
+        return Boxes(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)))
+    return Boxes(np.array(centers), np.array(halves), np.array(rotations))
+
+
+def scene_bounds(model: mujoco.MjModel, obstacles: Boxes) -> np.ndarray:
+    """Free-space bounds: the scene's ``tether_bounds`` numeric, else the
+    extent of its finite obstacles."""
+    try:
+        data = model.numeric("tether_bounds").data
+        return np.array(data, dtype=float).reshape(2, 3)
+    except KeyError:
+        pass
+    finite = np.all(obstacles.half_sizes < INFINITE_PLANE_HALF_SIZE / 2, axis=1)
+    if not finite.any():
+        return np.array([[-10.0, -10.0, 0.0], [10.0, 10.0, 5.0]])
+    corners = np.abs(obstacles.rotations[finite]) @ obstacles.half_sizes[finite][..., None]
+    lo = (obstacles.centers[finite] - corners[..., 0]).min(axis=0)
+    hi = (obstacles.centers[finite] + corners[..., 0]).max(axis=0)
+    lo[2] = max(lo[2], 0.0)
+    return np.array([lo, hi])
+
+
+def _robot_fields(scenario: Scenario) -> list[str]:
+    """The scenario field that placed each robot, for error messages."""
+    out = []
+    for g, group in enumerate(scenario.robots):
+        for k in range(len(group.positions())):
+            out.append(f"robots.{g}.starts.{k}" if group.count is None else f"robots.{g} (robot {k} of the spawn grid)")
+    return out
+
+
+def validate_placements(scenario: Scenario, obstacles: Boxes, bounds: np.ndarray, target_paths) -> None:
+    """Refuse robots and targets inside obstacles or outside the scene."""
+    for (kind, start), where in zip(scenario.robot_starts(), _robot_fields(scenario)):
+        p = np.array(start, dtype=float)
+        radius = ROBOT_RADIUS_M[kind]
+        lo, hi = bounds[0].copy(), bounds[1].copy()
+        if kind == "ground":
+            lo[2], hi[2] = -np.inf, np.inf
+        if np.any(p < lo) or np.any(p > hi):
+            raise ConfigError(where, f"start {tuple(p)} lies outside the scene bounds {bounds[0].tolist()} .. {bounds[1].tolist()}")
+        probe = p.copy()
+        if kind == "ground":
+            probe[2] = max(bounds[0][2], 0.0) + 0.05  # check the footprint just above the floor
+        if point_clearance(obstacles, probe[None])[0] < radius:
+            raise ConfigError(where, f"start {tuple(p)} is inside or within {radius} m of an obstacle")
+    for a, samples in enumerate(target_paths):
+        outside = np.any((samples < bounds[0]) | (samples > bounds[1]), axis=1)
+        if outside.any():
+            raise ConfigError(f"targets.{a}", f"path leaves the scene bounds at {tuple(np.round(samples[outside][0], 3))}")
+        blocked = point_clearance(obstacles, samples) <= 0.0
+        if blocked.any():
+            raise ConfigError(f"targets.{a}", f"path passes through an obstacle at {tuple(np.round(samples[blocked][0], 3))}")
+
+
+def build_world(scenario: Scenario, target_starts: np.ndarray, target_path_samples=()) -> World:
+    """Compile scene + robots + targets; validate placements (ConfigError)."""
+    scene_path = scenario.scene_path
+    spec = load_scene_spec(scene_path)
+    scene_model = spec.compile()
+    scene_data = mujoco.MjData(scene_model)
+    mujoco.mj_forward(scene_model, scene_data)
+    obstacles = extract_obstacles(scene_model, scene_data)
+    bounds = scene_bounds(scene_model, obstacles)
+    validate_placements(scenario, obstacles, bounds, target_path_samples)
+
+    names, kinds = [], []
+    counters = {kind: 0 for kind in ROBOT_FILES}
+    for kind, start in scenario.robot_starts():
+        name = f"{ROBOT_PREFIX[kind]}{counters[kind]}"
+        counters[kind] += 1
+        _attach(spec, ROBOT_FILES[kind], f"{name}/", (0.0, 0.0, 0.0))
+        names.append(name)
+        kinds.append(kind)
+    for a, start in enumerate(target_starts):
+        _attach(spec, TARGET_FILE, f"target{a}/", start)
+    model = spec.compile()
+    data = mujoco.MjData(model)
+
+    body_ids = np.array([model.body(f"{n}/base").id for n in names], dtype=int)
+    joint_ids = [model.joint(f"{n}/root").id for n in names]
+    qpos_adr = np.array([model.jnt_qposadr[j] for j in joint_ids], dtype=int)
+    qvel_adr = np.array([model.jnt_dofadr[j] for j in joint_ids], dtype=int)
+    sensor_sites = np.array([model.site(f"{n}/{SENSOR_SITE[k]}").id for n, k in zip(names, kinds)], dtype=int)
+    kind_index = {k: np.array([i for i, kk in enumerate(kinds) if kk == k], dtype=int) for k in ROBOT_FILES}
+    actuator_names = {"quadrotor": ["thrust1", "thrust2", "thrust3", "thrust4"], "ground": ["left_wheel", "right_wheel"]}
+    actuator_ids = {
+        k: np.array([[model.actuator(f"{names[i]}/{a}").id for a in actuator_names[k]] for i in idx], dtype=int).reshape(len(idx), len(actuator_names[k]))
+        for k, idx in kind_index.items()
+    }
+    mocap_ids = np.array([model.body_mocapid[model.body(f"target{a}/base").id] for a in range(len(target_starts))], dtype=int)
+
+    world = World(
+        model=model, data=data, scene_path=scene_path, robot_names=tuple(names), robot_kinds=tuple(kinds),
+        body_ids=body_ids, qpos_adr=qpos_adr, qvel_adr=qvel_adr, sensor_site_ids=sensor_sites,
+        actuator_ids=actuator_ids, kind_index=kind_index, target_mocap_ids=mocap_ids,
+        obstacles=obstacles, bounds=bounds,
+    )
+    place_robots(world, [np.array(s, dtype=float) for _, s in scenario.robot_starts()])
+    return world
+
+
+def place_robots(world: World, starts: list[np.ndarray]) -> None:
+    """Put every robot at its start, level and at rest. Ground robots keep the
+    wheel-contact height of their model file."""
+    model, data = world.model, world.data
+    mujoco.mj_resetData(model, data)
+    for i, start in enumerate(starts):
+        adr = world.qpos_adr[i]
+        position = start.copy()
+        if world.robot_kinds[i] == "ground":
+            position[2] = model.body_pos[world.body_ids[i]][2]
+        data.qpos[adr : adr + 3] = position
+        data.qpos[adr + 3 : adr + 7] = (1.0, 0.0, 0.0, 0.0)
+    mujoco.mj_forward(model, data)
