@@ -15,6 +15,9 @@ import numpy as np
 # shrink the bracket by 0.618**40 ~ 4e-9 of the segment length.
 _GOLDEN_STEPS = 40
 _INV_PHI = (np.sqrt(5.0) - 1.0) / 2.0
+# A segment crossing a box has a plateau of zeros that the search may only
+# approach to within its bracket; anything closer than this is contact.
+CONTACT_TOLERANCE_M = 1e-7
 
 
 @dataclass(frozen=True)
@@ -145,6 +148,7 @@ def segment_clearance(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> SegmentClea
     pick = values.argmin(axis=0)
     s = np.take_along_axis(candidates, pick[None], 0)[0]
     dist = np.take_along_axis(values, pick[None], 0)[0]
+    dist[dist < CONTACT_TOLERANCE_M] = 0.0
 
     best_box = dist.argmin(axis=1)
     rows = np.arange(n)

@@ -35,6 +35,18 @@ _WARNINGS_THAT_DIVERGE = (
 )
 
 
+_mujoco_warnings: list[str] = []
+
+
+def _collect_warning(text: str) -> None:
+    # MuJoCo would print and append to MUJOCO_LOG.TXT in the working folder;
+    # the loop reports divergence itself, with the first warning's text.
+    _mujoco_warnings.append(text.strip())
+
+
+mujoco.set_mju_user_warning(_collect_warning)
+
+
 @dataclass
 class RunResult:
     status: str  # "completed" | "diverged"
@@ -74,7 +86,7 @@ class Simulation:
         self.control.hover_ctrl()
         mujoco.mj_forward(self.world.model, self.world.data)
         self.strategy = strategy_class(scenario.strategy.kind)(scenario.strategy.params)
-        self.strategy.reset(self.info, self.observe(), self.rng)
+        self.strategy.reset(self.info, self.observe(read_targets=False), self.rng)
 
     def _warning_count(self) -> int:
         return int(sum(self.world.data.warning[w].number for w in _WARNINGS_THAT_DIVERGE))
@@ -85,8 +97,9 @@ class Simulation:
             self.world.data.mocap_pos[self.world.target_mocap_ids] = positions
         return positions
 
-    def observe(self) -> Observation:
-        """Read the state and sense (target ranges only at reading instants)."""
+    def observe(self, read_targets: bool = True) -> Observation:
+        """Read the state and sense; target ranges only at reading instants
+        (every ``sensing.period_s``) and when ``read_targets``."""
         world, data = self.world, self.world.data
         qpos, qvel = data.qpos, data.qvel
         position = np.stack([qpos[a : a + 3] for a in world.qpos_adr])
@@ -95,7 +108,7 @@ class Simulation:
         angular = np.stack([qvel[a + 3 : a + 6] for a in world.qvel_adr])
         sensors = self.sensors.sensor_positions()
         ranges, step = None, None
-        if self.targets.n_targets and self.time_s + 1e-9 >= self._next_reading_s:
+        if read_targets and self.targets.n_targets and self.time_s + 1e-9 >= self._next_reading_s:
             ranges = self.sensors.target_ranges(sensors, data.mocap_pos[world.target_mocap_ids], self.rng)
             step = int(round(self.time_s / self.scenario.target_motion.step_s))
             self._next_reading_s += self.scenario.sensing.period_s
@@ -146,8 +159,13 @@ def run(
     Validation errors (ConfigError) are raised before anything is written.
     """
     wall_start = time.perf_counter()
+    _mujoco_warnings.clear()
     sim = Simulation(scenario)
     out = Path(out_dir) if out_dir is not None else None
+    if video:
+        from viz.video import resolve_camera
+
+        resolve_camera(sim.world.model, scenario.video.camera)  # refuse before writing anything
     observers: list[Any] = []
     tracking = TrackingMetrics(sim.world.robot_kinds)
     links = LinkMetrics()
@@ -183,7 +201,8 @@ def run(
                 trajectory.append(frame.observation.position)
             if not healthy:
                 status = "diverged"
-                message = f"physics diverged at t = {sim.time_s:.3f} s (non-finite state or MuJoCo warning)"
+                detail = _mujoco_warnings[-1] if _mujoco_warnings else "non-finite state"
+                message = f"physics diverged at t = {sim.time_s:.3f} s: {detail}"
                 if recorder is not None:
                     recorder.event(sim.time_s, message, level="ERROR")
                 break

@@ -128,7 +128,7 @@ class VideoConfig:
     width: int = 640  # px
     height: int = 480  # px
     fps: float = 30.0  # frames per second of sim time
-    camera: str = "top"  # a camera named in the scene, or "free" for a default view
+    camera: str = "auto"  # a camera named in the scene, "free" (default view), or "auto": "top" if the scene has it
     shadows: bool = False
 
     def __post_init__(self):

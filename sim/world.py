@@ -145,24 +145,25 @@ def validate_placements(scenario: Scenario, obstacles: Boxes, bounds: np.ndarray
     """Refuse robots and targets inside obstacles or outside the scene."""
     for (kind, start), where in zip(scenario.robot_starts(), _robot_fields(scenario)):
         p = np.array(start, dtype=float)
+        shown = tuple(float(v) for v in p)
         radius = ROBOT_RADIUS_M[kind]
         lo, hi = bounds[0].copy(), bounds[1].copy()
         if kind == "ground":
             lo[2], hi[2] = -np.inf, np.inf
         if np.any(p < lo) or np.any(p > hi):
-            raise ConfigError(where, f"start {tuple(p)} lies outside the scene bounds {bounds[0].tolist()} .. {bounds[1].tolist()}")
+            raise ConfigError(where, f"start {shown} lies outside the scene bounds {bounds[0].tolist()} .. {bounds[1].tolist()}")
         probe = p.copy()
         if kind == "ground":
             probe[2] = max(bounds[0][2], 0.0) + 0.05  # check the footprint just above the floor
         if point_clearance(obstacles, probe[None])[0] < radius:
-            raise ConfigError(where, f"start {tuple(p)} is inside or within {radius} m of an obstacle")
+            raise ConfigError(where, f"start {shown} is inside or within {radius} m of an obstacle")
     for a, samples in enumerate(target_paths):
         outside = np.any((samples < bounds[0]) | (samples > bounds[1]), axis=1)
         if outside.any():
-            raise ConfigError(f"targets.{a}", f"path leaves the scene bounds at {tuple(np.round(samples[outside][0], 3))}")
+            raise ConfigError(f"targets.{a}", f"path leaves the scene bounds at {tuple(float(v) for v in np.round(samples[outside][0], 3))}")
         blocked = point_clearance(obstacles, samples) <= 0.0
         if blocked.any():
-            raise ConfigError(f"targets.{a}", f"path passes through an obstacle at {tuple(np.round(samples[blocked][0], 3))}")
+            raise ConfigError(f"targets.{a}", f"path passes through an obstacle at {tuple(float(v) for v in np.round(samples[blocked][0], 3))}")
 
 
 def build_world(scenario: Scenario, target_starts: np.ndarray, target_path_samples=()) -> World:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from sim.config import ConfigError
 from sim.observers import Frame
 from sim.scenario import VideoConfig
 from sim.world import World
@@ -27,6 +28,16 @@ def link_color(weight: float) -> np.ndarray:
     """Green (strong, weight 1) to red (about to break, weight 0)."""
     w = float(np.clip(weight, 0.0, 1.0))
     return np.array([1.0 - w, 0.2 + 0.6 * w, 0.15, 0.9], dtype=np.float32)
+
+
+def resolve_camera(model: mujoco.MjModel, name: str) -> str:
+    """The camera a video uses; ConfigError if the scene lacks a named one."""
+    names = [model.camera(i).name for i in range(model.ncam)]
+    if name == "auto":
+        return "top" if "top" in names else "free"
+    if name != "free" and name not in names:
+        raise ConfigError("video.camera", f"no camera {name!r} in the scene (choose from {names + ['free', 'auto']})")
+    return name
 
 
 class VideoRecorder:
@@ -50,7 +61,7 @@ class VideoRecorder:
         else:
             self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
         self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
-        self.camera = self._camera(config.camera)
+        self.camera = self._camera(resolve_camera(world.model, config.camera))
         self.writer = imageio.get_writer(
             path, fps=config.fps, codec="libx264", quality=7, macro_block_size=1,
             ffmpeg_log_level="error", output_params=["-pix_fmt", "yuv420p"],
@@ -59,13 +70,8 @@ class VideoRecorder:
         self._next_time = 0.0
 
     def _camera(self, name: str):
-        model = self.world.model
         if name != "free":
-            try:
-                return model.camera(name).id
-            except KeyError:
-                names = [model.camera(i).name for i in range(model.ncam)]
-                raise ValueError(f"video.camera: no camera {name!r} in the scene (has {names + ['free']})") from None
+            return self.world.model.camera(name).id
         cam = mujoco.MjvCamera()
         lo, hi = self.world.bounds
         cam.lookat[:] = (lo + hi) / 2

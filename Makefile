@@ -1,0 +1,42 @@
+# tether: `make demo` and `make test` set everything up on a fresh machine.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+export OPENBLAS_NUM_THREADS := 1
+export MUJOCO_GL ?= egl
+export PYOPENGL_PLATFORM ?= egl
+
+# Debian packages: Mesa's EGL for offscreen rendering without a GPU.
+APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libgles2
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+
+.PHONY: demo test test-fast bench system-deps clean
+
+system-deps:
+	@if ! ldconfig -p | grep -q 'libEGL_mesa.so.0'; then \
+	  echo "installing EGL/Mesa ($(APT_PACKAGES))"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq $(APT_PACKAGES) >/dev/null; \
+	fi
+
+$(STAMP): pyproject.toml
+	python3 -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[test]'
+	touch $(STAMP)
+
+demo: system-deps $(STAMP)
+	$(VENV)/bin/tether run hover --video --rrd --out runs/demo
+	@echo "metrics: runs/demo/metrics.json   video: runs/demo/video.mp4"
+	@echo "open the recording with: $(VENV)/bin/rerun runs/demo/run.rrd"
+
+test: system-deps $(STAMP)
+	$(PY) -m pytest -q
+
+test-fast: system-deps $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
+
+bench: system-deps $(STAMP)
+	$(PY) bench/bench_foundation.py
+
+clean:
+	rm -rf runs .pytest_cache

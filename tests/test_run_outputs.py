@@ -1,0 +1,128 @@
+"""`tether run hover --video --rrd` end to end: files read back, determinism,
+observers that do not perturb, divergence reported with readable outputs."""
+
+import json
+import subprocess
+import sys
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+
+from sim.loop import run
+from sim.scenario import load
+
+from helpers import rrd_chunks, rrd_rows, write_scenario
+
+DURATION_S = 2.0
+
+
+@pytest.fixture(scope="module")
+def hover_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("hover")
+    result = subprocess.run(
+        [sys.executable, "-m", "sim.cli", "run", "hover", "--duration", str(DURATION_S), "--out", str(out),
+         "--video", "--rrd", "--quiet"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert result.returncode == 0, result.stderr
+    return out, result.stdout
+
+
+def test_metrics_json_has_the_foundation_keys(hover_run):
+    out, stdout = hover_run
+    metrics = json.loads((out / "metrics.json").read_text())
+    for key in ("scenario", "strategy", "seed", "status", "sim_time_s", "wall_time_s", "real_time_factor",
+                "n_robots", "tracking_error_mean_m", "tracking_error_max_m"):
+        assert key in metrics, key
+    assert metrics["status"] == "completed"
+    assert metrics["n_robots"] == 8
+    assert metrics["sim_time_s"] == pytest.approx(DURATION_S)
+    assert 0 < metrics["tracking_error_mean_m"] < 0.05
+    assert "rerun" in stdout and "run.rrd" in stdout
+
+
+def test_video_frames_match_duration_and_move(hover_run):
+    out, _ = hover_run
+    fps = load("hover").video.fps
+    reader = imageio.get_reader(out / "video.mp4")
+    frames = [frame for frame in reader]
+    assert len(frames) == round(DURATION_S * fps)
+    first, last = frames[0].astype(float), frames[-1].astype(float)
+    assert first.mean() > 30  # not black
+    assert np.abs(first - last).mean() > 0.05  # robots moved: frames differ
+    assert first.shape == (480, 640, 3)
+
+
+def test_recording_has_entities_rows_and_a_blueprint(hover_run):
+    out, _ = hover_run
+    from rerun.chunk import RrdReader
+
+    chunks = rrd_chunks(out / "run.rrd")
+    for entity in ("/world/obstacles", "/world/robots", "/world/references", "/world/targets/true",
+                   "/world/links", "/metrics/edges", "/events"):
+        assert entity in chunks, entity
+    expected_rows = round(DURATION_S / 0.05)
+    assert rrd_rows(chunks["/world/targets/true"]) == expected_rows
+    assert rrd_rows(chunks["/world/links"]) == expected_rows
+    assert rrd_rows(chunks["/world/obstacles"]) == 1
+    assert RrdReader(str(out / "run.rrd")).blueprints(), "default blueprint missing"
+
+
+def test_same_seed_same_run_and_observers_do_not_perturb(tmp_path):
+    scenario = load("hover", duration_s=1.0)
+    plain = run(scenario, keep_trajectory=True)
+    watched = run(scenario, tmp_path, video=True, rrd=True, keep_trajectory=True)
+    np.testing.assert_array_equal(plain.trajectory, watched.trajectory)
+    timing = {"wall_time_s", "real_time_factor"}
+    strip = lambda m: {k: v for k, v in m.items() if k not in timing}  # noqa: E731
+    assert strip(plain.metrics) == strip(watched.metrics)
+
+
+def test_seed_changes_target_motion(tmp_path):
+    a = run(load("hover", duration_s=1.0, seed=1), keep_trajectory=True)
+    b = run(load("hover", duration_s=1.0, seed=2), keep_trajectory=True)
+    assert a.metrics["seed"] != b.metrics["seed"]
+    from sim.loop import Simulation
+
+    s1, s2 = Simulation(load("hover", seed=1)), Simulation(load("hover", seed=2))
+    assert not np.allclose(s1.targets.positions(5.0), s2.targets.positions(5.0))
+
+
+UNSTABLE_SCENE = """
+<mujoco model="unstable">
+  <option integrator="Euler"/>
+  <custom><numeric name="tether_bounds" data="0 0 0 10 10 5"/></custom>
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 0.05" pos="5 5 0"/>
+    <body name="spring" pos="9 9 1">
+      <joint name="spring" type="slide" axis="0 0 1" stiffness="1e12" springref="0.5"/>
+      <geom name="bob" type="sphere" size="0.05" mass="0.001" contype="0" conaffinity="0" group="2"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_diverging_run_stops_with_status_and_readable_outputs(tmp_path):
+    (tmp_path / "unstable.xml").write_text(UNSTABLE_SCENE)
+    path = write_scenario(tmp_path, """
+        scene = "unstable.xml"
+        duration_s = 2.0
+        [strategy]
+        kind = "waypoints"
+        [[robots]]
+        kind = "quadrotor"
+        starts = [[2.0, 2.0, 1.0]]
+    """)
+    out = tmp_path / "out"
+    result = subprocess.run([sys.executable, "-m", "sim.cli", "run", str(path), "--out", str(out), "--video",
+                             "--rrd", "--quiet"], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 1
+    assert "diverged" in result.stdout
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "diverged" and "QACC" in metrics["message"]
+    assert sum(1 for _ in imageio.get_reader(out / "video.mp4")) >= 1
+    events = rrd_chunks(out / "run.rrd")["/events"]
+    texts = [t for c in events for t in c.to_record_batch().column("TextLog:text").to_pylist()]
+    assert any("diverged" in str(t) for t in texts)
