@@ -11,13 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# Golden-section iterations for the convex 1-D search along a segment; 40 steps
-# shrink the bracket by 0.618**40 ~ 4e-9 of the segment length.
-_GOLDEN_STEPS = 40
-_INV_PHI = (np.sqrt(5.0) - 1.0) / 2.0
-# A segment crossing a box has a plateau of zeros that the search may only
-# approach to within its bracket; anything closer than this is contact.
-CONTACT_TOLERANCE_M = 1e-7
+# Round-off below this is contact (a segment grazing or crossing a box).
+CONTACT_TOLERANCE_M = 1e-9
 
 
 @dataclass(frozen=True)
@@ -107,9 +102,8 @@ class SegmentClearance:
 def segment_clearance(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> SegmentClearance:
     """Minimum distance from each segment [a_p, b_p] to all boxes.
 
-    The distance from a point to a convex box is convex, so along a segment it
-    is a convex function of s; a vectorised golden-section search finds its
-    minimum for every (segment, box) pair at once.
+    Exact (piecewise-quadratic minimisation per box, see
+    :func:`_segment_box_distance`), vectorised over all candidate pairs.
     """
     a = np.atleast_2d(np.asarray(a, dtype=float))
     b = np.atleast_2d(np.asarray(b, dtype=float))
@@ -117,47 +111,78 @@ def segment_clearance(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> SegmentClea
     if len(boxes) == 0 or n == 0:
         return SegmentClearance(np.full(n, np.inf), np.zeros(n), np.full((n, 3), np.nan))
     k = len(boxes)
-    # Work in each box frame: (P, K, 3).
-    la = boxes.to_local(a)
-    lb = boxes.to_local(b)
-    half = boxes.half_sizes[None]
+    # Prune (segment, box) pairs that cannot hold the minimum: a box whose
+    # bounding sphere is farther from the segment than the segment's nearest
+    # sampled point is from any box is skipped.
+    upper = point_clearance(boxes, np.concatenate([a, b, 0.5 * (a + b)])).reshape(3, n).min(axis=0)
+    radius = np.linalg.norm(boxes.half_sizes, axis=1)
+    lower = _point_segment_distance(boxes.centers, a, b) - radius[None, :]
+    rows, cols = np.nonzero(lower <= upper[:, None] + 1e-12)
+    # Work in each candidate box's frame: (C, 3).
+    rot = boxes.rotations[cols]
+    la = np.einsum("ci,cij->cj", a[rows] - boxes.centers[cols], rot)
+    lb = np.einsum("ci,cij->cj", b[rows] - boxes.centers[cols], rot)
+    half = boxes.half_sizes[cols]
 
-    def dist_at(s: np.ndarray) -> np.ndarray:
-        p = la + s[..., None] * (lb - la)
-        return np.linalg.norm(p - np.clip(p, -half, half), axis=-1)
-
-    lo = np.zeros((n, k))
-    hi = np.ones((n, k))
-    x1 = hi - _INV_PHI * (hi - lo)
-    x2 = lo + _INV_PHI * (hi - lo)
-    f1, f2 = dist_at(x1), dist_at(x2)
-    for _ in range(_GOLDEN_STEPS):
-        left = f1 <= f2  # minimum lies in [lo, x2]
-        hi = np.where(left, x2, hi)
-        lo = np.where(left, lo, x1)
-        x2n = np.where(left, x1, lo + _INV_PHI * (hi - lo))
-        x1n = np.where(left, hi - _INV_PHI * (hi - lo), x2)
-        x1, x2 = x1n, x2n
-        f_new = dist_at(np.where(left, x1, x2))
-        f1, f2 = np.where(left, f_new, f2), np.where(left, f1, f_new)
-    s = 0.5 * (lo + hi)
-    # The endpoints themselves may be the minimisers (golden section never
-    # evaluates exactly there).
-    candidates = np.stack([s, np.zeros_like(s), np.ones_like(s)])
-    values = dist_at(candidates)
-    pick = values.argmin(axis=0)
-    s = np.take_along_axis(candidates, pick[None], 0)[0]
-    dist = np.take_along_axis(values, pick[None], 0)[0]
-    dist[dist < CONTACT_TOLERANCE_M] = 0.0
+    s_cand, d_cand = _segment_box_distance(la, lb, half)
+    d_cand[d_cand < CONTACT_TOLERANCE_M] = 0.0
+    dist = np.full((n, k), np.inf)
+    s = np.zeros((n, k))
+    dist[rows, cols] = d_cand
+    s[rows, cols] = s_cand
 
     best_box = dist.argmin(axis=1)
-    rows = np.arange(n)
-    s_best = s[rows, best_box]
-    d_best = dist[rows, best_box]
-    p_local = la[rows, best_box] + s_best[:, None] * (lb[rows, best_box] - la[rows, best_box])
-    w_local = np.clip(p_local, -boxes.half_sizes[best_box], boxes.half_sizes[best_box])
-    witness = np.einsum("pij,pj->pi", boxes.rotations[best_box], w_local) + boxes.centers[best_box]
+    segment = np.arange(n)
+    s_best = s[segment, best_box]
+    d_best = dist[segment, best_box]
+    point = a + s_best[:, None] * (b - a)
+    _, closest = boxes.point_distances(point)
+    witness = closest[segment, best_box]
     return SegmentClearance(d_best, s_best, witness)
+
+
+def _segment_box_distance(la: np.ndarray, lb: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact distance from segments [la, lb] (C, 3) to centred boxes with half
+    extents ``half`` (C, 3), all in box frames; returns (s*, distance), (C,).
+
+    Along p(s) = la + s d each axis is below, inside or above its slab, with
+    switches at most at 6 values of s. Between switches the squared distance
+    is a convex quadratic sum_i (alpha_i + beta_i s)^2, minimised in closed
+    form and clamped to the interval; the best interval wins.
+    """
+    d = lb - la
+    with np.errstate(divide="ignore", invalid="ignore"):
+        crossings = np.concatenate([(-half - la) / d, (half - la) / d], axis=1)  # (C, 6)
+    crossings = np.where(np.isfinite(crossings), np.clip(crossings, 0.0, 1.0), 0.0)
+    knots = np.sort(np.concatenate([np.zeros((len(la), 1)), crossings, np.ones((len(la), 1))], axis=1), axis=1)
+    start, end = knots[:, :-1], knots[:, 1:]  # (C, 7) intervals
+    mid = 0.5 * (start + end)
+    p_mid = la[:, None, :] + mid[..., None] * d[:, None, :]  # (C, 7, 3)
+    above = p_mid > half[:, None, :]
+    below = p_mid < -half[:, None, :]
+    # excess_i(s) = alpha_i + beta_i s on the outside axes, 0 inside.
+    alpha = np.where(above, la[:, None, :] - half[:, None, :], np.where(below, -half[:, None, :] - la[:, None, :], 0.0))
+    beta = np.where(above, d[:, None, :], np.where(below, -d[:, None, :], 0.0))
+    bb = (beta * beta).sum(axis=-1)
+    ab = (alpha * beta).sum(axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_star = np.where(bb > 0, -ab / bb, mid)
+    s_star = np.clip(s_star, start, end)
+    # Evaluate the true distance (not the interval's quadratic) at each candidate.
+    p = la[:, None, :] + s_star[..., None] * d[:, None, :]
+    dist = np.linalg.norm(p - np.clip(p, -half[:, None, :], half[:, None, :]), axis=-1)
+    best = dist.argmin(axis=1)
+    rows = np.arange(len(la))
+    return s_star[rows, best], dist[rows, best]
+
+
+def _point_segment_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance (P, K) from each of K points to each of P segments [a_p, b_p]."""
+    ab = b - a
+    length2 = np.maximum(np.einsum("pi,pi->p", ab, ab), 1e-300)
+    rel = points[None, :, :] - a[:, None, :]
+    t = np.clip(np.einsum("pki,pi->pk", rel, ab) / length2[:, None], 0.0, 1.0)
+    return np.linalg.norm(rel - t[..., None] * ab[:, None, :], axis=-1)
 
 
 def segments_free(boxes: Boxes, a: np.ndarray, b: np.ndarray, margin: float = 0.0) -> np.ndarray:
