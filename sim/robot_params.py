@@ -85,13 +85,15 @@ def quadrotor_params(model: mujoco.MjModel, prefix: str = "") -> QuadrotorParams
         if np.abs(force_dir[:2]).max() > _TOL or force_dir[2] <= 0 or np.abs(torque_dir[:2]).max() > _TOL:
             raise ValueError(f"rotor {prefix + name} does not push along body z")
         newtons_per_ctrl = float(model.actuator_gainprm[act, 0] * force_dir[2])
-        lo, hi = model.actuator_ctrlrange[act] if model.actuator_ctrllimited[act] else (0.0, np.inf)
+        if abs(newtons_per_ctrl - 1.0) > _TOL:
+            raise ValueError(f"actuator {prefix + name}: ctrl must be thrust in N (gain x gear = 1)")
+        if not model.actuator_ctrllimited[act]:
+            raise ValueError(f"actuator {prefix + name} has no ctrlrange (thrust limits)")
+        lo, hi = model.actuator_ctrlrange[act]
         positions.append(np.array(model.site_pos[site]) - com)
         drag.append(torque_dir[2] / force_dir[2])
         t_min.append(lo * newtons_per_ctrl)
         t_max.append(hi * newtons_per_ctrl)
-        if abs(newtons_per_ctrl - 1.0) > _TOL:
-            raise ValueError(f"actuator {prefix + name}: ctrl must be thrust in N (gain x gear = 1)")
 
     return QuadrotorParams(
         mass=mass,
