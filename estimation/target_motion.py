@@ -67,7 +67,9 @@ class TargetMotion:
 
     def __init__(self, paths: list[TargetPath], dt: float, noise_std: float):
         if dt <= 0:
-            raise ValueError("dt must be positive")
+            raise ValueError(f"dt: must be positive, got {dt}")
+        if noise_std < 0:
+            raise ValueError(f"noise_std: must be non-negative, got {noise_std}")
         self.paths = list(paths)
         self.dt = dt
         self.noise_std = noise_std
