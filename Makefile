@@ -26,8 +26,6 @@ $(STAMP): pyproject.toml
 
 demo: system-deps $(STAMP)
 	$(VENV)/bin/tether run hover --video --rrd --out runs/demo
-	@echo "metrics: runs/demo/metrics.json   video: runs/demo/video.mp4"
-	@echo "open the recording with: $(VENV)/bin/rerun runs/demo/run.rrd"
 
 test: system-deps $(STAMP)
 	$(PY) -m pytest -q

@@ -71,7 +71,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     for name, path in result.files.items():
         print(f"  {name:10s} {path}")
     if "recording" in result.files:
-        print(f"  open the recording with: rerun {result.files['recording']}")
+        viewer = Path(sys.executable).parent / "rerun"
+        command = str(viewer) if viewer.exists() else "rerun"
+        print(f"  open the recording with: {command} {result.files['recording']}")
     return 0 if result.status == "completed" else 1
 
 
