@@ -40,6 +40,27 @@ def resolve_camera(model: mujoco.MjModel, name: str) -> str:
     return name
 
 
+def overlay_text(frame: Frame) -> str:
+    """Sim time, link count and the strategy's own line (``info['overlay']``)."""
+    parts = [f"t = {frame.observation.time_s:6.1f} s", f"links {len(frame.observation.links.edges)}"]
+    extra = frame.commands.info.get("overlay")
+    if extra:
+        parts.append(str(extra))
+    return "   ".join(parts)
+
+
+def burn_overlay(image: np.ndarray, text: str) -> np.ndarray:
+    """Draw ``text`` on a dark band at the top-left of the frame."""
+    from PIL import Image, ImageDraw
+
+    canvas = Image.fromarray(image)
+    draw = ImageDraw.Draw(canvas)
+    left, top, right, bottom = draw.textbbox((6, 4), text)
+    draw.rectangle((0, 0, right + 6, bottom + 4), fill=(20, 20, 28))
+    draw.text((6, 4), text, fill=(235, 235, 235))
+    return np.asarray(canvas)
+
+
 class VideoRecorder:
     def __init__(self, world: World, config: VideoConfig, path: str):
         import imageio.v2 as imageio
@@ -115,7 +136,8 @@ class VideoRecorder:
         # Ground robots are 7 cm across: a translucent halo keeps them visible.
         for i in self.world.kind_index["ground"]:
             self._add_sphere(positions[i], GROUND_HALO_RADIUS_M, GROUND_HALO_RGBA)
-        self.writer.append_data(self.renderer.render())
+        image = self.renderer.render()
+        self.writer.append_data(burn_overlay(image, overlay_text(frame)))
         self.frames_written += 1
 
     def close(self, status: str) -> None:
