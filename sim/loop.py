@@ -175,6 +175,10 @@ def run(
         out.mkdir(parents=True, exist_ok=True)
         for stale in ("metrics.json", "video.mp4", "run.rrd"):
             (out / stale).unlink(missing_ok=True)
+        from viz.plots import PlotRecorder
+
+        plots = PlotRecorder(sim.world.robot_kinds, out / "plots")
+        observers.append(plots)
     if video:
         from viz.video import VideoRecorder
 
@@ -234,6 +238,7 @@ def run(
     if callable(summary):
         metrics.update(summary())
     if out is not None:
+        files["plots"] = str(out / "plots")
         files["metrics"] = str(out / "metrics.json")
         _write_json(out / "metrics.json", metrics)
     return RunResult(status, metrics, out, files, np.array(trajectory) if trajectory is not None else None)

@@ -28,21 +28,28 @@ class Observer(Protocol):
     def close(self, status: str) -> None: ...
 
 
+def tracking_errors(robot_kinds: tuple[str, ...], position: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(N,) body-to-reference distance, m: 3D for quadrotors, horizontal for
+    ground robots (their reference height is meaningless)."""
+    diff = position - reference
+    ground = np.array([k == "ground" for k in robot_kinds])
+    diff[ground, 2] = 0.0
+    return np.linalg.norm(diff, axis=1)
+
+
 class TrackingMetrics:
     """Body vs reference ("virtual point") error: 3D for quadrotors, horizontal
     for ground robots (their reference height is meaningless)."""
 
     def __init__(self, robot_kinds: tuple[str, ...]):
-        self._mask = np.ones((len(robot_kinds), 3))
-        self._mask[[k == "ground" for k in robot_kinds], 2] = 0.0
+        self._kinds = robot_kinds
         self._sum = 0.0
         self._count = 0
         self._max = 0.0
         self.last_error = np.zeros(len(robot_kinds))
 
     def on_tick(self, frame: Frame) -> None:
-        diff = (frame.observation.position - frame.commands.position) * self._mask
-        error = np.linalg.norm(diff, axis=1)
+        error = tracking_errors(self._kinds, frame.observation.position, frame.commands.position)
         self.last_error = error
         self._sum += float(error.sum())
         self._count += len(error)

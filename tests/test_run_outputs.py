@@ -42,6 +42,14 @@ def test_metrics_json_has_the_foundation_keys(hover_run):
     assert "rerun" in stdout and "run.rrd" in stdout
 
 
+def test_plots_are_written_as_png(hover_run):
+    out, _ = hover_run
+    png = out / "plots" / "timeseries.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    image = imageio.imread(png)
+    assert image.shape[0] > 200 and image.std() > 10  # a drawn figure, not a blank canvas
+
+
 def test_video_frames_match_duration_and_move(hover_run):
     out, _ = hover_run
     fps = load("hover").video.fps
@@ -49,6 +57,8 @@ def test_video_frames_match_duration_and_move(hover_run):
     frames = [frame for frame in reader]
     assert len(frames) == round(DURATION_S * fps)
     first, last = frames[0].astype(float), frames[-1].astype(float)
+    # The burned-in time overlay (top-left band) changes from frame to frame.
+    assert np.abs(first[:14, :60] - frames[30][:14, :60].astype(float)).mean() > 1
     assert first.mean() > 30  # not black
     assert np.abs(first - last).mean() > 0.05  # robots moved: frames differ
     assert first.shape == (480, 640, 3)

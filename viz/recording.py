@@ -18,7 +18,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from sim.observers import Frame
+from sim.observers import Frame, tracking_errors
 from sim.world import INFINITE_PLANE_HALF_SIZE, World
 
 KIND_COLORS = {"quadrotor": (230, 120, 40), "ground": (60, 160, 80)}
@@ -98,7 +98,7 @@ class RerunRecorder:
         strips = obs.position[edges] if len(edges) else np.zeros((0, 2, 3))
         self.rec.log("world/links", rr.LineStrips3D(strips, colors=LINK_COLOR, radii=0.01))
         self.rec.log("metrics/edges", rr.Scalars(float(len(edges))))
-        error = np.linalg.norm(obs.position - frame.commands.position, axis=1)
+        error = tracking_errors(self.world.robot_kinds, obs.position, frame.commands.position)
         self.rec.log("metrics/tracking_error_mean_m", rr.Scalars(float(error.mean())))
         for key, value in frame.commands.info.get("scalars", {}).items():
             self.rec.log(f"metrics/{key}", rr.Scalars(float(value)))
