@@ -1,0 +1,129 @@
+"""Geometric predicates of the intermittent-connectivity planner (seed 000).
+
+Pure numpy over :class:`sim.geometry.Boxes`; no MuJoCo. Ground robots live in
+the plane; their sensors and radios sit at a fixed height ``z`` above the
+floor, so every 2D robot position is lifted to ``(x, y, z)`` before it is
+tested against the 3D obstacle boxes. Distances in metres, world frame.
+
+- :func:`lift` - (..., 2) plane positions -> (..., 3) at height z.
+- :func:`points_free` - sample validity: inside the workspace bounds shrunk by
+  the robot radius and farther than the radius from every box.
+- :func:`edges_free` - CollisionFree of Algorithm 1 for straight robot moves:
+  a bounding-sphere certificate first, the exact
+  :func:`sim.geometry.segments_free` for the rest (same answer, fewer calls).
+- :func:`segments_blocked` - exact line-of-sight test (slab method) used for
+  the many predicted range readings; equal to ``~segments_free(..., 0)`` up to
+  segments that graze a box face, which both treat as blocked.
+- :func:`communication_graph` / :func:`algebraic_connectivity` - the team
+  graph of goal condition (6)(i): an edge for every pair within range R whose
+  straight link keeps line of sight, and lambda_2 of its Laplacian.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim.geometry import Boxes, point_clearance, segments_free
+
+
+def lift(points: np.ndarray, z: float) -> np.ndarray:
+    """(..., 2) plane positions, m -> (..., 3) with the third coordinate ``z``, m."""
+    points = np.asarray(points, dtype=float)
+    height = np.full(points.shape[:-1] + (1,), float(z))
+    return np.concatenate([points, height], axis=-1)
+
+
+def points_free(
+    boxes: Boxes, bounds: np.ndarray, points: np.ndarray, z: float, margin: float
+) -> np.ndarray:
+    """Boolean (P,): plane points (P, 2) lie in the workspace and clear of obstacles.
+
+    bounds: (2, 2) [[x_min, y_min], [x_max, y_max]], m. A point must lie at
+    least ``margin`` inside the bounds and farther than ``margin`` from every
+    box (at height ``z``).
+    """
+    points = np.atleast_2d(np.asarray(points, dtype=float))
+    inside = np.all((points >= bounds[0] + margin) & (points <= bounds[1] - margin), axis=1)
+    if len(boxes) == 0 or not inside.any():
+        return inside
+    free = inside.copy()
+    free[inside] = point_clearance(boxes, lift(points[inside], z)) > margin
+    return free
+
+
+def edges_free(boxes: Boxes, a: np.ndarray, b: np.ndarray, z: float, margin: float) -> np.ndarray:
+    """Boolean (P,): the straight moves a_p -> b_p (plane, (P, 2)) keep more
+    than ``margin`` from every box.
+
+    Every point of a segment lies within half its length of the midpoint, so a
+    midpoint clearance above ``margin + half length`` certifies the segment;
+    the others go to the exact :func:`sim.geometry.segments_free`. Workspace
+    bounds are not checked here: they are convex, so endpoints inside suffice.
+    """
+    a3 = lift(np.atleast_2d(a), z)
+    b3 = lift(np.atleast_2d(b), z)
+    n = len(a3)
+    if len(boxes) == 0 or n == 0:
+        return np.ones(n, dtype=bool)
+    mid = 0.5 * (a3 + b3)
+    half = 0.5 * np.linalg.norm(b3 - a3, axis=1)
+    free = point_clearance(boxes, mid) > margin + half
+    rest = ~free
+    if rest.any():
+        free[rest] = segments_free(boxes, a3[rest], b3[rest], margin)
+    return free
+
+
+def segments_blocked(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Boolean (P,): the segment [a_p, b_p] (3D, (P, 3)) meets a (closed) box.
+
+    Slab method in every box frame: the segment parameter interval inside each
+    pair of parallel faces is intersected over the three axes and with [0, 1].
+    """
+    a = np.atleast_2d(np.asarray(a, dtype=float))
+    b = np.atleast_2d(np.asarray(b, dtype=float))
+    n = len(a)
+    if len(boxes) == 0 or n == 0:
+        return np.zeros(n, dtype=bool)
+    la = boxes.to_local(a)  # (P, K, 3)
+    d = boxes.to_local(b) - la
+    half = boxes.half_sizes[None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (-half - la) / d
+        t2 = (half - la) / d
+    parallel = d == 0.0
+    inside_slab = np.abs(la) <= half
+    lo = np.where(parallel, np.where(inside_slab, -np.inf, np.inf), np.minimum(t1, t2))
+    hi = np.where(parallel, np.where(inside_slab, np.inf, -np.inf), np.maximum(t1, t2))
+    enter = np.maximum(lo.max(axis=2), 0.0)
+    leave = np.minimum(hi.min(axis=2), 1.0)
+    return np.any(enter <= leave, axis=1)
+
+
+def communication_graph(
+    boxes: Boxes, positions: np.ndarray, z: float, comm_range: float
+) -> np.ndarray:
+    """Adjacency (n, n) bool of robots at plane ``positions`` (n, 2): a link
+    for every pair at most ``comm_range`` apart (m) with line of sight."""
+    positions = np.asarray(positions, dtype=float)
+    n = len(positions)
+    adjacency = np.zeros((n, n), dtype=bool)
+    i, j = np.triu_indices(n, k=1)
+    close = np.linalg.norm(positions[i] - positions[j], axis=1) <= comm_range
+    i, j = i[close], j[close]
+    if len(i):
+        sight = segments_free(boxes, lift(positions[i], z), lift(positions[j], z), 0.0)
+        adjacency[i[sight], j[sight]] = True
+        adjacency[j[sight], i[sight]] = True
+    return adjacency
+
+
+def algebraic_connectivity(adjacency: np.ndarray) -> float:
+    """lambda_2 of the graph Laplacian L = D - A; +inf for a single robot
+    (a one-node graph is connected), 0 for a disconnected graph."""
+    adjacency = np.asarray(adjacency, dtype=float)
+    n = len(adjacency)
+    if n < 2:
+        return float("inf")
+    laplacian = np.diag(adjacency.sum(axis=1)) - adjacency
+    return float(np.linalg.eigvalsh(laplacian)[1])
