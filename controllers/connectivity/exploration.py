@@ -1,0 +1,254 @@
+"""Decentralised multi-target exploration of seed 001: Algorithms 1 and 2 per control tick.
+
+``ExplorationController.step`` is called once per control tick with the
+robots' virtual-point positions and velocities, the current communication
+graph and the generalized connectivity force f_lambda (computed elsewhere);
+it returns the exploration force f_i of eq. (1) for every robot together
+with the roles and the figures of Sec. 4 (Lambda_p, its estimates, Theta,
+rho, visits, paths). The first call runs the Start-up procedure.
+
+Per tick, for every robot i (all robots at once, using only robot i's own
+state, its neighbours' efficiency estimates and election messages that have
+reached it):
+
+Algorithm 1 (planning)
+  1. a connector with a non-empty queue extracts its next target z_i and
+     plans gamma_i from q_i (line 5-6; unreachable targets are skipped);
+  2. a secondary traveler farther than R_gamma from gamma_i replans (17-18);
+  3. ``RoleMachine`` switches roles: travelers within R_z, anchors whose
+     dwell time elapsed, and the prime traveler election.
+Algorithm 2 (motion control)
+  - prime traveler:     hat-Lambda_p^i <- Lambda_i (12);   f_i = f_travel (3);
+  - secondary traveler: consensus (13); f_i = rho_i f_travel, rho_i from (10), (15);
+  - anchor:             consensus (13); f_i = f_anchor (5)-(7);
+  - connector:          consensus (13); f_i = 0.
+
+The strategy integrates M v' = -B v + f_lambda + f_i with the returned forces.
+
+Deviations from the paper
+-------------------------
+See exploration_params.py, paths.py, travel.py, election.py, roles.py and
+targets.py. Here:
+- A target the planner cannot reach is skipped (reported in ``skipped``); a
+  failed replanning keeps the previous path. The paper assumes paths exist.
+- The exploration layer does not read lambda2: eqs. (3)-(15) depend on it
+  only through f_lambda.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from controllers.connectivity.exploration_params import ExplorationParams
+from controllers.connectivity.paths import GridPlanner, NoPathError, SplinePath
+from controllers.connectivity.roles import Role, RoleMachine
+from controllers.connectivity.targets import DwellClock, Target, TargetQueues, Visit
+from controllers.connectivity.travel import (
+    PathReference,
+    adaptive_gain,
+    anchor_force,
+    consensus_step,
+    efficiency,
+    force_alignment,
+    needs_replanning,
+    path_reference,
+    tracking_error,
+    travel_force,
+)
+
+
+@dataclass(frozen=True)
+class ExplorationStep:
+    """Output of one control tick; arrays are (N, ...), NaN where not defined."""
+
+    forces: np.ndarray  # (N, 3) exploration force f_i, N
+    roles: np.ndarray  # (N,) Role codes (1 prime, 2 secondary, 3 anchor, 4 connector)
+    prime: int  # index of the prime traveler, -1 if none
+    prime_efficiency: float  # Lambda_p in [0, 1], NaN without prime traveler
+    efficiency: np.ndarray  # (N,) Lambda_i of travelers, eq. (12)
+    efficiency_estimate: np.ndarray  # (N,) hat-Lambda_p^i, eq. (13)
+    alignment: np.ndarray  # (N,) Theta_i of secondary travelers, eq. (10)
+    gain: np.ndarray  # (N,) rho_i of secondary travelers, eq. (15)
+    tracking_error: np.ndarray  # (N,) e_i of travelers, eq. (11), m/s
+    path_points: np.ndarray  # (N, 3) closest path points q_gamma of travelers, m
+    remaining: np.ndarray  # (N,) remaining path length d_gamma of travelers, m
+    targets: np.ndarray  # (N, 3) current targets z_i, m
+    paths: tuple[SplinePath | None, ...]  # gamma_i of travelers (for drawing)
+    visits: tuple[Visit, ...]  # every completed visit so far
+    skipped: tuple[Target, ...]  # targets found unreachable
+    finished: bool  # every queue empty and every robot a connector
+
+
+class ExplorationController:
+    """The exploration layer for N robots sharing one static scene.
+
+    params: ExplorationParams; planner: GridPlanner of the scene; queues:
+    TargetQueues (the target generators may keep pushing during the run).
+    """
+
+    def __init__(self, params: ExplorationParams, planner: GridPlanner, queues: TargetQueues) -> None:
+        n = queues.n_robots
+        if not params.election_host < n:
+            raise ValueError(f"election_host ({params.election_host}) must be a robot index below {n}")
+        self.params = params
+        self.planner = planner
+        self.queues = queues
+        self.n_robots = n
+        self.role_machine = RoleMachine(n, params.message_latency_ticks, params.election_host)
+        self.targets: list[Target | None] = [None] * n
+        self.paths: list[SplinePath | None] = [None] * n
+        self.estimates = np.zeros(n)  # hat-Lambda_p^i, start-up line 12
+        self.dwell = DwellClock(n)
+        self.arrival_time = np.full(n, np.nan)
+        self.visits: list[Visit] = []
+        self.skipped: list[Target] = []
+        self.tick = 0
+        self.last_time: float | None = None
+
+    # -- Algorithm 1, geometric parts ---------------------------------------
+
+    def _extract_and_plan(self, robot: int, position: np.ndarray) -> bool:
+        """Lines 5-6: next reachable target and its path; False if the queue ran dry."""
+        while (target := self.queues.pop(robot)) is not None:
+            try:
+                self.paths[robot] = self.planner.plan(position, target.position)
+            except NoPathError:
+                self.skipped.append(target)
+                continue
+            self.targets[robot] = target
+            return True
+        return False
+
+    def _replan(self, robot: int, position: np.ndarray) -> None:
+        try:
+            self.paths[robot] = self.planner.plan(position, self.targets[robot].position)
+        except NoPathError:
+            pass  # keep following the old path; f_lambda keeps the robot safe meanwhile
+
+    def _reference(self, robot: int, position: np.ndarray) -> PathReference:
+        p = self.params
+        return path_reference(self.paths[robot], position[None], p.cruise_speed, p.braking_distance)
+
+    # -- one control tick ---------------------------------------------------
+
+    def step(self, time: float, positions, velocities, adjacency, connectivity_force) -> ExplorationStep:
+        """Algorithms 1 and 2 for one control tick.
+
+        time: s; positions, velocities: (N, 3) virtual points, m and m/s;
+        adjacency: (N, N) current communication graph (bool or weights > 0);
+        connectivity_force: (N, 3) f_lambda, N.
+        """
+        p = self.params
+        n = self.n_robots
+        q = np.asarray(positions, dtype=float)
+        v = np.asarray(velocities, dtype=float)
+        f_lambda = np.asarray(connectivity_force, dtype=float)
+        adjacency = np.asarray(adjacency)
+        for name, array, shape in (
+            ("positions", q, (n, 3)),
+            ("velocities", v, (n, 3)),
+            ("connectivity_force", f_lambda, (n, 3)),
+            ("adjacency", adjacency, (n, n)),
+        ):
+            if array.shape != shape:
+                raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
+        dt = 0.0 if self.last_time is None else float(time) - self.last_time
+        if dt < 0:
+            raise ValueError(f"time went backwards: {time} after {self.last_time}")
+
+        got_target = np.zeros(n, dtype=bool)
+        if not self.role_machine.started:  # Start-up procedure, lines 1-11
+            has_target = np.array([self._extract_and_plan(i, q[i]) for i in range(n)])
+            self.role_machine.start(has_target)
+        else:
+            for i in np.flatnonzero((self.role_machine.roles == Role.CONNECTOR) & self.queues.pending()):
+                got_target[i] = self._extract_and_plan(i, q[i])
+
+        references: dict[int, PathReference] = {}
+        for i in range(n):
+            if self.paths[i] is None:
+                continue
+            references[i] = self._reference(i, q[i])
+            secondary = self.role_machine.roles[i] == Role.SECONDARY_TRAVELER
+            if secondary and needs_replanning(references[i], p.replan_distance)[0]:  # Alg. 1 line 17
+                self._replan(i, q[i])
+                references[i] = self._reference(i, q[i])
+
+        target_points = np.array([t.position if t is not None else np.full(3, np.nan) for t in self.targets])
+        to_target = np.linalg.norm(q - target_points, axis=1)
+        near_target = np.nan_to_num(to_target, nan=np.inf) < p.target_radius
+        anchors = self.role_machine.roles == Role.ANCHOR
+        self.dwell.update(float(time), anchors & near_target)
+        dwell_needed = np.array([t.dwell_time if t is not None else np.inf for t in self.targets])
+        task_done = anchors & near_target & (self.dwell.elapsed(float(time)) >= dwell_needed)
+        remaining = np.full(n, np.inf)
+        for i, reference in references.items():
+            remaining[i] = reference.remaining[0]
+
+        changes = self.role_machine.step(self.tick, adjacency, got_target, near_target, task_done, remaining)
+        roles = changes.roles
+        for i in np.flatnonzero(changes.became_anchor):
+            self.paths[i] = None  # lines 13, 20
+            references.pop(i, None)
+            self.arrival_time[i] = float(time)
+        self.dwell.update(float(time), (roles == Role.ANCHOR) & near_target)
+        for i in np.flatnonzero(changes.became_connector):
+            self.visits.append(Visit(self.targets[i], float(self.arrival_time[i]), float(time)))
+            self.targets[i] = None
+            self.arrival_time[i] = np.nan
+
+        # Algorithm 2.
+        forces = np.zeros((n, 3))
+        lam = np.full(n, np.nan)
+        error = np.full(n, np.nan)
+        path_points = np.full((n, 3), np.nan)
+        travelers = np.array(sorted(references), dtype=int)
+        if len(travelers):
+            batch = PathReference.stack([references[i] for i in travelers])
+            f_travel = travel_force(q[travelers], v[travelers], batch, p.position_gain, p.velocity_gain, p.virtual_mass)
+            error[travelers] = tracking_error(q[travelers], v[travelers], batch, p.position_error_weight)
+            lam[travelers] = efficiency(error[travelers], p.efficiency_error_full, p.efficiency_error_zero)
+            path_points[travelers] = batch.point
+            forces[travelers] = f_travel
+        is_prime = roles == Role.PRIME_TRAVELER
+        self.estimates = consensus_step(
+            self.estimates, adjacency, is_prime, np.nan_to_num(lam), p.consensus_gain, dt
+        )
+        alignment = np.full(n, np.nan)
+        gain = np.full(n, np.nan)
+        secondary = roles == Role.SECONDARY_TRAVELER
+        alignment[secondary] = force_alignment(f_lambda[secondary], forces[secondary])
+        gain[secondary] = adaptive_gain(alignment[secondary], self.estimates[secondary], p.sigma)
+        forces[secondary] *= gain[secondary, None]
+        anchored = roles == Role.ANCHOR
+        if np.any(anchored):
+            forces[anchored] = anchor_force(
+                q[anchored], target_points[anchored], p.target_radius, p.anchor_gain, p.anchor_force_limit
+            )
+        forces[roles == Role.CONNECTOR] = 0.0
+
+        self.tick += 1
+        self.last_time = float(time)
+        prime = self.role_machine.prime
+        finished = bool(np.all(roles == Role.CONNECTOR) and len(self.queues) == 0)
+        target_points = np.array([t.position if t is not None else np.full(3, np.nan) for t in self.targets])
+        return ExplorationStep(
+            forces=forces,
+            roles=roles,
+            prime=prime,
+            prime_efficiency=float(lam[prime]) if prime >= 0 else float("nan"),
+            efficiency=lam,
+            efficiency_estimate=self.estimates.copy(),
+            alignment=alignment,
+            gain=gain,
+            tracking_error=error,
+            path_points=path_points,
+            remaining=np.where(np.isfinite(remaining) & (roles <= Role.SECONDARY_TRAVELER), remaining, np.nan),
+            targets=target_points,
+            paths=tuple(self.paths),
+            visits=tuple(self.visits),
+            skipped=tuple(self.skipped),
+            finished=finished,
+        )

@@ -1,0 +1,233 @@
+"""Roles of seed 001 and their switching: Algorithm 1, the Start-up procedure
+and the 'prime traveler' election (Secs. 3.1-3.5).
+
+``RoleMachine`` is the decision part of Algorithm 1 for all robots at once,
+free of geometry: each control tick it is told, per robot, whether a
+'connector' just extracted a target, whether a traveler is within R_z of its
+target, whether an 'anchor' finished its task, and each traveler's remaining
+path length; it returns the roles after the tick. Robots decide only on their
+own state and on election messages that reached them through
+``election.FloodingNetwork`` over the current communication graph.
+
+Per robot i (Alg. 1):
+
+- connector: when a target was extracted (line 5), become prime traveler if
+  robot i holds the role token (line 7-8: "no prime traveler in the group"),
+  secondary traveler otherwise (line 10);
+- prime traveler: within R_z (line 12): open an election round ("permit
+  candidacy within timeout", line 14), keep the role until the round is
+  decided, then become anchor (line 15) and send the token to the winner;
+- secondary traveler: within R_z (line 19): anchor (line 21); otherwise reply
+  to every candidacy it receives (line 23) and become prime traveler when the
+  token reaches it (line 24-25);
+- anchor: when the task at the target is done (line 27): connector.
+
+Start-up: robots with a target are secondary travelers (waiting for the
+outcome), the others connectors; the host (robot 0, "robot 1" in the paper)
+starts with the token and opens the first round at once, in which every robot
+with a target replies, the host included (Sec. 3.3).
+
+A token holder that is not a prime traveler (after a round with no
+candidate, or a winner that reached its own target before the handover
+arrived) keeps opening rounds back to back until it hands the token on, or
+itself extracts a target as connector and becomes prime traveler.
+
+Invariant: prime traveler => holds the token, and at most one robot holds it,
+so there is never more than one prime traveler (Proposition 1), on any graph
+sequence. With a connected graph at every tick, a waiting secondary traveler
+becomes prime within about three election windows.
+
+Deviations from the paper
+-------------------------
+- "No prime traveler in the group" is "holds the role token" (see
+  election.py); the paper leaves the mechanism to a low-frequency flooding.
+- If the round's winner is no longer a secondary traveler when the handover
+  arrives (it reached its target meanwhile), it keeps the token and opens a
+  new round instead of becoming prime traveler; the paper does not cover
+  this race.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+from controllers.connectivity.election import (
+    Candidacy,
+    ElectionRound,
+    FloodingNetwork,
+    Handover,
+    Message,
+    Reply,
+    election_window_ticks,
+)
+
+
+class Role(IntEnum):
+    """Motion behaviours of Sec. 3.1, numbered as in the paper's Fig. 14d."""
+
+    PRIME_TRAVELER = 1
+    SECONDARY_TRAVELER = 2
+    ANCHOR = 3
+    CONNECTOR = 4
+
+
+TRAVELERS = (Role.PRIME_TRAVELER, Role.SECONDARY_TRAVELER)
+
+
+@dataclass(frozen=True)
+class RoleChanges:
+    """Roles after one tick and which robots switched into which role, all (N,)."""
+
+    roles: np.ndarray  # Role codes (int)
+    became_prime: np.ndarray  # bool
+    became_anchor: np.ndarray  # bool
+    became_connector: np.ndarray  # bool
+
+
+class RoleMachine:
+    """Algorithm 1 role switching with the token election, for N robots.
+
+    latency_ticks: control ticks per message hop; host: start-up election host.
+    """
+
+    def __init__(self, n_robots: int, latency_ticks: int = 1, host: int = 0) -> None:
+        if not 0 <= host < n_robots:
+            raise ValueError(f"host must be a robot index in [0, {n_robots}), got {host!r}")
+        self.n_robots = n_robots
+        self.host = host
+        self.network = FloodingNetwork(n_robots, latency_ticks)
+        self.window_ticks = election_window_ticks(n_robots, latency_ticks)
+        self.roles = np.full(n_robots, int(Role.CONNECTOR))
+        self.holds_token = np.zeros(n_robots, dtype=bool)
+        self.next_epoch = np.zeros(n_robots, dtype=np.int64)  # meaningful at the token holder
+        self.replied_epoch = np.full(n_robots, -1, dtype=np.int64)
+        self.rounds: list[ElectionRound | None] = [None] * n_robots  # open round at its host
+        self.started = False
+
+    # -- queries ------------------------------------------------------------
+
+    @property
+    def prime(self) -> int:
+        """Index of the prime traveler, -1 if none."""
+        primes = np.flatnonzero(self.roles == Role.PRIME_TRAVELER)
+        return int(primes[0]) if len(primes) else -1
+
+    @property
+    def token_in_flight(self) -> bool:
+        return any(isinstance(m, Handover) for m in self.network.messages)
+
+    # -- start-up -----------------------------------------------------------
+
+    def start(self, has_target) -> None:
+        """Start-up procedure, lines 1-11: travelers wait for the first round as secondary travelers."""
+        has_target = np.asarray(has_target, dtype=bool)
+        self.roles = np.where(has_target, int(Role.SECONDARY_TRAVELER), int(Role.CONNECTOR))
+        self.holds_token[:] = False
+        self.holds_token[self.host] = True
+        self.next_epoch[self.host] = 0
+        self.started = True
+
+    # -- one control tick ---------------------------------------------------
+
+    def step(self, tick: int, adjacency, got_target, near_target, task_done, remaining) -> RoleChanges:
+        """Advance Algorithm 1 by one control tick.
+
+        tick: control tick counter (int); adjacency: (N, N) current graph;
+        got_target: (N,) bool, a connector extracted a target and planned its
+        path this tick; near_target: (N,) bool, ||q_i - z_i|| < R_z;
+        task_done: (N,) bool, the anchor's dwell time elapsed; remaining: (N,)
+        remaining path length d_gamma, m (read for travelers only).
+        """
+        if not self.started:
+            raise RuntimeError("call start() before step()")
+        before = self.roles.copy()
+        got_target = np.asarray(got_target, dtype=bool)
+        near_target = np.asarray(near_target, dtype=bool)
+        task_done = np.asarray(task_done, dtype=bool)
+        remaining = np.asarray(remaining, dtype=float)
+
+        for i in range(self.n_robots):
+            self._local_transition(i, got_target[i], near_target[i], task_done[i])
+        for robot, message in self.network.delivered(tick):
+            self._receive(robot, message, remaining, tick)
+        holder = np.flatnonzero(self.holds_token)
+        if len(holder):
+            self._host(int(holder[0]), tick, near_target, remaining)
+        self.network.exchange(adjacency, tick)
+
+        roles = self.roles.copy()
+        return RoleChanges(
+            roles=roles,
+            became_prime=(roles == Role.PRIME_TRAVELER) & (before != Role.PRIME_TRAVELER),
+            became_anchor=(roles == Role.ANCHOR) & (before != Role.ANCHOR),
+            became_connector=(roles == Role.CONNECTOR) & (before != Role.CONNECTOR),
+        )
+
+    def _local_transition(self, i: int, got_target: bool, near_target: bool, task_done: bool) -> None:
+        role = int(self.roles[i])  # a Python int compares with Role members cheaply
+        if role == Role.CONNECTOR and got_target:
+            if self.holds_token[i]:
+                self.roles[i] = Role.PRIME_TRAVELER
+                self._close_round(i)  # the host needs no successor any more
+            else:
+                self.roles[i] = Role.SECONDARY_TRAVELER
+        elif role == Role.SECONDARY_TRAVELER and near_target:
+            self.roles[i] = Role.ANCHOR
+        elif role == Role.ANCHOR and task_done:
+            self.roles[i] = Role.CONNECTOR
+
+    def _receive(self, robot: int, message: Message, remaining: np.ndarray, tick: int) -> None:
+        if isinstance(message, Candidacy):
+            if self.roles[robot] == Role.SECONDARY_TRAVELER and self.replied_epoch[robot] < message.epoch:
+                self.replied_epoch[robot] = message.epoch
+                self.network.broadcast(robot, Reply(message.epoch, robot, float(remaining[robot])), tick)
+        elif isinstance(message, Reply):
+            open_round = self.rounds[robot]
+            if open_round is not None and open_round.epoch == message.epoch:
+                open_round.enroll(message.sender, message.remaining)
+        elif isinstance(message, Handover) and message.winner == robot:
+            self.network.retire(lambda m: m == message)
+            self.holds_token[robot] = True
+            self.next_epoch[robot] = message.next_epoch
+            if self.roles[robot] == Role.SECONDARY_TRAVELER:
+                self.roles[robot] = Role.PRIME_TRAVELER
+
+    def _host(self, host: int, tick: int, near_target: np.ndarray, remaining: np.ndarray) -> None:
+        role = int(self.roles[host])
+        if self.rounds[host] is None:
+            if role == Role.PRIME_TRAVELER and not near_target[host]:
+                return  # still travelling: no election yet
+            # A prime traveler at its target (line 14), or an idle token holder.
+            epoch = int(self.next_epoch[host])
+            self.next_epoch[host] = epoch + 1
+            self.rounds[host] = ElectionRound(epoch, host, tick + self.window_ticks)
+            if role == Role.SECONDARY_TRAVELER:  # start-up: the host is a candidate too
+                self.rounds[host].enroll(host, float(remaining[host]))
+                self.replied_epoch[host] = epoch
+            self.network.broadcast(host, Candidacy(epoch, host), tick)
+        current = self.rounds[host]
+        if tick < current.deadline:
+            return
+        if self.roles[host] != Role.SECONDARY_TRAVELER:
+            current.withdraw(host)  # the host knows it is no longer travelling
+        winner = current.winner()
+        self._close_round(host)
+        if self.roles[host] == Role.PRIME_TRAVELER:
+            self.roles[host] = Role.ANCHOR  # line 15: abdicate upon decision
+        if winner is None:
+            return  # keep the token; a new round opens next tick
+        if winner == host:
+            self.roles[host] = Role.PRIME_TRAVELER
+            return
+        self.holds_token[host] = False
+        self.network.broadcast(host, Handover(current.epoch, winner, int(self.next_epoch[host])), tick)
+
+    def _close_round(self, host: int) -> None:
+        current = self.rounds[host]
+        if current is None:
+            return
+        self.rounds[host] = None
+        self.network.retire(lambda m: isinstance(m, (Candidacy, Reply)) and m.epoch == current.epoch)
