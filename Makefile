@@ -6,7 +6,9 @@ export OPENBLAS_NUM_THREADS := 1
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 
-# Debian packages: Mesa's EGL for offscreen rendering without a GPU.
+# Debian packages: Mesa's EGL for offscreen rendering without a GPU; chromium
+# (/usr/bin/chromium) for the tuning page's browser tests, driven by the
+# playwright Python package (never `playwright install`).
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libgles2
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
@@ -16,6 +18,10 @@ system-deps:
 	@if ! ldconfig -p | grep -q 'libEGL_mesa.so.0'; then \
 	  echo "installing EGL/Mesa ($(APT_PACKAGES))"; \
 	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq $(APT_PACKAGES) >/dev/null; \
+	fi
+	@if [ ! -x /usr/bin/chromium ]; then \
+	  echo "installing chromium (Debian package) for the tuning page's browser tests"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq chromium >/dev/null; \
 	fi
 
 $(STAMP): pyproject.toml

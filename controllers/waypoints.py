@@ -5,6 +5,12 @@ ends at rest, so the reference is C2 everywhere (position, velocity and
 acceleration continuous) and the low-level controllers get consistent
 feed-forward terms. The segment time is chosen so the peak speed equals the
 cruise speed: a minimum-jerk profile peaks at 1.875 times its mean speed.
+
+Speeds and dwell can change while it runs (:meth:`WaypointStrategy.update_params`,
+used by the tuning page): every robot keeps its place on its route (same
+segment, same fraction of it) and goes on at the new pace, so the reference
+position stays continuous. New routes restart the strategy from where the
+robots are.
 """
 
 from __future__ import annotations
@@ -13,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.config import require
+from sim.config import param, require
 from sim.types import Commands, Observation, WorldInfo
 
 _MIN_JERK_PEAK_RATIO = 1.875  # peak / mean speed of s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5
@@ -22,9 +28,9 @@ Vec3 = tuple[float, float, float]
 
 @dataclass(frozen=True)
 class WaypointParams:
-    speed_mps: float = 0.5  # quadrotors' peak speed on each segment, m/s
-    ground_speed_mps: float = 0.1  # ground robots' peak speed, m/s (e-puck class: <= 0.15)
-    dwell_s: float = 0.5  # rest at each waypoint, s
+    speed_mps: float = param(0.5, unit="m/s", min=0.05, max=3.0)  # quadrotors' peak speed on each segment, m/s
+    ground_speed_mps: float = param(0.1, unit="m/s", min=0.01, max=0.15)  # ground robots' peak speed, m/s (e-puck)
+    dwell_s: float = param(0.5, unit="s", min=0.0, max=10.0, step=0.1)  # rest at each waypoint, s
     routes: tuple[tuple[Vec3, ...], ...] = ()  # one route per robot, robot order; empty = hold start
 
     def __post_init__(self):
@@ -54,6 +60,30 @@ class Route:
         self.dwell = dwell
         self.period = float(np.sum(self.durations + dwell))
 
+    def progress(self, t: float) -> float:
+        """Where on the route time ``t`` falls: ``2k + f`` while resting at
+        waypoint k (f in [0, 1) of the dwell), ``2k + 1 + f`` on segment k."""
+        if self.period == 0:
+            return 0.0
+        t = t % self.period
+        for k, duration in enumerate(self.durations):
+            if t < self.dwell:
+                return 2 * k + t / self.dwell
+            t -= self.dwell
+            if t < duration:
+                return 2 * k + 1 + t / duration
+            t -= duration
+        return 0.0
+
+    def time_at(self, progress: float) -> float:
+        """Inverse of :meth:`progress` within one period, s."""
+        k, rest = divmod(progress, 2.0)
+        k = min(int(k), len(self.durations) - 1)
+        before = float(np.sum(self.durations[:k]) + k * self.dwell)
+        if rest < 1.0:
+            return before + rest * self.dwell
+        return before + self.dwell + (rest - 1.0) * float(self.durations[k])
+
     def sample(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if len(self.points) == 1 or self.period == 0:
             return self.points[0], np.zeros(3), np.zeros(3)
@@ -79,6 +109,8 @@ class WaypointStrategy:
     def __init__(self, params: WaypointParams):
         self.params = params
         self.routes: list[Route] = []
+        self._offsets = np.zeros(0)  # per-robot route clock = sim time - offset, s
+        self._time_s = 0.0
 
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
         n = world.n_robots
@@ -94,8 +126,28 @@ class WaypointStrategy:
                     p[2] = start[2]
             speed = self.params.ground_speed_mps if self._ground[i] else self.params.speed_mps
             self.routes.append(Route(np.array([start, *waypoints]), speed, self.params.dwell_s))
+        self._offsets = np.full(n, initial.time_s)
+        self._time_s = initial.time_s
+
+    def update_params(self, params: WaypointParams) -> bool:
+        """Take new speeds and dwell from the next tick on, each robot keeping
+        its place on its route. Returns False (asking for a restart from the
+        current state) when the routes themselves change."""
+        if params.routes != self.params.routes:
+            return False
+        for i, old in enumerate(self.routes):
+            speed = params.ground_speed_mps if self._ground[i] else params.speed_mps
+            new = Route(old.points, speed, params.dwell_s)
+            place = old.progress(self._time_s - self._offsets[i])
+            self._offsets[i] = self._time_s - new.time_at(place)
+            self.routes[i] = new
+        self.params = params
+        return True
 
     def step(self, observation: Observation) -> Commands:
-        samples = [route.sample(observation.time_s) for route in self.routes]
+        self._time_s = observation.time_s
+        samples = [route.sample(observation.time_s - offset) for route, offset in zip(self.routes, self._offsets)]
         position, velocity, acceleration = (np.array(x) for x in zip(*samples))
-        return Commands(position, velocity, acceleration, np.zeros(len(samples)))
+        speed = np.linalg.norm(velocity, axis=1)
+        info = {"scalars": {"reference_speed_max_mps": float(speed.max(initial=0.0))}}
+        return Commands(position, velocity, acceleration, np.zeros(len(samples)), info)

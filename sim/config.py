@@ -4,6 +4,12 @@ Every parameter dataclass in tether is built through :func:`build`: unknown
 keys are errors, types are checked, and ``__post_init__`` validation errors
 (ValueError) are re-raised with the full dotted field path. The CLI turns a
 :class:`ConfigError` into one line and exit code 2.
+
+Tunable parameters declare their unit and bounds with :func:`param` (field
+metadata ``unit``, ``min``, ``max``, ``step``); :func:`build` enforces the
+bounds (inclusive) for every table it reads, so a scenario file, a ``--set``
+override and the tuning page are refused by the same rule. The tuning page
+reads the same metadata to draw sliders.
 """
 
 from __future__ import annotations
@@ -112,6 +118,7 @@ def build(cls: type, table: Any, field: str = "") -> Any:
             continue
         if f.name in table:
             kwargs[f.name] = _convert(table[f.name], hints[f.name], prefix + f.name)
+            check_bounds(f, kwargs[f.name], prefix + f.name)
         elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise ConfigError(prefix + f.name, "is required")
     try:
@@ -140,6 +147,40 @@ def to_table(obj: Any) -> Any:
     if isinstance(obj, (list, tuple)):
         return [to_table(v) for v in obj]
     return obj
+
+
+def param(default: Any = dataclasses.MISSING, *, unit: str = "", min: float | None = None,
+          max: float | None = None, step: float | None = None, tunable: bool = True) -> Any:
+    """A dataclass field with its unit and inclusive bounds, e.g.
+    ``speed_mps: float = param(0.5, unit="m/s", min=0.05, max=3.0)``.
+
+    :func:`build` refuses values outside ``[min, max]``; the tuning page draws
+    a slider over that range (``step``: slider resolution, default range/100)
+    and leaves out fields with ``tunable=False``.
+    """
+    metadata = {"unit": unit, "min": min, "max": max, "step": step, "tunable": tunable}
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+def _number(value: float) -> str:
+    return f"{value:g}"
+
+
+def check_bounds(f: dataclasses.Field, value: Any, field: str) -> None:
+    """ConfigError if ``value`` lies outside the field's ``min``/``max`` metadata."""
+    low, high = f.metadata.get("min"), f.metadata.get("max")
+    if (low is None and high is None) or isinstance(value, bool) or not isinstance(value, (int, float)):
+        return
+    unit = f.metadata.get("unit", "")
+    unit = f" {unit}" if unit else ""
+    if (low is not None and not value >= low) or (high is not None and not value <= high):
+        if low is not None and high is not None:
+            rule = f"must be in [{_number(low)}, {_number(high)}]{unit}"
+        elif low is not None:
+            rule = f"must be at least {_number(low)}{unit}"
+        else:
+            rule = f"must be at most {_number(high)}{unit}"
+        raise ConfigError(field, f"{rule}, got {value!r}")
 
 
 def require(condition: bool, field: str, problem: str) -> None:

@@ -8,6 +8,8 @@ Observers only read, so video and recording never change the trajectory.
 
 from __future__ import annotations
 
+import dataclasses
+import copy
 import json
 import os
 import time
@@ -19,9 +21,11 @@ import mujoco
 import numpy as np
 
 from sim.actuation import LowLevelControl
+from sim.estimation_observer import EstimationMetrics
 from sim.observers import Frame, LinkMetrics, TrackingMetrics
 from sim.registry import strategy_class
-from sim.scenario import Scenario
+from sim.config import ConfigError
+from sim.scenario import Scenario, StrategyConfig
 from sim.sensing import RaySensors
 from sim.targets import TargetDriver, nominal_path_samples
 from sim.types import Observation, WorldInfo
@@ -81,12 +85,38 @@ class Simulation:
             obstacles=self.world.obstacles, bounds=self.world.bounds,
             control_period_s=self.dt, comm_range_m=scenario.sensing.comm_range_m,
             target_range_m=scenario.sensing.target_range_m, n_targets=self.targets.n_targets,
+            sensing_period_s=scenario.sensing.period_s, target_motion=copy.deepcopy(self.targets.motion),
         )
         self._move_targets()
         self.control.hover_ctrl()
         mujoco.mj_forward(self.world.model, self.world.data)
         self.strategy = strategy_class(scenario.strategy.kind)(scenario.strategy.params)
         self.strategy.reset(self.info, self.observe(read_targets=False), self.rng)
+
+    def set_strategy_params(self, params: Any) -> str:
+        """Swap the running strategy's parameters between ticks (the next tick
+        uses them): the strategy's own ``update_params`` when it has one and
+        accepts them ("updated"), else a fresh strategy reset at the current
+        state ("restarted"). ``params`` must already be validated (built
+        through sim.config.build); ConfigError if the strategy refuses them,
+        in which case the running strategy is kept unchanged."""
+        kind = self.scenario.strategy.kind
+        update = getattr(self.strategy, "update_params", None)
+        try:
+            if callable(update) and update(params):
+                how = "updated"
+            else:
+                fresh = strategy_class(kind)(params)
+                fresh.reset(self.info, self.observe(read_targets=False), self.rng)
+                self.strategy = fresh
+                how = "restarted"
+        except ValueError as err:
+            name, sep, problem = str(err).partition(": ")
+            if sep and " " not in name:
+                raise ConfigError(f"strategy.{name}", problem) from None
+            raise ConfigError("strategy", str(err)) from None
+        self.scenario = dataclasses.replace(self.scenario, strategy=StrategyConfig(kind, params))
+        return how
 
     def _warning_count(self) -> int:
         return int(sum(self.world.data.warning[w].number for w in _WARNINGS_THAT_DIVERGE))
@@ -167,9 +197,10 @@ def run(
 
         resolve_camera(sim.world.model, scenario.video.camera)  # refuse before writing anything
     observers: list[Any] = []
+    estimation = EstimationMetrics()  # first: it adds e_g to the frame's scalars for the observers after it
     tracking = TrackingMetrics(sim.world.robot_kinds)
     links = LinkMetrics()
-    observers += [tracking, links]
+    observers += [estimation, tracking, links]
     files: dict[str, str] = {}
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
@@ -212,6 +243,11 @@ def run(
                 break
             if progress is not None and sim.tick_count % 100 == 0:
                 progress(sim.time_s / scenario.duration_s)
+            if getattr(sim.strategy, "finished", False):
+                # The strategy's mission is over (e.g. every target visited): stop early.
+                if recorder is not None:
+                    recorder.event(sim.time_s, f"strategy finished at t = {sim.time_s:.2f} s")
+                break
     finally:
         for observer in observers:
             observer.close(status)
@@ -233,6 +269,7 @@ def run(
         "control_ticks": sim.tick_count,
         **tracking.summary(),
         **links.summary(),
+        **estimation.summary(),
     }
     summary = getattr(sim.strategy, "summary", None)
     if callable(summary):

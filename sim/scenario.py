@@ -9,12 +9,14 @@ world (robots inside walls, outside the scene) happen in :mod:`sim.world`.
 from __future__ import annotations
 
 import copy
+import json
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from sim.config import ConfigError, build, require
+from sim.config import ConfigError, build, require, to_table
 from sim.registry import strategy_params_class, strategy_kinds
 
 SCENARIO_DIR = Path(__file__).parent / "scenarios"
@@ -128,13 +130,19 @@ class VideoConfig:
     width: int = 640  # px
     height: int = 480  # px
     fps: float = 30.0  # frames per second of sim time
-    camera: str = "auto"  # a camera named in the scene, "free" (default view), or "auto": "top" if the scene has it
+    # "top" (top-down), "overview" (perspective), "follow:ROBOT" (tracks one robot, e.g. follow:quad0),
+    # another camera named in the scene, "free" (default view), or "auto" ("top")
+    camera: str = "auto"
     shadows: bool = False
 
     def __post_init__(self):
         require(16 <= self.width <= 4096, "width", f"must be in [16, 4096] px, got {self.width}")
         require(16 <= self.height <= 4096, "height", f"must be in [16, 4096] px, got {self.height}")
+        # H.264 in yuv420p needs even sizes.
+        require(self.width % 2 == 0, "width", f"must be even (H.264), got {self.width}")
+        require(self.height % 2 == 0, "height", f"must be even (H.264), got {self.height}")
         require(self.fps > 0, "fps", f"must be positive, got {self.fps}")
+        require(self.fps <= 1000, "fps", f"must be at most 1000 frames/s, got {self.fps}")
 
 
 @dataclass(frozen=True)
@@ -281,3 +289,58 @@ def load(name_or_path: str, overrides: list[str] = (), seed: int | None = None,
     if duration_s is not None:
         table["duration_s"] = duration_s
     return from_table(table, source)
+
+
+def to_scenario_table(scenario: Scenario) -> dict:
+    """A scenario as the TOML table :func:`from_table` reads back (the name is
+    left out: a saved file takes its own file name; a scene file is written as
+    an absolute path so the table works from any folder)."""
+    table = {k: to_table(getattr(scenario, k)) for k in ScenarioBody.__dataclass_fields__ if k != "name"}
+    if not (SCENE_DIR / f"{scenario.scene}.xml").is_file():
+        table["scene"] = str(scenario.scene_path.resolve())
+    table["strategy"] = {"kind": scenario.strategy.kind, **to_table(scenario.strategy.params)}
+    return table
+
+
+def toml_value(value: Any) -> str:
+    """One value (number, bool, string, list, inline table) as TOML text."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        if math.isinf(value):
+            return "inf" if value > 0 else "-inf"
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)  # JSON's escapes are valid TOML basic-string escapes
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{_toml_key(k)} = {toml_value(v)}" for k, v in value.items()) + "}"
+    raise TypeError(f"cannot write {type(value).__name__} to TOML")
+
+
+def _toml_key(key: str) -> str:
+    return key if key.replace("_", "").replace("-", "").isalnum() and key.isascii() else json.dumps(key)
+
+
+def dumps_toml(table: dict, _prefix: str = "") -> str:
+    """Write a table of plain values, sub-tables and arrays of tables as TOML
+    (the subset scenario files use)."""
+    def is_table_array(v):
+        return isinstance(v, (list, tuple)) and len(v) > 0 and all(isinstance(x, dict) for x in v)
+
+    lines = [f"{_toml_key(k)} = {toml_value(v)}" for k, v in table.items()
+             if not isinstance(v, dict) and not is_table_array(v)]
+    blocks = ["\n".join(lines)] if lines else []
+    for k, v in table.items():
+        name = f"{_prefix}{_toml_key(k)}"
+        if isinstance(v, dict):
+            blocks.append(f"[{name}]\n" + dumps_toml(v, name + ".").rstrip("\n"))
+        elif is_table_array(v):
+            for entry in v:
+                blocks.append(f"[[{name}]]\n" + dumps_toml(entry, name + ".").rstrip("\n"))
+    return "\n\n".join(b for b in blocks if b) + "\n"

@@ -27,6 +27,11 @@ class WorldInfo:
     comm_range_m: float  # robot-robot link range (with line of sight), m
     target_range_m: float  # range-sensor limit, m
     n_targets: int
+    sensing_period_s: float = 1.0  # target range readings every this many s
+    # The targets' motion model x(k+1) = A x(k) + B u(k) + w (seed 000 eq. 11,
+    # estimation.target_motion.TargetMotion, a private copy): known to the
+    # estimators by Assumption II.3. Never the true states.
+    target_motion: Any = None
 
     @property
     def n_robots(self) -> int:
@@ -87,7 +92,18 @@ class Commands:
 
 
 class Strategy(Protocol):
-    """What the loop needs from a method; it never knows which one runs."""
+    """What the loop needs from a method; it never knows which one runs.
+
+    Optional: ``update_params(params) -> bool`` takes new parameters (same
+    dataclass, already validated) from the next tick on and returns True; a
+    strategy without it, or returning False, is rebuilt with the new
+    parameters and reset at the current state
+    (:meth:`sim.loop.Simulation.set_strategy_params`).
+
+    Optional: a ``finished`` attribute (bool); once it reads True after a
+    tick, :func:`sim.loop.run` stops early (e.g. every target visited).
+    Optional: ``summary() -> dict``, merged into metrics.json.
+    """
 
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
         """Prepare for a run starting at ``initial``; keep ``rng`` for all randomness."""

@@ -4,7 +4,14 @@ An observer: it reads ``MjData`` and the tick's frame, never writes to the
 simulation. Frames are taken at the video fps in sim time and written one by
 one to the encoder, so memory does not grow with the video's length.
 Communication links are drawn as capsules between robots; robot references
-(virtual points) as small spheres.
+(virtual points) as small spheres. :class:`FrameRenderer` draws one frame
+(scene, decorations, overlay band); the video recorder and the tuning page
+both use it.
+
+Cameras (``video.camera``): ``top`` (top-down) and ``overview`` (perspective)
+use the scene's cameras of those names when it has them, else views computed
+from the scene bounds; ``follow:ROBOT`` tracks one robot (``follow:quad0``);
+any other camera the scene names; ``free``; ``auto`` is ``top``.
 """
 
 from __future__ import annotations
@@ -16,6 +23,7 @@ from sim.config import ConfigError
 from sim.observers import Frame
 from sim.scenario import VideoConfig
 from sim.world import World
+from viz.decorations import draw_video_decorations, halo_color
 
 LINK_RGBA = np.array([0.1, 0.75, 0.2, 0.9], dtype=np.float32)
 REFERENCE_RGBA = np.array([0.2, 0.4, 1.0, 0.6], dtype=np.float32)
@@ -30,13 +38,30 @@ def link_color(weight: float) -> np.ndarray:
     return np.array([1.0 - w, 0.2 + 0.6 * w, 0.15, 0.9], dtype=np.float32)
 
 
+PRESET_CAMERAS = ("top", "overview")  # computed from the scene bounds when the scene lacks them
+FOLLOW_PREFIX = "follow:"
+FOLLOW_VIEW = {"quadrotor": (3.0, -25.0), "ground": (1.5, -40.0)}  # kind -> (distance m, elevation deg)
+
+
+def _robot_names(model: mujoco.MjModel) -> list[str]:
+    bases = (model.body(i).name for i in range(model.nbody))
+    return [n[: -len("/base")] for n in bases if n.endswith("/base") and not n.startswith("target")]
+
+
 def resolve_camera(model: mujoco.MjModel, name: str) -> str:
-    """The camera a video uses; ConfigError if the scene lacks a named one."""
+    """The camera a video uses; ConfigError for an unknown camera or robot."""
     names = [model.camera(i).name for i in range(model.ncam)]
     if name == "auto":
-        return "top" if "top" in names else "free"
-    if name != "free" and name not in names:
-        raise ConfigError("video.camera", f"no camera {name!r} in the scene (choose from {names + ['free', 'auto']})")
+        return "top"
+    if name.startswith(FOLLOW_PREFIX):
+        robot = name[len(FOLLOW_PREFIX):]
+        robots = _robot_names(model)
+        if robot not in robots:
+            raise ConfigError("video.camera", f"no robot {robot!r} to follow (robots: {', '.join(robots)})")
+        return name
+    choices = list(dict.fromkeys([*PRESET_CAMERAS, *names, "free", "auto"]))
+    if name not in choices:
+        raise ConfigError("video.camera", f"no camera {name!r} (choose from {', '.join(choices)}, follow:ROBOT)")
     return name
 
 
@@ -61,13 +86,14 @@ def burn_overlay(image: np.ndarray, text: str) -> np.ndarray:
     return np.asarray(canvas)
 
 
-class VideoRecorder:
-    def __init__(self, world: World, config: VideoConfig, path: str):
-        import imageio.v2 as imageio
+class FrameRenderer:
+    """Renders one tick's frame to an (H, W, 3) uint8 image: the scene from
+    the configured camera, links, references, ground-robot halos and the
+    overlay band. Its GL context belongs to the thread that renders."""
 
+    def __init__(self, world: World, config: VideoConfig):
         self.world = world
         self.config = config
-        self.path = path
         model = world.model
         # The offscreen buffer must be at least the frame size.
         model.vis.global_.offwidth = max(model.vis.global_.offwidth, config.width)
@@ -82,23 +108,42 @@ class VideoRecorder:
         else:
             self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
         self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
-        self.camera = self._camera(resolve_camera(world.model, config.camera))
-        self.writer = imageio.get_writer(
-            path, fps=config.fps, codec="libx264", quality=7, macro_block_size=1,
-            ffmpeg_log_level="error", output_params=["-pix_fmt", "yuv420p"],
-        )
-        self.frames_written = 0
-        self._next_time = 0.0
+        self.set_camera(config.camera)
+
+    def set_camera(self, name: str) -> None:
+        """Switch camera (ConfigError for an unknown one); see the module docstring."""
+        self.camera_name = resolve_camera(self.world.model, name)
+        self.camera = self._camera(self.camera_name)
 
     def _camera(self, name: str):
-        if name != "free":
-            return self.world.model.camera(name).id
+        model = self.world.model
+        if name.startswith(FOLLOW_PREFIX):
+            robot = self.world.robot_names.index(name[len(FOLLOW_PREFIX):])
+            distance, elevation = FOLLOW_VIEW[self.world.robot_kinds[robot]]
+            cam = mujoco.MjvCamera()
+            cam.type = mujoco.mjtCamera.mjCAMERA_TRACKING
+            cam.trackbodyid = int(self.world.body_ids[robot])
+            cam.fixedcamid = -1
+            cam.lookat[:] = self.world.data.xpos[cam.trackbodyid]
+            cam.distance, cam.elevation, cam.azimuth = distance, elevation, 90.0
+            return cam
+        if name in [model.camera(i).name for i in range(model.ncam)]:
+            return model.camera(name).id
         cam = mujoco.MjvCamera()
         lo, hi = self.world.bounds
         cam.lookat[:] = (lo + hi) / 2
-        cam.distance = 1.6 * float(np.linalg.norm(hi[:2] - lo[:2]))
-        cam.elevation = -60
+        span = float(np.linalg.norm(hi[:2] - lo[:2]))
         cam.azimuth = 90
+        if name == "top":  # straight down, the whole floor in view (45 deg field of view)
+            cam.lookat[2] = lo[2]
+            cam.distance = 1.3 * span
+            cam.elevation = -89.9
+        elif name == "overview":  # perspective from the -y side
+            cam.distance = 1.1 * span
+            cam.elevation = -45
+        else:  # free
+            cam.distance = 1.6 * span
+            cam.elevation = -60
         return cam
 
     def _add_capsule(self, a: np.ndarray, b: np.ndarray, width: float, rgba: np.ndarray) -> None:
@@ -118,13 +163,8 @@ class VideoRecorder:
         mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_SPHERE, np.full(3, radius), p, np.eye(3).ravel(), rgba)
         scene.ngeom += 1
 
-    def on_tick(self, frame: Frame) -> None:
-        if frame.observation.time_s + 1e-9 < self._next_time:
-            return
-        self._next_time += 1.0 / self.config.fps
-        self.write_frame(frame)
-
-    def write_frame(self, frame: Frame) -> None:
+    def render(self, frame: Frame) -> np.ndarray:
+        """The current state of ``world.data`` with ``frame``'s decorations."""
         self.renderer.update_scene(self.world.data, self.camera, self.options)
         positions = frame.observation.position
         weights = frame.commands.info.get("link_weights")
@@ -135,11 +175,42 @@ class VideoRecorder:
             self._add_sphere(p, 0.03, REFERENCE_RGBA)
         # Ground robots are 7 cm across: a translucent halo keeps them visible.
         for i in self.world.kind_index["ground"]:
-            self._add_sphere(positions[i], GROUND_HALO_RADIUS_M, GROUND_HALO_RGBA)
+            self._add_sphere(positions[i], GROUND_HALO_RADIUS_M, halo_color(frame.commands.info, i, GROUND_HALO_RGBA))
+        draw_video_decorations(self, frame)  # optional info keys: paths, meeting points, target estimates
         image = self.renderer.render()
-        self.writer.append_data(burn_overlay(image, overlay_text(frame)))
+        return burn_overlay(image, overlay_text(frame))
+
+    def close(self) -> None:
+        self.renderer.close()
+
+
+class VideoRecorder:
+    """Observer writing ``video.mp4``: a frame every 1/fps of sim time."""
+
+    def __init__(self, world: World, config: VideoConfig, path: str):
+        import imageio.v2 as imageio
+
+        self.world = world
+        self.config = config
+        self.path = path
+        self.view = FrameRenderer(world, config)
+        self.writer = imageio.get_writer(
+            path, fps=config.fps, codec="libx264", quality=7, macro_block_size=1,
+            ffmpeg_log_level="error", output_params=["-pix_fmt", "yuv420p"],
+        )
+        self.frames_written = 0
+        self._next_time = 0.0
+
+    def on_tick(self, frame: Frame) -> None:
+        if frame.observation.time_s + 1e-9 < self._next_time:
+            return
+        self._next_time += 1.0 / self.config.fps
+        self.write_frame(frame)
+
+    def write_frame(self, frame: Frame) -> None:
+        self.writer.append_data(self.view.render(frame))
         self.frames_written += 1
 
     def close(self, status: str) -> None:
         self.writer.close()
-        self.renderer.close()
+        self.view.close()

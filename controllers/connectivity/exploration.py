@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.connectivity.exploration_params import ExplorationParams
+from controllers.connectivity.path_batch import PathBatch
 from controllers.connectivity.paths import GridPlanner, NoPathError, SplinePath
 from controllers.connectivity.roles import Role, RoleMachine
 from controllers.connectivity.targets import DwellClock, Target, TargetQueues, Visit
@@ -49,6 +50,7 @@ from controllers.connectivity.travel import (
     PathReference,
     adaptive_gain,
     anchor_force,
+    batch_path_reference,
     consensus_step,
     efficiency,
     force_alignment,
@@ -106,6 +108,7 @@ class ExplorationController:
         self.skipped: list[Target] = []
         self.tick = 0
         self.last_time: float | None = None
+        self._batch: PathBatch | None = None
 
     # -- Algorithm 1, geometric parts ---------------------------------------
 
@@ -130,6 +133,23 @@ class ExplorationController:
     def _reference(self, robot: int, position: np.ndarray) -> PathReference:
         p = self.params
         return path_reference(self.paths[robot], position[None], p.cruise_speed, p.braking_distance)
+
+    def _references(self, q: np.ndarray) -> dict[int, PathReference]:
+        """Path references of every robot with a path, batched in one numpy pass."""
+        p = self.params
+        robots = [i for i in range(self.n_robots) if self.paths[i] is not None]
+        batched = [i for i in robots if self.paths[i].spline is not None]
+        references = {i: self._reference(i, q[i]) for i in robots if self.paths[i].spline is None}
+        if batched:
+            paths = [self.paths[i] for i in batched]
+            if self._batch is None or len(self._batch) != len(paths) or any(
+                a is not b for a, b in zip(self._batch.paths, paths)
+            ):
+                self._batch = PathBatch(paths)
+            stacked = batch_path_reference(self._batch, q[batched], p.cruise_speed, p.braking_distance)
+            for k, i in enumerate(batched):
+                references[i] = stacked.row(k)
+        return references
 
     # -- one control tick ---------------------------------------------------
 
@@ -166,11 +186,8 @@ class ExplorationController:
             for i in np.flatnonzero((self.role_machine.roles == Role.CONNECTOR) & self.queues.pending()):
                 got_target[i] = self._extract_and_plan(i, q[i])
 
-        references: dict[int, PathReference] = {}
-        for i in range(n):
-            if self.paths[i] is None:
-                continue
-            references[i] = self._reference(i, q[i])
+        references = self._references(q)
+        for i in list(references):
             secondary = self.role_machine.roles[i] == Role.SECONDARY_TRAVELER
             if secondary and needs_replanning(references[i], p.replan_distance)[0]:  # Alg. 1 line 17
                 self._replan(i, q[i])

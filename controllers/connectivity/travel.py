@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from controllers.connectivity.path_batch import PathBatch
 from controllers.connectivity.paths import SplinePath
 
 
@@ -57,6 +58,10 @@ class PathReference:
     acceleration: np.ndarray
     distance: np.ndarray
     remaining: np.ndarray
+
+    def row(self, k: int) -> "PathReference":
+        """Robot k's reference alone (P = 1)."""
+        return PathReference(*(getattr(self, name)[k : k + 1] for name in PathReference.__dataclass_fields__))
 
     @staticmethod
     def stack(references: "list[PathReference]") -> "PathReference":
@@ -80,8 +85,18 @@ def path_reference(path: SplinePath, positions, cruise_speed: float, braking_dis
     """Closest point, velocity and acceleration of the virtual point on ``path``
     for robots at ``positions`` (P, 3) following it at up to ``cruise_speed``."""
     positions = np.atleast_2d(np.asarray(positions, dtype=float))
-    arc, closest, tangent, curvature, distance = path.closest_frame(positions)
-    remaining = path.length - arc
+    return _reference(path.length, *path.closest_frame(positions), cruise_speed, braking_distance)
+
+
+def batch_path_reference(batch: PathBatch, positions, cruise_speed: float, braking_distance: float) -> PathReference:
+    """``path_reference`` of robot r on path r of ``batch`` for all r at once
+    (positions (R, 3)); the same numbers, one numpy pass."""
+    positions = np.atleast_2d(np.asarray(positions, dtype=float))
+    return _reference(batch.lengths, *batch.closest_frame(positions), cruise_speed, braking_distance)
+
+
+def _reference(length, arc, closest, tangent, curvature, distance, cruise_speed, braking_distance) -> PathReference:
+    remaining = length - arc
     speed, slope = reference_speed(remaining, cruise_speed, braking_distance)
     velocity = speed[:, None] * tangent
     # d/dt (v t) = v dv/ds t + v^2 dt/ds along the path.

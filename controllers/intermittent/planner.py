@@ -237,6 +237,17 @@ class PlanningProblem:
     prefixes: optional, per robot, the committed path it follows until
         t_0,j (ending at (t_0,j, start position)); None entries (or None) mean
         unknown, and such a robot takes no predicted reading before t_0,j.
+    target_priority: optional (M,) tie-break of the goal's target order
+        (Sec. IV: the most uncertain target first, then the next): among
+        targets of equal uncertainty the lower priority comes first; None is
+        the target index. The paper is silent on ties; every unseen target
+        ties with the others of the same prior, so teams that plan from one
+        prior would all chase target 0 without it.
+    sensor_offsets: optional (S, 2) m: every robot carries S range sensors at
+        these plane offsets from its planned position (the all-time
+        baseline plans a rigid formation's centre as one robot); None is one
+        sensor at the robot. Collision checks still use the robot point with
+        ``PlannerParams.robot_radius``, so give the formation's radius there.
     """
 
     start_positions: np.ndarray
@@ -248,6 +259,8 @@ class PlanningProblem:
     boxes: Boxes
     bounds: np.ndarray
     prefixes: tuple | None = None
+    sensor_offsets: np.ndarray | None = None
+    target_priority: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         q = np.asarray(self.start_positions, dtype=float)
@@ -284,8 +297,19 @@ class PlanningProblem:
                     raise ValueError("prefixes entries must be RobotPath or None")
                 if path.end_time != t0[j] or not np.allclose(path.positions[-1], q[j]):
                     raise ValueError(f"prefixes[{j}] must end at (start_times[{j}], start_positions[{j}])")
+        offsets = self.sensor_offsets
+        if offsets is not None:
+            offsets = np.asarray(offsets, dtype=float)
+            if offsets.ndim != 2 or offsets.shape[1] != 2 or len(offsets) == 0 or not np.all(np.isfinite(offsets)):
+                raise ValueError("sensor_offsets must be a finite (S, 2) array with S >= 1")
+        priority = self.target_priority
+        if priority is not None:
+            priority = np.asarray(priority)
+            if priority.shape != (m,) or not np.all(np.isfinite(priority)):
+                raise ValueError(f"target_priority must be a finite ({m},) array")
         for name, value in (("start_positions", q), ("start_times", t0), ("estimate", x),
-                            ("covariance", c), ("bounds", bounds), ("prefixes", prefixes)):
+                            ("covariance", c), ("bounds", bounds), ("prefixes", prefixes),
+                            ("sensor_offsets", offsets), ("target_priority", priority)):
             if isinstance(value, np.ndarray):
                 value = value.copy()
                 value.setflags(write=False)
@@ -548,6 +572,7 @@ class _Planner:
             params.sensor_height,
             params.sensing_range,
             params.measurement_period,
+            sensor_offsets=problem.sensor_offsets,
         )
         lo, hi = self.bounds[0] + self.margin, self.bounds[1] - self.margin
         self.area = float(np.prod(np.maximum(hi - lo, 0.0)))
@@ -758,9 +783,15 @@ class _Planner:
 
     # -- goal set (6) and the returned plan -----------------------------------
     def target_order(self) -> np.ndarray:
-        """Targets by decreasing lambda_max of their block in the team's belief."""
+        """Targets by decreasing lambda_max of their block in the team's belief;
+        equal values (to 1e-9 relative: unseen targets from one prior tie
+        exactly) by ``problem.target_priority`` (default: target index)."""
         unc = self.belief.target_uncertainty(self.belief.initial_covariance)
-        return np.argsort(-unc, kind="stable")
+        key = np.round(unc / max(float(unc.max()), 1e-300), 9)
+        priority = self.problem.target_priority
+        if priority is None:
+            priority = np.arange(len(unc))
+        return np.lexsort((priority, -key))
 
     def goal_nodes(self, target: int) -> np.ndarray:
         tree = self.tree

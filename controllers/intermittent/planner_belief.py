@@ -92,7 +92,10 @@ class PredictedBelief:
     targets up to ``sensing_range`` m with line of sight past ``boxes``, and
     take readings at the steps t with t % measurement_period == 0. ``full``
     forces the (3M, 3M) reference representation even for block-diagonal
-    covariances.
+    covariances. ``sensor_offsets`` (S, 2), m: every planned robot carries S
+    sensors at these plane offsets from its position (a rigid formation
+    planned as one point, the all-time baseline); None is one sensor at the
+    robot.
     """
 
     def __init__(
@@ -106,6 +109,7 @@ class PredictedBelief:
         sensing_range: float,
         measurement_period: int = 1,
         full: bool = False,
+        sensor_offsets: np.ndarray | None = None,
     ):
         self.motion = motion
         self.n_targets = motion.n_targets
@@ -114,6 +118,12 @@ class PredictedBelief:
         self.sensor_height = float(sensor_height)
         self.sensing_range = float(sensing_range)
         self.measurement_period = int(measurement_period)
+        self.sensor_offsets = None
+        if sensor_offsets is not None:
+            offsets = np.asarray(sensor_offsets, dtype=float)
+            if offsets.ndim != 2 or offsets.shape[1] != 2 or len(offsets) == 0 or not np.all(np.isfinite(offsets)):
+                raise ValueError("sensor_offsets must be a finite (S, 2) array with S >= 1")
+            self.sensor_offsets = offsets
         self.transition = np.asarray(motion.transition, dtype=float)
         self.process_noise = np.asarray(motion.process_noise, dtype=float)
         covariance = np.asarray(covariance, dtype=float)
@@ -223,6 +233,10 @@ class PredictedBelief:
         t0 = np.asarray(t0, dtype=int)
         n_steps = np.asarray(n_steps, dtype=int)
         covariance = np.array(covariance, dtype=float, copy=True)
+        if self.sensor_offsets is not None:  # (P, n, L, 2) -> (P, n * S, L, 2)
+            p_count, n, length, _ = positions.shape
+            expanded = positions[:, :, None] + self.sensor_offsets[None, None, :, None, :]
+            positions = expanded.reshape(p_count, n * len(self.sensor_offsets), length, 2)
         if positions.shape[2] < n_steps.max(initial=0):
             raise ValueError("positions shorter than n_steps")
         visible, directions, ranges, times = self.readings(t0, n_steps, positions)

@@ -1,0 +1,314 @@
+"""The ``connected`` strategy: seed 001 (Nestmeyer et al. 2017) on MuJoCo quadrotors.
+
+Every robot i owns a virtual point q_i with the second-order dynamics of
+eq. (1),
+
+    M v_i' = f_B + f_lambda + f_i,   q_i' = v_i,   f_B = -B v_i,
+
+integrated once per control period (semi-implicit Euler with implicit
+damping, :func:`dynamics.step_virtual_dynamics`). The real quadrotor tracks
+q_i through the foundation's geometric controller: its reference is
+(q_i, v_i, a_i) with a_i the virtual acceleration over the period, so
+``tracking_error_mean_m`` in metrics.json is the real body against q_i (the
+paper's Fig. 11). Virtual points start at the robots' start positions, at rest.
+
+Per control tick (all robots at once):
+
+1. Connectivity (Appendix A): the weights W_ij(q) of the sensor model (range
+   R_s, line-of-sight clearance R_o from the scene's obstacle boxes, inter-robot
+   distance R_c), the Laplacian, lambda2 and the Fiedler vector, and
+   f_lambda = -V'(lambda2) dlambda2/dq (eq. 16-17 with the inter-robot terms).
+   ``lambda2_source = "exact"`` uses one eigendecomposition (the centralised
+   oracle); ``"estimator"`` gives each robot its own estimate of lambda2 and
+   of its eigenvector component from the decentralised estimator of Yang et
+   al. (2010), updated only through links of the current graph. The exact
+   value is always computed too, for the invariants and metrics.
+2. Exploration (Secs. 3.2-3.7, Algorithms 1-2): roles, the prime traveler
+   election by flooding over the simulator's current communication graph
+   (links within ``sensing.comm_range_m`` = R_s and in ``mj_ray`` line of
+   sight, one hop per ``message_latency_ticks``), consensus on the prime
+   traveler's efficiency over the same graph, travel / anchor forces f_i.
+3. Integrate q, v; send (q, v, a) to the quadrotors.
+
+The run ends early (``finished``) once every target is visited and every
+robot is a connector again.
+
+``commands.info``: ``scalars`` (lambda2, edges, roles, Lambda_p and its
+estimates, Theta, rho, distances: plots and the recording), ``robot_scalars``
+(per robot: role, hat-Lambda_p^i, Lambda_i, Theta_i, rho_i: the recording),
+``link_weights`` (W: link colours in the video), ``robot_colors`` (prime
+traveler highlighted), ``paths`` (planned paths gamma_i), ``markers`` and
+``marker_colors`` (current targets), ``events`` (role changes and visits),
+``overlay`` (one line burned into the video).
+
+Deviations from the paper
+-------------------------
+See connected_params.py, mission.py and the library modules (params.py,
+graph.py, potential.py, estimator.py, dynamics.py, exploration_params.py,
+paths.py, travel.py, roles.py, election.py, targets.py). Here:
+- The paper integrates at 1 kHz; we integrate at the control period (10 ms).
+- With ``lambda2_source = "estimator"`` the estimator first runs
+  ``estimator_warmup_s`` seconds on the start graph (the robots exchange
+  estimator messages on the ground before the mission starts); the paper
+  does not discuss start-up of the estimator.
+- The estimator exchanges messages only over links that are in both G^lambda
+  (W_ij > 0) and the simulator's communication graph.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from controllers.connectivity.connected_params import ConnectedParams
+from controllers.connectivity.dynamics import step_virtual_dynamics
+from controllers.connectivity.estimator import FiedlerEstimator
+from controllers.connectivity.exploration import ExplorationController, ExplorationStep
+from controllers.connectivity.graph import connectivity_state, generalized_connectivity_force
+from controllers.connectivity.mission import (
+    MissionStatistics,
+    check_start,
+    pairwise_min_distance,
+    shared_planner,
+    target_queues,
+)
+from controllers.connectivity.potential import guarded_potential_slope
+from controllers.connectivity.roles import Role
+from controllers.connectivity.smooth_spectrum import smooth_lambda2_gradient
+from sim.config import ConfigError
+from sim.geometry import point_clearance
+from sim.types import Commands, Observation, WorldInfo
+
+# Colours (RGBA) of the robots by role in the video (the paper's Fig. 6:
+# robots blue, the prime traveler turquoise).
+ROLE_COLORS = {
+    Role.PRIME_TRAVELER: np.array([0.0, 0.95, 0.85, 1.0]),
+    Role.SECONDARY_TRAVELER: np.array([0.15, 0.35, 1.0, 1.0]),
+    Role.ANCHOR: np.array([1.0, 0.6, 0.1, 1.0]),
+    Role.CONNECTOR: np.array([0.55, 0.55, 0.6, 1.0]),
+}
+ROLE_NAMES = {Role.PRIME_TRAVELER: "prime traveler", Role.SECONDARY_TRAVELER: "secondary traveler",
+              Role.ANCHOR: "anchor", Role.CONNECTOR: "connector"}
+PRIME_PATH_RGBA = np.array([0.0, 0.85, 0.75, 0.9])
+SECONDARY_PATH_RGBA = np.array([0.2, 0.2, 0.25, 0.6])
+TARGET_RGBA = np.array([0.95, 0.2, 0.6, 0.8])
+# Spacing of the points that draw a planned path, as a fraction of R_grid.
+_PATH_DRAW_SPACING = 2.0
+# Length of the estimator warm-up steps, s.
+_WARMUP_STEP_S = 0.01
+
+
+class ConnectedStrategy:
+    """Seed 001 for a team of quadrotors (see the module docstring)."""
+
+    def __init__(self, params: ConnectedParams):
+        self.params = params
+        self.timings = {"lambda2": 0.0, "forces": 0.0}  # s of wall time per stage, for benchmarks
+        self._finished = False
+
+    # ------------------------------------------------------------------ set-up
+    def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
+        p = self.params
+        c = p.connectivity
+        n = world.n_robots
+        if n < 2:
+            raise ConfigError("robots", f"the connected strategy needs at least 2 robots, got {n}")
+        ground = [name for name, kind in zip(world.robot_names, world.robot_kinds) if kind != "quadrotor"]
+        if ground:
+            raise ConfigError("robots", f"the connected strategy flies quadrotors only; {', '.join(ground)} "
+                              "are ground robots")
+        if abs(world.comm_range_m - c.sensing_range) > 1e-9:
+            raise ConfigError("sensing.comm_range_m", f"must equal R_s = strategy.sensing_range_m "
+                              f"({c.sensing_range:g} m) for the connected strategy (one graph for sensing and "
+                              f"communication, Sec. 2), got {world.comm_range_m:g}")
+        if not 0 <= p.election_host < n:
+            raise ConfigError("strategy.election_host", f"must be a robot index below {n}, got {p.election_host}")
+        self.world = world
+        self.dt = world.control_period_s
+        self.boxes = world.obstacles
+        self.names = world.robot_names
+        self.q = np.array(initial.position, dtype=float)
+        self.v = np.zeros_like(self.q)
+        state = connectivity_state(self.q, self.boxes, c)
+        check_start(state, self.q, self.boxes, self.names, p)
+
+        self.planner = shared_planner(self.boxes, world.bounds, p)
+        # Targets first: they are the first draws of the run's generator.
+        self.queues = target_queues(p, self.planner, self.q, rng)
+        self.targets_total = len(self.queues)
+        self.explorers = np.flatnonzero(self.queues.pending())
+        self.explorer = ExplorationController(p.exploration, self.planner, self.queues)
+        self.estimator = None
+        if p.lambda2_source == "estimator":
+            self.estimator = FiedlerEstimator(n, p.estimator, rng)
+            weights = self._estimator_weights(state.weights, initial.links.adjacency)
+            for _ in range(int(round(p.estimator_warmup_s / _WARMUP_STEP_S))):
+                self.estimator.step(weights, _WARMUP_STEP_S)
+        self.stats = MissionStatistics(self.explorers, self.targets_total)
+        self.roles = np.full(n, int(Role.CONNECTOR))
+        self.completion_time: float | None = None
+        self._finished = False
+        self._events: list[str] = []
+        self._drawn_paths: dict[int, np.ndarray] = {}
+        self._visits_seen = 0
+        self._skipped_seen = 0
+        self.last: ExplorationStep | None = None
+
+    def update_params(self, params: ConnectedParams) -> bool:
+        """Take new gains from the next tick on; False (restart) when a field
+        that shapes the set-up (graph ranges, planner, targets, estimator,
+        election) changes."""
+        import dataclasses
+
+        for f in dataclasses.fields(params):
+            if f.init and not f.metadata.get("tunable", True) and getattr(params, f.name) != getattr(self.params, f.name):
+                return False
+        if params.message_latency_ticks != self.params.message_latency_ticks:
+            return False
+        self.params = params
+        self.explorer.params = params.exploration
+        return True
+
+    @staticmethod
+    def _estimator_weights(weights: np.ndarray, adjacency: np.ndarray) -> np.ndarray:
+        """W on the links that also carry messages in the simulator's graph."""
+        return weights * np.asarray(adjacency, dtype=bool)
+
+    # ------------------------------------------------------------------ per tick
+    @property
+    def finished(self) -> bool:
+        """Every target visited and every robot a connector again (the loop may stop)."""
+        return self._finished
+
+    def step(self, observation: Observation) -> Commands:
+        p = self.params
+        c = p.connectivity
+        t = observation.time_s
+        q, v = self.q, self.v
+
+        start = time.perf_counter()
+        state = connectivity_state(q, self.boxes, c)
+        estimate = None
+        if self.estimator is not None:
+            estimate = self.estimator.step(self._estimator_weights(state.weights, observation.links.adjacency),
+                                           self.dt)
+            f_lambda = generalized_connectivity_force(state.links, estimate.lambda2, estimate.fiedler, c)
+        elif p.spectrum_smoothing > 0:
+            values, vectors = np.linalg.eigh(state.laplacian)
+            smooth, gradient = smooth_lambda2_gradient(state.links, values, vectors, p.spectrum_smoothing)
+            f_lambda = -guarded_potential_slope(smooth, c) * gradient
+        else:
+            f_lambda = generalized_connectivity_force(state.links, state.lambda2, state.fiedler, c)
+        middle = time.perf_counter()
+        out = self.explorer.step(t, q, v, observation.links.adjacency, f_lambda)
+        q_next, v_next = step_virtual_dynamics(q, v, f_lambda + out.forces, self.dt, c)
+        acceleration = (v_next - v) / self.dt
+        self.timings["lambda2"] += middle - start
+        self.timings["forces"] += time.perf_counter() - middle
+
+        obstacle_distance = point_clearance(self.boxes, q)
+        body_obstacle_distance = point_clearance(self.boxes, observation.position)
+        robot_distance = pairwise_min_distance(q)
+        tick = self.stats.record(state, q, q_next, out.roles, obstacle_distance, observation.position,
+                                 body_obstacle_distance, robot_distance,
+                                 None if estimate is None else estimate.lambda2)
+        self._note_changes(t, out)
+        if out.finished and not self._finished:
+            self._finished = True
+            if not out.skipped and len(out.visits) == self.targets_total:
+                self.completion_time = max((visit.completion_time for visit in out.visits), default=t)
+        self.last = out
+        commands = Commands(q.copy(), v.copy(), acceleration, np.zeros(len(q)),
+                            self._info(out, state, estimate, f_lambda, tick, robot_distance, obstacle_distance))
+        self.q, self.v = q_next, v_next
+        return commands
+
+    # ------------------------------------------------------------------ outputs
+    def _note_changes(self, t: float, out: ExplorationStep) -> None:
+        for i in np.flatnonzero(out.roles != self.roles):
+            self._events.append(f"t = {t:.2f} s: {self.names[i]} becomes {ROLE_NAMES[Role(int(out.roles[i]))]}")
+            if out.roles[i] == Role.PRIME_TRAVELER:
+                self.stats.elections += 1
+        for visit in out.visits[self._visits_seen:]:
+            self._events.append(f"t = {t:.2f} s: {self.names[visit.target.robot]} visited its target "
+                                f"{visit.target.index + 1} (arrived {visit.arrival_time:.2f} s)")
+        for target in out.skipped[self._skipped_seen:]:
+            self._events.append(f"t = {t:.2f} s: {self.names[target.robot]} skips its unreachable target "
+                                f"{target.index + 1} at {np.round(target.position, 2).tolist()}")
+        self._visits_seen, self._skipped_seen = len(out.visits), len(out.skipped)
+        self.roles = out.roles.copy()
+
+    def _path_points(self, path) -> np.ndarray:
+        key = id(path)
+        if key not in self._drawn_paths:
+            self._drawn_paths[key] = path.sample(_PATH_DRAW_SPACING * self.params.exploration.grid_resolution)
+        return self._drawn_paths[key]
+
+    def _info(self, out: ExplorationStep, state, estimate, f_lambda, tick, robot_distance, obstacle_distance) -> dict:
+        roles = out.roles
+        secondary = roles == Role.SECONDARY_TRAVELER
+        others = roles != Role.PRIME_TRAVELER
+        nan = float("nan")
+        scalars = {
+            **tick,
+            "lambda2_estimate_mean": float(np.mean(estimate.lambda2)) if estimate is not None else nan,
+            "prime_traveler": float(out.prime),
+            "secondary_travelers": float(secondary.sum()),
+            "anchors": float(np.sum(roles == Role.ANCHOR)),
+            "connectors": float(np.sum(roles == Role.CONNECTOR)),
+            "prime_efficiency": out.prime_efficiency,
+            "prime_efficiency_estimate_mean": float(out.efficiency_estimate[others].mean()) if others.any() else nan,
+            "alignment_mean": float(np.nanmean(out.alignment[secondary])) if secondary.any() else nan,
+            "gain_mean": float(np.nanmean(out.gain[secondary])) if secondary.any() else nan,
+            "targets_visited": float(len(out.visits)),
+            "min_robot_distance_m": robot_distance,
+            "min_obstacle_distance_m": float(obstacle_distance.min()),
+            "connectivity_force_max_n": float(np.linalg.norm(f_lambda, axis=1).max()),
+        }
+        if estimate is None:
+            del scalars["lambda2_estimate_mean"]
+        robot_scalars = {
+            "role": roles.astype(float),
+            "prime_efficiency_estimate": out.efficiency_estimate,
+            "efficiency": out.efficiency,
+            "alignment": out.alignment,
+            "gain": out.gain,
+        }
+        if estimate is not None:
+            robot_scalars["lambda2_estimate"] = np.asarray(estimate.lambda2, dtype=float)
+        colors = np.array([ROLE_COLORS[Role(int(r))] for r in roles])
+        paths = [(self._path_points(path), PRIME_PATH_RGBA if i == out.prime else SECONDARY_PATH_RGBA)
+                 for i, path in enumerate(out.paths) if path is not None]
+        has_target = ~np.isnan(out.targets[:, 0])
+        prime = self.names[out.prime] if out.prime >= 0 else "none"
+        info = {
+            "scalars": scalars,
+            "robot_scalars": robot_scalars,
+            "link_weights": state.weights,
+            "robot_colors": colors,
+            "paths": paths,
+            "markers": out.targets[has_target],
+            "marker_colors": np.broadcast_to(TARGET_RGBA, (int(has_target.sum()), 4)).copy(),
+            "overlay": f"lambda2 {state.lambda2:.3f}  prime {prime}  targets {len(out.visits)}/{self.targets_total}",
+        }
+        if self._events:
+            info["events"] = self._events
+            self._events = []
+        return info
+
+    def summary(self) -> dict:
+        """Seed 001's figures for metrics.json (see the README)."""
+        last = self.last
+        visited = len(last.visits) if last is not None else 0
+        return {
+            "lambda2_source": self.params.lambda2_source,
+            "completion_time_s": self.completion_time,
+            "targets_total": self.targets_total,
+            "targets_visited": visited,
+            "targets_skipped": len(last.skipped) if last is not None else 0,
+            "explorers": int(len(self.explorers)),
+            "connectors": int(len(self.q) - len(self.explorers)),
+            "prime_elections": self.stats.elections,
+            **self.stats.summary(),
+        }

@@ -1,0 +1,325 @@
+"""Run-time pieces shared by seed 000's strategies on the simulator.
+
+The three strategies (``intermittent``, ``all_time``, ``random_meeting``)
+drive MuJoCo ground robots with single-integrator plans, take the
+simulator's range readings into EKF beliefs and report the same figures;
+this module holds what they share:
+
+- :class:`PlanningWorld` - the static workspace as the planners see it:
+  obstacle boxes that reach the sensor height (the floor slab is dropped, or
+  every move would collide with it), plane bounds and the sensor height.
+- :func:`measurement_records` - an Observation's range readings as
+  :class:`estimation.beliefs.RangeMeasurement` records, per robot.
+- :class:`TimedPath` - a planned :class:`RobotPath` (integer steps) executed
+  from a sim-time offset: the reference position and velocity a ground robot
+  tracks (|v| <= u_max per step).
+- :class:`EstimateSeries` - lambda_max(C_g(t)) per step and the
+  ``info`` entries (estimate, covariance blocks) observers use.
+- colours and the visual ``info`` keys (``robot_colors``, ``paths``,
+  ``meeting_points``, ``target_estimates``, ``target_covariances``).
+
+Units: m, s; plane positions (x, y) in the world frame; discrete steps are
+``step_s`` seconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from controllers.intermittent.params import IntermittentParams
+from controllers.intermittent.planner import PlannerParams, RobotPath
+from controllers.intermittent.planner_geometry import points_free
+from estimation.beliefs import RangeMeasurement
+from estimation.ekf import PAPER_INITIAL_ESTIMATE, FilterState
+from sim.config import ConfigError
+from sim.geometry import Boxes
+from sim.types import Commands, Observation, WorldInfo
+
+PATH_HEIGHT_M = 0.01  # drawn paths lie this high above the floor, m
+
+# Team colours (RGBA, 0..1), cycled by team index.
+TEAM_COLORS = np.array(
+    [
+        (0.90, 0.25, 0.20, 1.0),
+        (0.20, 0.45, 0.90, 1.0),
+        (0.15, 0.70, 0.30, 1.0),
+        (0.85, 0.55, 0.10, 1.0),
+        (0.60, 0.30, 0.80, 1.0),
+        (0.10, 0.70, 0.75, 1.0),
+        (0.85, 0.35, 0.65, 1.0),
+        (0.55, 0.55, 0.20, 1.0),
+        (0.40, 0.40, 0.40, 1.0),
+        (0.95, 0.80, 0.20, 1.0),
+    ]
+)
+
+
+def team_color(team: int) -> np.ndarray:
+    return TEAM_COLORS[team % len(TEAM_COLORS)]
+
+
+def as_config_error(err: ValueError, prefix: str = "strategy") -> ConfigError:
+    """ValueError('field: problem') from a parameter check -> ConfigError('strategy.field', problem)."""
+    if isinstance(err, ConfigError):
+        return err
+    name, sep, problem = str(err).partition(": ")
+    if sep and " " not in name:
+        return ConfigError(f"{prefix}.{name}", problem)
+    return ConfigError(prefix, str(err))
+
+
+@dataclass(frozen=True)
+class PlanningWorld:
+    """The static workspace as seen by the planners.
+
+    boxes: obstacles that reach above half the sensor height (walls, pillars,
+    ceiling), m; bounds: (2, 2) plane bounds [[x_min, y_min], [x_max, y_max]],
+    m; sensor_height: z of the range sensors and radios, m.
+    """
+
+    boxes: Boxes
+    bounds: np.ndarray
+    sensor_height: float
+
+    @staticmethod
+    def from_world(world: WorldInfo, initial: Observation) -> "PlanningWorld":
+        z = float(np.mean(initial.sensor_position[:, 2]))
+        obstacles = world.obstacles
+        # Vertical extent of each oriented box: |R[2, :]| . half_sizes.
+        reach = np.einsum("kj,kj->k", np.abs(obstacles.rotations[:, 2, :]), obstacles.half_sizes)
+        top = obstacles.centers[:, 2] + reach
+        keep = top > 0.5 * z
+        boxes = Boxes(obstacles.centers[keep], obstacles.half_sizes[keep], obstacles.rotations[keep])
+        return PlanningWorld(boxes, np.asarray(world.bounds, dtype=float)[:, :2].copy(), z)
+
+
+def planner_params(params: IntermittentParams, world: WorldInfo, planning: PlanningWorld,
+                   robot_radius: float | None = None) -> PlannerParams:
+    """Algorithm 1's parameters from the strategy parameters and the world."""
+    comm = world.comm_range_m - params.link_margin_m
+    if comm <= 0:
+        raise ConfigError("strategy.link_margin_m",
+                          f"must be below sensing.comm_range_m ({world.comm_range_m} m), got {params.link_margin_m}")
+    try:
+        return PlannerParams(
+            n_sample=params.n_sample,
+            n_uniform=min(params.n_uniform, params.n_sample),
+            step_size=params.step_size_m,
+            u_max=params.speed_mps * params.step_s,
+            comm_range=comm,
+            delta=params.delta_m2,
+            sensor_height=planning.sensor_height,
+            robot_radius=params.clearance_m if robot_radius is None else robot_radius,
+            sensing_range=world.target_range_m,
+        )
+    except ValueError as err:
+        raise as_config_error(err) from None
+
+
+def prior_state(params: IntermittentParams, n_targets: int) -> FilterState:
+    """x^0 and C(0) = prior_variance I (Sec. IV); the paper's x^0 when not given."""
+    if params.prior_mean:
+        if len(params.prior_mean) != n_targets:
+            raise ConfigError("strategy.prior_mean",
+                              f"has {len(params.prior_mean)} entries for {n_targets} targets")
+        mean = np.array(params.prior_mean, dtype=float)
+    else:
+        if n_targets > len(PAPER_INITIAL_ESTIMATE):
+            raise ConfigError("strategy.prior_mean", f"is required for more than {len(PAPER_INITIAL_ESTIMATE)} targets")
+        mean = PAPER_INITIAL_ESTIMATE[:n_targets]
+    mean = mean.reshape(-1)
+    return FilterState(0, mean, params.prior_variance_m2 * np.eye(mean.size))
+
+
+def check_time_base(world: WorldInfo, params: IntermittentParams) -> None:
+    """The strategies need the target model and a whole number of control ticks per step."""
+    if world.n_targets == 0:
+        raise ConfigError("targets", "the seed 000 strategies need at least one target")
+    if getattr(world, "target_motion", None) is None:
+        raise ConfigError("targets", "the simulator did not provide the target model")
+    if abs(world.target_motion.dt - params.step_s) > 1e-9:
+        raise ConfigError("strategy.step_s",
+                          f"must equal target_motion.step_s ({world.target_motion.dt} s), got {params.step_s}")
+    if abs(world.sensing_period_s - params.step_s) > 1e-9:
+        raise ConfigError("strategy.step_s",
+                          f"must equal sensing.period_s ({world.sensing_period_s} s), got {params.step_s}")
+    ratio = params.step_s / world.control_period_s
+    if abs(ratio - round(ratio)) > 1e-6:
+        raise ConfigError("strategy.step_s", f"must be a whole multiple of physics.control_period_s, got {params.step_s}")
+    if any(kind != "ground" for kind in world.robot_kinds):
+        raise ConfigError("robots", "the seed 000 strategies drive ground robots only")
+
+
+def measurement_records(observation: Observation, step: int) -> list[list[RangeMeasurement]]:
+    """Per robot, its readings of this step (one record per visible target)."""
+    ranges = observation.target_ranges
+    out: list[list[RangeMeasurement]] = []
+    for robot in range(len(ranges)):
+        sensor = tuple(float(v) for v in observation.sensor_position[robot])
+        seen = np.flatnonzero(np.isfinite(ranges[robot]))
+        out.append([RangeMeasurement(step, robot, sensor, int(a), float(max(ranges[robot, a], 0.0))) for a in seen])
+    return out
+
+
+@dataclass
+class TimedPath:
+    """A planned path executed from sim time ``offset_s`` on.
+
+    path: waypoints at integer steps; step_s: seconds per step. The robot is
+    at path step tau = (t - offset_s) / step_s; before the path's start it
+    waits at the first waypoint, after its end at the last.
+    """
+
+    path: RobotPath
+    step_s: float
+    offset_s: float = 0.0
+
+    def tau(self, t: float) -> float:
+        return (t - self.offset_s) / self.step_s
+
+    def finished(self, t: float) -> bool:
+        return self.tau(t) >= self.path.end_time - 1e-9
+
+    @property
+    def end_time_s(self) -> float:
+        return self.path.end_time * self.step_s + self.offset_s
+
+    def reference(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Plane position (2,) m and velocity (2,) m/s at sim time ``t``."""
+        path = self.path
+        tau = self.tau(t)
+        if tau <= path.start_time:
+            return path.positions[0].copy(), np.zeros(2)
+        if tau >= path.end_time:
+            return path.positions[-1].copy(), np.zeros(2)
+        k = int(np.searchsorted(path.times, tau, side="right")) - 1
+        k = min(max(k, 0), len(path.times) - 2)
+        dt = (path.times[k + 1] - path.times[k]) * self.step_s
+        velocity = (path.positions[k + 1] - path.positions[k]) / dt
+        return path.position_at(tau), velocity
+
+    def remaining(self, t: float) -> np.ndarray:
+        """(K, 2) the reference now and every waypoint still ahead."""
+        tau = min(max(self.tau(t), self.path.start_time), self.path.end_time)
+        ahead = self.path.positions[self.path.times > tau]
+        return np.vstack([self.path.position_at(tau)[None], ahead])
+
+
+def shifted(path: RobotPath, steps: int) -> RobotPath:
+    """The same path ``steps`` later."""
+    return RobotPath(path.times + int(steps), path.positions)
+
+
+def lifted(points: np.ndarray, z: float = PATH_HEIGHT_M) -> np.ndarray:
+    points = np.asarray(points, dtype=float)
+    return np.concatenate([points, np.full(points.shape[:-1] + (1,), z)], axis=-1)
+
+
+@dataclass
+class EstimateSeries:
+    """lambda_max of the global covariance per step, and the latest estimate.
+
+    ``info`` entries (for observers): ``target_estimate`` (M, 3) m and
+    ``target_estimate_step`` (the step it refers to), ``target_estimates``
+    (the same, for drawing) and ``target_covariances`` (M, 3, 3) m^2.
+    """
+
+    steps: list[int] = field(default_factory=list)
+    lambda_max: list[float] = field(default_factory=list)
+    last: FilterState | None = None
+
+    def record(self, state: FilterState) -> float:
+        value = float(np.linalg.eigvalsh(state.covariance)[-1])
+        self.steps.append(state.step)
+        self.lambda_max.append(value)
+        self.last = state
+        return value
+
+    def info(self) -> dict:
+        if self.last is None:
+            return {}
+        m = self.last.n_targets
+        mean = self.last.mean.reshape(m, 3)
+        idx = np.arange(m)
+        blocks = self.last.covariance.reshape(m, 3, m, 3)[idx, :, idx, :]
+        return {
+            "target_estimate": mean,
+            "target_estimate_step": self.last.step,
+            "target_estimates": mean,
+            "target_covariances": blocks,
+        }
+
+    def summary(self) -> dict:
+        """lambda-bar of eq. (13b): mean and population std over steps >= 1."""
+        values = np.array([v for s, v in zip(self.steps, self.lambda_max) if s >= 1])
+        if values.size == 0:
+            return {"lambda_bar_mean_m2": None, "lambda_bar_std_m2": None}
+        return {"lambda_bar_mean_m2": float(values.mean()), "lambda_bar_std_m2": float(values.std())}
+
+
+def commands_from_plane(observation: Observation, positions: np.ndarray, velocities: np.ndarray):
+    """Commands for ground robots from plane references (z kept at the body)."""
+    n = len(positions)
+    position = np.concatenate([positions, observation.position[:, 2:3]], axis=1)
+    velocity = np.concatenate([velocities, np.zeros((n, 1))], axis=1)
+    return Commands(position, velocity, np.zeros((n, 3)), np.zeros(n))
+
+
+LAG_HOLD_M = 0.15  # a robot's path clock pauses while its body is this far behind its reference, m
+WALL_KEEP_M = 0.06  # separation never moves a reference closer than this to a wall, m
+SEPARATION_M = 0.12  # bodies (0.072 m across) closer than this push their references apart, m
+SEPARATION_GAIN = 3.0  # reference offset per metre of intrusion, -
+
+
+def separation_offsets(body_xy: np.ndarray, velocity: np.ndarray | None = None,
+                       distance: float = SEPARATION_M, gain: float = SEPARATION_GAIN) -> np.ndarray:
+    """(N, 2) reference offsets, m, that keep ground-robot bodies apart.
+
+    The paper's robots are points; ours are 7 cm discs that push and can even
+    tip each other over. For every pair closer than ``distance`` each robot's
+    reference moves by gain * (distance - d) away from the other robot; a
+    robot whose planned velocity (``velocity``, (N, 2) m/s) heads into the
+    other also dodges by the same amount to its right, so two robots meeting
+    head on pass each other and a follower overtakes on the right. Robots on
+    one path side by side drift apart sideways (to about 0.1 m). Zero when
+    every pair is at least ``distance`` apart: plans are tracked unchanged.
+    """
+    body_xy = np.asarray(body_xy, dtype=float)
+    n = len(body_xy)
+    offsets = np.zeros((n, 2))
+    if n < 2:
+        return offsets
+    diff = body_xy[:, None, :] - body_xy[None, :, :]
+    dist = np.linalg.norm(diff, axis=-1)
+    close = (dist < distance) & ~np.eye(n, dtype=bool)
+    if not close.any():
+        return offsets
+    i, j = np.nonzero(close)
+    away = diff[i, j] / np.maximum(dist[i, j], 1e-6)[:, None]
+    size = gain * (distance - dist[i, j])
+    push = size[:, None] * away
+    if velocity is not None:
+        v = np.asarray(velocity, dtype=float)[i]
+        speed = np.linalg.norm(v, axis=1)
+        heading = np.where(speed[:, None] > 1e-9, v / np.maximum(speed, 1e-9)[:, None], 0.0)
+        towards = np.clip(-(heading * away).sum(axis=1), 0.0, 1.0)  # 1: straight at the other robot
+        right = np.stack([heading[:, 1], -heading[:, 0]], axis=1)
+        push += (size * towards)[:, None] * right
+    np.add.at(offsets, i, push)
+    return offsets
+
+
+def separated_references(references: np.ndarray, body_xy: np.ndarray, planning: PlanningWorld,
+                         velocity: np.ndarray | None = None) -> np.ndarray:
+    """References plus :func:`separation_offsets`, except pushes that would
+    put a reference within ``WALL_KEEP_M`` of a wall (those are dropped)."""
+    offsets = separation_offsets(body_xy, velocity)
+    moved = np.flatnonzero(np.any(offsets != 0.0, axis=1))
+    out = np.array(references, dtype=float, copy=True)
+    if len(moved):
+        candidate = out[moved] + offsets[moved]
+        ok = points_free(planning.boxes, planning.bounds, candidate, planning.sensor_height, WALL_KEEP_M)
+        out[moved[ok]] = candidate[ok]
+    return out

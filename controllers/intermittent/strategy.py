@@ -1,0 +1,552 @@
+"""Algorithm 5 of seed 000 on MuJoCo ground robots: ``strategy.kind = "intermittent"``.
+
+Every robot r_ij follows its communication schedule sched_ij forever
+(:mod:`controllers.intermittent.schedules`). It drives along the planned path
+segment p^k_ij to its next team meeting while taking a range reading of every
+target in sight each step (1 s); when all members of the team have reached
+the end of their segments and the team's communication graph, read from the
+simulator's links (range and line of sight), is connected, the meeting is
+*held*: the members exchange their logs (:meth:`NetworkBeliefs.meet`, Alg. 5
+lines 3-4) and plan, from the team belief, the segments to the team's next
+meeting T epochs later (line 5, :func:`plan_meeting`). Each robot then sets
+off on its already planned segment to its other team's meeting; the new
+segment starts where that one ends (Sec. III-B, Fig. 2). The paths to the
+first meetings (epochs 1..T) are planned a priori from the prior belief
+(footnote 4).
+
+Execution on real bodies. Plans are single-integrator paths at integer steps
+with |u| <= u_max; a robot tracks p(t) sampled every control tick
+(reference position and velocity, see :class:`TimedPath`) with the
+foundation's point-offset wheel controller. Bodies lag their references and
+meetings are held only once every member has arrived and the team is
+connected, so a robot's next segment starts when the meeting is actually
+held: its path is executed from that moment (a time offset), and the next
+plan of a team starts each member at the planned end of its committed
+segment shifted by that member's offset, rounded up to a whole step.
+Whoever arrives first waits (recorded: ``max_wait_s``). If every member has
+finished but the team graph is not connected after ``gather_after_s``, the
+members close in on the centroid of their meeting points until it is.
+
+Planning time. The simulation loop is synchronous: planning runs inside
+``step()`` and takes wall-clock time, not simulated time (the robots do not
+move while the team plans). ``plan_time_*`` report the wall time per
+meeting; the benchmark compares it with the time the robots take to the
+next meeting.
+
+Planner failure. If Algorithm 1 finds no goal node for any target (it
+already falls back to less uncertain targets, Sec. IV), it is run again with
+fresh samples up to ``max_replans`` times; if that fails too, the team meets
+again where it just met (each member returns on its geodesic path), or, for
+an a-priori plan, around the start of the member that starts last. The
+schedule is never broken: the meeting still takes place at its epoch.
+
+``random_meeting`` (:mod:`controllers.baselines.random_meeting`) reuses all
+of this and only designs the segments differently.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from controllers.baselines.geodesic import GeodesicPlanner, timed_waypoints
+from controllers.intermittent.params import IntermittentParams
+from controllers.intermittent.planner import PlanningProblem, RobotPath, plan_meeting
+from controllers.intermittent.planner_geometry import edges_free, points_free
+from controllers.intermittent.runtime import (
+    EstimateSeries,
+    PlanningWorld,
+    TimedPath,
+    as_config_error,
+    check_time_base,
+    commands_from_plane,
+    lifted,
+    measurement_records,
+    planner_params,
+    LAG_HOLD_M,
+    prior_state,
+    separated_references,
+    shifted,
+    team_color,
+)
+from controllers.intermittent.schedules import build_schedule
+from estimation.beliefs import NetworkBeliefs
+from estimation.ekf import FilterState
+from estimation.metrics import delay_report
+from sim.config import ConfigError
+from sim.types import Commands, Observation, WorldInfo
+
+RING_RADIUS_M = 0.06  # members of a geodesic meeting stop on a ring this wide around its point, m
+IDLE_COLOR = np.array([0.5, 0.5, 0.5, 1.0])
+
+
+@dataclass
+class Meeting:
+    """One communication event (team, epoch) and what happened at it."""
+
+    team: int
+    epoch: int
+    members: tuple[int, ...]
+    planned_time_s: float  # meeting time of the plan, s
+    points: np.ndarray  # (n, 2) each member's meeting position, m
+    target: int | None = None  # target whose goal condition the plan met (None: not planned informatively)
+    fallback: bool = False
+    arrivals: dict[int, float] = field(default_factory=dict)  # robot -> sim time it arrived, s
+    finished_since: float | None = None
+    gathering: bool = False
+    held_s: float | None = None
+    connected: bool = False
+    positions_at_hold: np.ndarray | None = None  # (n, 2) body positions when held, m
+
+    def point_of(self, robot: int) -> np.ndarray:
+        return self.points[self.members.index(robot)]
+
+
+@dataclass
+class Segment:
+    """A robot's path to one meeting, executed from a sim-time offset."""
+
+    meeting: Meeting
+    timed: TimedPath
+    started: bool = False
+    arrive_step: int = 0  # step from which the path stays at its end point
+
+    @staticmethod
+    def of(meeting: Meeting, path: RobotPath, step_s: float) -> "Segment":
+        end = path.positions[-1]
+        moving = np.flatnonzero(np.linalg.norm(path.positions - end, axis=1) > 1e-9)
+        arrive = int(path.times[moving[-1] + 1]) if len(moving) else path.start_time
+        return Segment(meeting, TimedPath(path, step_s), False, arrive)
+
+    def at_end(self, t: float) -> bool:
+        return self.started and self.timed.tau(t) >= self.arrive_step - 1e-9
+
+
+@dataclass(frozen=True)
+class MemberStart:
+    """Where and when a member's new segment starts, and its committed path before."""
+
+    position: np.ndarray  # (2,) m
+    time: int  # step
+    prefix: RobotPath | None
+
+
+@dataclass(frozen=True)
+class TeamDesign:
+    """The segments a team designed for its next meeting."""
+
+    paths: tuple[RobotPath, ...]
+    meeting_time: int  # step
+    points: np.ndarray  # (n, 2) m
+    target: int | None
+    plan_time_s: float  # wall time spent designing, s
+    cost_time_s: float  # part of it in the EKF cost (Alg. 4), s
+    failures: int  # planner runs without a plan
+    fallback: bool
+
+
+def team_connected(adjacency: np.ndarray, members: tuple[int, ...]) -> bool:
+    """The team's communication graph (links among its members) is connected."""
+    sub = np.asarray(adjacency)[np.ix_(members, members)]
+    seen = {0}
+    frontier = [0]
+    while frontier:
+        i = frontier.pop()
+        for j in np.flatnonzero(sub[i]):
+            if int(j) not in seen:
+                seen.add(int(j))
+                frontier.append(int(j))
+    return len(seen) == len(members)
+
+
+def ring_points(center: np.ndarray, n: int, geodesic: GeodesicPlanner, radius: float = RING_RADIUS_M) -> np.ndarray:
+    """n stopping points on a small ring around ``center`` (all free), else all at the centre."""
+    if n == 1:
+        return center[None].copy()
+    for turn in np.linspace(0.0, 2 * np.pi, 8, endpoint=False):
+        angles = turn + 2 * np.pi * np.arange(n) / n
+        points = center + radius * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+        if geodesic.is_free(points).all() and edges_free(
+            geodesic.boxes, np.broadcast_to(center, points.shape), points, geodesic.z, geodesic.margin
+        ).all():
+            return points
+    return np.repeat(center[None], n, axis=0)
+
+
+class MeetingStrategy:
+    """Teams, schedules, beliefs and meetings on ground robots; subclasses
+    design the segments (:meth:`design`)."""
+
+    kind = "meetings"
+
+    def __init__(self, params: IntermittentParams):
+        self.params = params
+
+    # ------------------------------------------------------------------ set-up
+    def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
+        params = self.params
+        check_time_base(world, params)
+        n = world.n_robots
+        try:
+            self.teams = params.team_structure(n)
+        except ValueError as err:
+            raise as_config_error(err) from None
+        self.world = world
+        self.rng = rng
+        self.step_s = params.step_s
+        self.schedule = build_schedule(self.teams)
+        self.planning = PlanningWorld.from_world(world, initial)
+        self.planner = planner_params(params, world, self.planning)
+        self.motion = world.target_motion
+        self.prior = prior_state(params, world.n_targets)
+        self.beliefs = NetworkBeliefs(self.teams, self.motion, self.prior)
+        self.series = EstimateSeries()
+        starts = initial.position[:, :2].copy()
+        free = points_free(self.planning.boxes, self.planning.bounds, starts, self.planning.sensor_height,
+                           params.clearance_m)
+        if not free.all():
+            robot = int(np.flatnonzero(~free)[0])
+            raise ConfigError("robots", f"robot {robot} starts at {tuple(np.round(starts[robot], 3))}, closer than "
+                              f"strategy.clearance_m = {params.clearance_m} m to a wall or the scene bounds")
+        self.geodesic = GeodesicPlanner(self.planning.boxes, self.planning.bounds, self.planning.sensor_height,
+                                        params.clearance_m)
+        self.queues: list[deque[Segment]] = [deque() for _ in range(n)]
+        self.meetings: list[Meeting] = []
+        self.initial_xy = starts
+        self.last_step: int | None = None
+        self.plan_times: list[float] = []
+        self.cost_times: list[float] = []
+        self.plan_failures = 0
+        self.plan_fallbacks = 0
+        self.waits: list[float] = []
+        self.lags: list[tuple[int, int, float]] = []  # (step, t*, e_i) of the lag team
+        self.events: list[str] = []
+        self._scalars: dict[str, float] = {}
+        self._visual_dirty = True
+        self._visual: dict = {}
+        self._time_s = 0.0
+        self.held_ticks = 0  # robot-ticks a path clock waited for its lagging body
+        self.closest_m = math.inf  # closest approach of two robot bodies over the run, m
+        # Footnote 4: the paths to the first meeting of every team, a priori.
+        for epoch in range(1, self.schedule.period + 1):
+            for team in self.schedule.teams_meeting_at(epoch):
+                self._plan(team, epoch, 0.0, belief_step=0, estimate=self.prior)
+        for queue in self.queues:
+            queue[0].started = True
+            queue[0].timed.offset_s = 0.0
+        self._scalars.update({"lambda_max_m2": float(np.linalg.eigvalsh(self.prior.covariance)[-1]),
+                              "t_star_lag_s": 0.0, "local_error_m": 0.0, "meetings_held": 0.0,
+                              "robots_waiting": 0.0})
+
+    # ------------------------------------------------------------- designing
+    def design(self, team: int, epoch: int, members: tuple[int, ...], starts: list[MemberStart],
+               belief_step: int, estimate: FilterState) -> TeamDesign:
+        raise NotImplementedError
+
+    def _member_start(self, robot: int) -> MemberStart:
+        """The end of the robot's last committed segment (its start before any)."""
+        queue = self.queues[robot]
+        if not queue:
+            return MemberStart(self.initial_xy[robot].copy(), 0, None)
+        last = queue[-1]
+        shift = int(math.ceil(max(last.timed.offset_s, 0.0) / self.step_s - 1e-9))
+        path = shifted(last.timed.path, shift)
+        return MemberStart(path.positions[-1].copy(), path.end_time, path)
+
+    def _plan(self, team: int, epoch: int, now_s: float, belief_step: int, estimate: FilterState) -> Meeting:
+        members = tuple(self.teams.members[team])
+        starts = [self._member_start(r) for r in members]
+        design = self.design(team, epoch, members, starts, belief_step, estimate)
+        self.plan_times.append(design.plan_time_s)
+        self.cost_times.append(design.cost_time_s)
+        self.plan_failures += design.failures
+        self.plan_fallbacks += int(design.fallback)
+        meeting = Meeting(team, epoch, members, design.meeting_time * self.step_s, np.array(design.points),
+                          design.target, design.fallback)
+        self.meetings.append(meeting)
+        for robot, path in zip(members, design.paths):
+            self.queues[robot].append(Segment.of(meeting, path, self.step_s))
+        what = "fallback meeting" if design.fallback else (
+            f"target {design.target}" if design.target is not None else "random meeting point")
+        self.events.append(
+            f"team {team} planned epoch {epoch}: meet at t = {meeting.planned_time_s:.0f} s ({what}; "
+            f"{design.plan_time_s:.2f} s wall{', %d failed runs' % design.failures if design.failures else ''})"
+        )
+        self._visual_dirty = True
+        return meeting
+
+    def geodesic_design(self, members: tuple[int, ...], starts: list[MemberStart], points: np.ndarray) -> TeamDesign | None:
+        """Geodesic paths from the starts to ``points`` at full speed; every
+        member waits at its point until the last one arrives."""
+        u_max = self.params.speed_mps * self.step_s
+        timed = []
+        for start, goal in zip(starts, points):
+            waypoints = self.geodesic.path(start.position, goal)
+            if waypoints is None:
+                return None
+            times, positions = timed_waypoints(waypoints, start.time, u_max)
+            if len(times) == 1:  # already there: stay one step
+                times, positions = np.array([start.time, start.time + 1]), np.vstack([positions, positions])
+            timed.append((times, positions))
+        meeting_time = max(int(t[-1]) for t, _ in timed)
+        paths = []
+        for times, positions in timed:
+            if times[-1] < meeting_time:
+                times = np.append(times, meeting_time)
+                positions = np.vstack([positions, positions[-1]])
+            paths.append(RobotPath(times, positions))
+        return TeamDesign(tuple(paths), meeting_time, np.array(points), None, 0.0, 0.0, 0, False)
+
+    # ----------------------------------------------------------------- running
+    def _take_readings(self, observation: Observation) -> None:
+        step = observation.target_step
+        if abs(observation.time_s - step * self.step_s) > 1e-6 or (
+                self.last_step is not None and step != self.last_step + 1):
+            raise ConfigError("strategy.step_s", f"must equal sensing.period_s and target_motion.step_s "
+                              f"(reading of step {step} at t = {observation.time_s:.3f} s)")
+        for robot, records in enumerate(measurement_records(observation, step)):
+            self.beliefs.collect(robot, records)
+        self.last_step = step
+        lam = self.series.record(self.beliefs.global_estimate(step))
+        team = self.params.lag_team
+        agreement = self.beliefs.agreement_horizon(team, step)
+        local = self.beliefs.local_error(team, step)
+        self.lags.append((step, agreement, local))
+        self._scalars["lambda_max_m2"] = lam
+        self._scalars["t_star_lag_s"] = (step - agreement) * self.step_s
+        self._scalars["local_error_m"] = local
+
+    def _hold(self, meeting: Meeting, observation: Observation) -> None:
+        t = observation.time_s
+        meeting.held_s = t
+        meeting.connected = team_connected(observation.links.adjacency, meeting.members)
+        meeting.positions_at_hold = observation.position[list(meeting.members), :2].copy()
+        report = self.beliefs.meet(meeting.team, meeting.epoch)
+        for robot in meeting.members:
+            self.waits.append(t - meeting.arrivals.get(robot, t))
+            done = self.queues[robot].popleft()
+            assert done.meeting is meeting
+            if not self.queues[robot]:
+                raise RuntimeError(f"robot {robot} has no committed segment after epoch {meeting.epoch}")
+            following = self.queues[robot][0]
+            following.started = True
+            following.timed.offset_s = max(0.0, t - following.timed.path.start_time * self.step_s)
+        self.events.append(
+            f"meeting held: team {meeting.team} epoch {meeting.epoch} at t = {t:.1f} s "
+            f"(planned {meeting.planned_time_s:.0f} s), {report.new_to_team} new readings"
+        )
+        belief_step = self.last_step if self.last_step is not None else 0
+        estimate = self.beliefs.team_estimate(meeting.team, belief_step)
+        self._plan(meeting.team, meeting.epoch + self.schedule.period, t, belief_step, estimate)
+        self._scalars["meetings_held"] = float(sum(m.held_s is not None for m in self.meetings))
+
+    def _gather_reference(self, meeting: Meeting, robot: int, t: float) -> np.ndarray:
+        """Close in on the centroid of the meeting points at full speed."""
+        point = meeting.point_of(robot)
+        goal = meeting.points.mean(axis=0)
+        if not self.geodesic.is_free(goal[None])[0]:
+            goal = meeting.points[np.argmin(np.linalg.norm(meeting.points - goal, axis=1))]
+        gap = goal - point
+        distance = float(np.linalg.norm(gap))
+        if distance < 1e-9:
+            return point.copy()
+        travelled = self.params.speed_mps * (t - meeting.finished_since - self.params.gather_after_s)
+        return point + gap * min(1.0, max(travelled, 0.0) / distance)
+
+    def step(self, observation: Observation) -> Commands:
+        t = observation.time_s
+        self._time_s = t
+        if observation.target_ranges is not None:
+            self._take_readings(observation)
+        xy = observation.position[:, :2]
+        heads: dict[int, Meeting] = {}
+        for robot, queue in enumerate(self.queues):
+            segment = queue[0]
+            meeting = segment.meeting
+            heads[id(meeting)] = meeting
+            if robot not in meeting.arrivals and segment.at_end(t) and (
+                    np.linalg.norm(xy[robot] - meeting.point_of(robot)) <= self.params.arrival_tolerance_m):
+                meeting.arrivals[robot] = t
+        for meeting in sorted(heads.values(), key=lambda m: m.epoch):
+            ready = all(self.queues[r][0].meeting is meeting and self.queues[r][0].at_end(t) for r in meeting.members)
+            if not ready:
+                continue
+            if team_connected(observation.links.adjacency, meeting.members):
+                self._hold(meeting, observation)
+            elif meeting.finished_since is None:
+                meeting.finished_since = t
+            elif t - meeting.finished_since >= self.params.gather_after_s and not meeting.gathering:
+                meeting.gathering = True
+                self.events.append(f"team {meeting.team} epoch {meeting.epoch}: not connected "
+                                   f"{self.params.gather_after_s:.0f} s after arrival, closing in")
+        n = len(self.queues)
+        positions = np.empty((n, 2))
+        velocities = np.zeros((n, 2))
+        waiting = 0
+        for robot, queue in enumerate(self.queues):
+            segment = queue[0]
+            if segment.meeting.gathering:
+                positions[robot] = self._gather_reference(segment.meeting, robot, t)
+            else:
+                positions[robot], velocities[robot] = segment.timed.reference(t)
+                if (segment.started and not segment.timed.finished(t)
+                        and np.linalg.norm(xy[robot] - positions[robot]) > LAG_HOLD_M):
+                    # Time scaling: the body lags (a sharp turn, a push); its path clock waits for it.
+                    segment.timed.offset_s += self.world.control_period_s
+                    self.held_ticks += 1
+                    positions[robot], velocities[robot] = segment.timed.reference(t)
+                    velocities[robot] = 0.0
+            waiting += int(segment.at_end(t))
+        self._scalars["robots_waiting"] = float(waiting)
+        positions = separated_references(positions, xy, self.planning, velocities)
+        self._track_closest(xy)
+        commands = commands_from_plane(observation, positions, velocities)
+        commands.info = self._info(t)
+        return commands
+
+    def _track_closest(self, xy: np.ndarray) -> None:
+        if len(xy) > 1:
+            d = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
+            self.closest_m = min(self.closest_m, float(d[np.triu_indices(len(xy), 1)].min()))
+
+    # ---------------------------------------------------------------- outputs
+    def _refresh_visual(self) -> None:
+        colors, paths, points, point_colors = [], [], [], []
+        for robot, queue in enumerate(self.queues):
+            colors.append(team_color(queue[0].meeting.team) if queue else IDLE_COLOR)
+            for k, segment in enumerate(queue):
+                rgba = team_color(segment.meeting.team).copy()
+                rgba[3] = 0.9 if k == 0 else 0.45
+                paths.append((lifted(segment.timed.path.positions), rgba))
+        pending = {id(s.meeting): s.meeting for q in self.queues for s in q}
+        for meeting in pending.values():
+            rgba = team_color(meeting.team).copy()
+            rgba[3] = 0.5
+            for p in meeting.points:
+                points.append(lifted(p))
+                point_colors.append(rgba)
+        self._visual = {
+            "robot_colors": np.array(colors),
+            "paths": paths,
+            "meeting_points": np.array(points).reshape(-1, 3),
+            "meeting_point_colors": np.array(point_colors).reshape(-1, 4),
+        }
+        self._visual_dirty = False
+
+    def _info(self, t: float) -> dict:
+        if self._visual_dirty:
+            self._refresh_visual()
+        held = int(self._scalars.get("meetings_held", 0))
+        info = {
+            "scalars": self._scalars,
+            "overlay": f"{self.kind}: {held} meetings held, {int(self._scalars['robots_waiting'])} robots at their meeting point",
+            **self._visual,
+            **self.series.info(),
+        }
+        if self.events:
+            info["events"] = self.events
+            self.events = []
+        return info
+
+    def summary(self) -> dict:
+        t_end = self._time_s
+        scheduled = [m for m in self.meetings if m.planned_time_s <= t_end + 1e-9]
+        held = [m for m in self.meetings if m.held_s is not None]
+        report = delay_report(self.beliefs, self.schedule.delay_bound)
+        lag_steps = np.array([s - a for s, a, _ in self.lags], dtype=float) * self.step_s
+        local = np.array([e for _, _, e in self.lags], dtype=float)
+        late = [m.held_s - m.planned_time_s for m in held]
+        out = {
+            **self.series.summary(),
+            "meetings_scheduled": len(scheduled),
+            "meetings_held": len(held),
+            "meetings_connected": sum(m.connected for m in held),
+            "meetings_pending": len([m for m in scheduled if m.held_s is None]),
+            "max_wait_s": float(max(self.waits, default=0.0)),
+            "mean_wait_s": float(np.mean(self.waits)) if self.waits else 0.0,
+            "mean_meeting_delay_s": float(np.mean(late)) if late else 0.0,
+            "schedule_period_epochs": self.schedule.period,
+            "delay_bound_epochs": self.schedule.delay_bound,
+            "max_delay_epochs_observed": report.worst,
+            "packets_delivered": int(report.delays.size),
+            "plan_time_mean_s": float(np.mean(self.plan_times)) if self.plan_times else 0.0,
+            "plan_time_max_s": float(max(self.plan_times, default=0.0)),
+            "plan_cost_share": float(sum(self.cost_times) / sum(self.plan_times)) if sum(self.plan_times) > 0 else 0.0,
+            "plans": len(self.plan_times),
+            "plan_failures": self.plan_failures,
+            "plan_fallbacks": self.plan_fallbacks,
+            "path_clock_hold_s": self.held_ticks * self.world.control_period_s,
+            "closest_robots_m": self.closest_m if math.isfinite(self.closest_m) else None,
+            "lag_team": self.params.lag_team,
+            "t_star_lag_mean_s": float(lag_steps.mean()) if lag_steps.size else 0.0,
+            "t_star_lag_max_s": float(lag_steps.max()) if lag_steps.size else 0.0,
+            "local_error_mean_m": float(local.mean()) if local.size else 0.0,
+        }
+        return out
+
+
+class IntermittentStrategy(MeetingStrategy):
+    """Seed 000's method: segments from the joint-space informative planner."""
+
+    kind = "intermittent"
+
+    def design(self, team, epoch, members, starts, belief_step, estimate) -> TeamDesign:
+        problem = PlanningProblem(
+            start_positions=np.array([s.position for s in starts]),
+            start_times=np.array([s.time for s in starts]),
+            estimate=estimate.mean,
+            covariance=estimate.covariance,
+            belief_time=belief_step,
+            motion=self.motion,
+            boxes=self.planning.boxes,
+            bounds=self.planning.bounds,
+            prefixes=tuple(s.prefix for s in starts),
+            target_priority=self.target_priority(team),
+        )
+        wall = cost = 0.0
+        failures = 0
+        for _ in range(1 + self.params.max_replans):
+            result = plan_meeting(problem, self.planner, self.rng)
+            wall += result.wall_time_s
+            cost += result.cost_time_s
+            if result.success:
+                plan = result.plan
+                return TeamDesign(plan.paths, plan.meeting_time, plan.meeting_positions, plan.target, wall, cost,
+                                  failures, False)
+            failures += 1
+            self.events.append(f"team {team} epoch {epoch}: planner found no meeting ({result.reason})")
+        start = time.perf_counter()
+        design = self._fallback(team, members, starts)
+        wall += time.perf_counter() - start
+        return TeamDesign(design.paths, design.meeting_time, design.points, None, wall, cost, failures, True)
+
+    def target_priority(self, team: int) -> np.ndarray:
+        """Tie-break of equally uncertain targets for ``team``: the target order
+        rotated by team (team i starts at target floor(i M / n_teams)), so teams
+        planning from one prior spread over the targets (see PlanningProblem)."""
+        m = self.world.n_targets
+        first = (team * m) // self.teams.n_teams
+        return (np.arange(m) - first) % m
+
+    def _fallback(self, team: int, members: tuple[int, ...], starts: list[MemberStart]) -> TeamDesign:
+        """Meet again where the team last met; before any meeting, around
+        the start of the member that starts last."""
+        previous = [m for m in self.meetings if m.team == team and m.held_s is not None]
+        candidates = []
+        if previous:
+            candidates.append(previous[-1].points)
+        anchor = starts[int(np.argmax([s.time for s in starts]))].position
+        candidates.append(ring_points(anchor, len(members), self.geodesic))
+        for points in candidates:
+            design = self.geodesic_design(members, starts, points)
+            if design is not None:
+                return design
+        # Everyone to the anchor itself (bodies may touch; they are then in range).
+        design = self.geodesic_design(members, starts, np.repeat(anchor[None], len(members), axis=0))
+        if design is None:
+            raise RuntimeError(f"team {team}: no geodesic path to a fallback meeting point")
+        return design

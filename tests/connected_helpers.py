@@ -1,0 +1,60 @@
+"""Shared by the connected-strategy tests: run a scenario tick by tick and check
+seed 001's invariants on every control tick, independently of the strategy's
+own bookkeeping (recomputed from the references the quadrotors received)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from controllers.connectivity.graph import connectivity_state
+from controllers.connectivity.roles import Role
+from sim.geometry import point_clearance
+from sim.loop import Simulation
+
+
+class InvariantLog:
+    """Per-tick checks: lambda2 > lambda2_min, virtual points farther than R_c
+    apart and than R_o from obstacles, at most one prime traveler."""
+
+    def __init__(self, sim: Simulation):
+        self.sim = sim
+        self.params = sim.strategy.params.connectivity
+        self.boxes = sim.world.obstacles
+        self.ticks = 0
+        self.lambda2_min = np.inf
+        self.robot_distance_min = np.inf
+        self.obstacle_distance_min = np.inf
+        self.primes_max = 0
+
+    def check(self, frame) -> None:
+        q = frame.commands.position  # the virtual points q_i the quadrotors track
+        c = self.params
+        lambda2 = connectivity_state(q, self.boxes, c).lambda2
+        distance = np.linalg.norm(q[:, None] - q[None], axis=-1)[np.triu_indices(len(q), 1)].min()
+        clearance = point_clearance(self.boxes, q).min()
+        primes = int(np.sum(frame.commands.info["robot_scalars"]["role"] == Role.PRIME_TRAVELER))
+        t = frame.observation.time_s
+        assert lambda2 > c.lambda2_min, f"t = {t:.2f} s: lambda2 = {lambda2} <= {c.lambda2_min}"
+        assert distance > c.min_robot_distance, f"t = {t:.2f} s: virtual points {distance:.3f} m apart"
+        assert clearance > c.min_obstacle_clearance, f"t = {t:.2f} s: virtual point {clearance:.3f} m from an obstacle"
+        assert primes <= 1, f"t = {t:.2f} s: {primes} prime travelers"
+        self.ticks += 1
+        self.lambda2_min = min(self.lambda2_min, lambda2)
+        self.robot_distance_min = min(self.robot_distance_min, distance)
+        self.obstacle_distance_min = min(self.obstacle_distance_min, clearance)
+        self.primes_max = max(self.primes_max, primes)
+
+
+def run_checked(scenario, duration_s: float | None = None) -> tuple[Simulation, InvariantLog]:
+    """Tick ``scenario`` for ``duration_s`` (default: its own) or until the strategy
+    finishes, checking the invariants and that the physics stays healthy."""
+    sim = Simulation(scenario)
+    log = InvariantLog(sim)
+    ticks = int(round((duration_s or scenario.duration_s) / sim.dt))
+    for _ in range(ticks):
+        frame, healthy = sim.tick()
+        assert healthy, f"physics diverged at t = {sim.time_s:.2f} s"
+        log.check(frame)
+        if sim.strategy.finished:
+            break
+    return sim, log

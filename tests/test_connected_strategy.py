@@ -1,0 +1,220 @@
+"""The ``connected`` strategy (seed 001) on MuJoCo quadrotors: parameters, bad
+input, invariants on every tick of every built-in connected scenario, outputs.
+
+Short runs here; whole missions are in test_connected_missions.py (slow).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from connected_helpers import run_checked
+from controllers.connectivity.connected_params import ConnectedParams
+from controllers.connectivity.roles import Role
+from sim.config import ConfigError, build, to_table
+from sim.loop import Simulation, run
+from sim.scenario import load
+
+CONNECTED_SCENARIOS = ("connected-office", "connected-empty", "connected-town")
+
+
+# -- parameters ------------------------------------------------------------------
+
+
+def test_presets_fill_table_2_and_explicit_values_win():
+    office, outdoor = ConnectedParams(), ConnectedParams(preset="outdoor")
+    row = lambda p: (p.sensing_range_m, p.full_weight_range_m, p.min_obstacle_clearance_m,  # noqa: E731
+                     p.full_weight_obstacle_clearance_m, p.min_robot_distance_m, p.full_weight_robot_distance_m,
+                     p.grid_resolution_m, p.cruise_speed_mps, p.target_radius_m, p.dwell_time_s, p.sigma)
+    assert row(office) == (2.5, 1.1, 0.25, 0.6, 0.8, 1.1, 0.25, 1.0, 1.0, 3.0, 3.0)
+    assert row(outdoor) == (6.0, 2.5, 0.75, 1.75, 1.0, 2.5, 0.75, 3.0, 1.8, 3.0, 3.0)
+    assert (office.exploration.efficiency_error_full, office.exploration.efficiency_error_zero) == pytest.approx(
+        (0.1, 0.6))
+    assert outdoor.exploration.efficiency_error_zero == pytest.approx(1.8)  # (0.1, 0.6) v_cruise
+    tuned = build(ConnectedParams, {"preset": "outdoor", "cruise_speed_mps": 2.0}, "strategy")
+    assert tuned.cruise_speed_mps == 2.0 and tuned.exploration.efficiency_error_zero == pytest.approx(1.2)
+    assert tuned.connectivity.sensing_range == 6.0
+    assert tuned.exploration.virtual_mass == tuned.connectivity.virtual_mass
+    # A written table is complete and reads back to the same parameters.
+    assert build(ConnectedParams, to_table(tuned), "strategy") == tuned
+
+
+def test_tunable_fields_carry_unit_and_bounds():
+    import dataclasses
+
+    tunable = [f for f in dataclasses.fields(ConnectedParams) if f.init and f.metadata.get("tunable", True)]
+    assert len(tunable) >= 15
+    for f in tunable:
+        assert f.metadata["min"] is not None and f.metadata["max"] is not None, f.name
+        default = getattr(ConnectedParams(), f.name)
+        assert f.metadata["min"] <= default <= f.metadata["max"], f.name
+
+
+@pytest.mark.parametrize(
+    "table, field",
+    [
+        ({"min_robot_distance_m": 3.0}, "strategy.min_robot_distance_m"),  # R_c >= R_s
+        ({"full_weight_range_m": 3.0}, "strategy.full_weight_range_m"),
+        ({"sigma": 0.5}, "strategy.sigma"),
+        ({"efficiency_error_full_ratio": 0.7}, "strategy.efficiency_error_full_ratio"),
+        ({"lambda2_source": "oracle"}, "strategy.lambda2_source"),
+        ({"targets": "fixed"}, "strategy.target_lists"),
+        ({"target_counts": [3, -1]}, "strategy.target_counts"),
+        ({"sensing_range_m": float("nan")}, "strategy.sensing_range_m"),
+        ({"bogus": 1}, "strategy.bogus"),
+    ],
+)
+def test_bad_parameters_name_the_field(table, field):
+    with pytest.raises(ConfigError) as err:
+        build(ConnectedParams, table, "strategy")
+    assert err.value.field == field
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "sim.cli", "run", *args], capture_output=True, text=True,
+                          timeout=300)
+
+
+@pytest.mark.parametrize(
+    "overrides, expected",
+    [
+        (["strategy.min_robot_distance_m=2.5"], "strategy.min_robot_distance_m: R_c (2.5 m) must be smaller than R_s"),
+        (["robots.0.starts.9=[8.5, 8.5, 1.0]"], "robots: the starting graph is disconnected"),
+        (["robots.0.starts.1=[4.55, 0.9, 1.0]"], "within R_c = 0.8 m"),
+        (["sensing.comm_range_m=3.0"], "sensing.comm_range_m: must equal R_s"),
+        (["strategy.target_lists=[[[2.0, 5.0, 1.0]]]", "strategy.targets=\"fixed\""], "strategy.target_lists.0.0"),
+    ],
+)
+def test_cli_refuses_bad_connected_input(tmp_path, overrides, expected):
+    out = tmp_path / "out"
+    args = ["connected-office", "--out", str(out), "--duration", "1"]
+    for item in overrides:
+        args += ["--set", item]
+    result = run_cli(*args)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
+    assert expected in lines[0], lines[0]
+    assert not out.exists()
+
+
+def test_robot_count_from_10_to_35_starts_connected():
+    for count in (10, 20, 35):
+        scenario = load("connected-office", [f"robots.0.count={count}"])
+        sim = Simulation(scenario)
+        assert len(sim.strategy.q) == count
+        assert sim.strategy.targets_total == 25  # the paper's 5 x 3 + 5 x 2 targets
+        assert sim.strategy.explorers.tolist() == list(range(10))
+    # Fewer than 10 starts the paper's allocation truncated; more than the slots is refused.
+    with pytest.raises(ConfigError, match="spawn_center"):
+        load("connected-office", ["robots.0.count=40"])
+
+
+def test_same_seed_same_targets_whatever_the_robot_count():
+    targets = []
+    for count in (10, 35):
+        sim = Simulation(load("connected-office", [f"robots.0.count={count}"], seed=4))
+        queues = sim.strategy.queues
+        targets.append(np.array([t.position for q in queues._queues for t in q]))
+    np.testing.assert_array_equal(targets[0], targets[1])
+
+
+# -- invariants on every tick ------------------------------------------------------
+
+
+@pytest.mark.parametrize("name, duration", [("connected-office", 6.0), ("connected-empty", 3.0),
+                                            ("connected-town", 3.0)])
+def test_invariants_hold_on_every_tick_of_each_builtin_scenario(name, duration):
+    sim, log = run_checked(load(name), duration)
+    assert log.ticks == int(round(duration / sim.dt))
+    stats = sim.strategy.summary()
+    assert stats["prime_travelers_max"] == 1  # the start-up election produced the prime traveler
+    assert stats["lambda2_min"] == pytest.approx(log.lambda2_min)
+    # The quadrotors fly: the explorers moved and the bodies follow their virtual points.
+    assert stats["mean_travel_m"] > 0.5
+    tracking = np.linalg.norm(sim.observe().position - sim.strategy.q, axis=1)
+    assert tracking.max() < 0.3
+
+
+def test_estimator_mode_keeps_the_invariants_and_reports_its_error():
+    scenario = load("connected-office", ["strategy.lambda2_source=\"estimator\""])
+    sim, log = run_checked(scenario, 5.0)
+    summary = sim.strategy.summary()
+    assert summary["lambda2_source"] == "estimator"
+    assert 0 <= summary["lambda2_estimate_error_mean"] < 0.5 * summary["lambda2_mean"]
+
+
+def test_smoothed_spectrum_keeps_the_invariants():
+    sim, log = run_checked(load("connected-office", ["strategy.spectrum_smoothing=0.05"]), 4.0)
+    assert sim.strategy.summary()["mean_travel_m"] > 0.5
+
+
+# -- a whole (small) mission, outputs --------------------------------------------------
+
+
+SMALL_MISSION = [
+    "strategy.targets=\"fixed\"",
+    # robot 0: two targets in its room; robot 3 one; the rest connectors.
+    "strategy.target_lists=[[[5.2, 2.6, 1.5], [4.5, 3.5, 2.0]], [], [], [[6.0, 3.5, 1.2]]]",
+    "strategy.dwell_time_s=0.5",
+    "duration_s=40.0",
+]
+
+
+@pytest.fixture(scope="module")
+def small_mission(tmp_path_factory):
+    out = tmp_path_factory.mktemp("mission")
+    result = run(load("connected-office", SMALL_MISSION), out, video=True, rrd=True)
+    return result, out
+
+
+def test_small_mission_completes_and_stops_early(small_mission):
+    result, out = small_mission
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "completed"
+    assert metrics["targets_total"] == metrics["targets_visited"] == 3
+    assert metrics["completion_time_s"] is not None
+    assert metrics["sim_time_s"] < 40.0  # the loop stopped when the strategy finished
+    assert metrics["completion_time_s"] == pytest.approx(metrics["sim_time_s"], abs=0.02)
+    for key in ("completion_time_s", "targets_total", "targets_visited", "lambda2_min", "lambda2_mean",
+                "edges_min", "max_stretch_m", "mean_travel_m", "min_robot_distance_m", "min_obstacle_distance_m",
+                "prime_travelers_max", "lambda2_estimate_error_mean", "tracking_error_mean_m", "real_time_factor"):
+        assert key in metrics, key
+    assert metrics["lambda2_min"] > 0 and metrics["prime_travelers_max"] == 1
+    assert metrics["min_robot_distance_m"] > 0.8 and metrics["min_obstacle_distance_m"] > 0.25
+    assert metrics["lambda2_estimate_error_mean"] is None  # exact mode
+    assert metrics["explorers"] == 2 and metrics["connectors"] == 8
+    assert metrics["tracking_error_mean_m"] < 0.05
+
+
+def test_recording_logs_the_fig_14_series(small_mission):
+    from helpers import rrd_chunks, rrd_scalars
+
+    _, out = small_mission
+    chunks = rrd_chunks(out / "run.rrd")
+    for entity in ("/metrics/lambda2", "/metrics/edges", "/metrics/prime_efficiency",
+                   "/metrics/prime_efficiency_estimate_mean", "/metrics/prime_traveler", "/robots/role/quad0",
+                   "/robots/prime_efficiency_estimate/quad5", "/world/plans", "/world/markers"):
+        assert entity in chunks, (entity, sorted(chunks))
+    _, roles = rrd_scalars(chunks["/robots/role/quad0"])
+    assert Role.PRIME_TRAVELER in roles and roles[-1] == Role.CONNECTOR
+    _, lambda2 = rrd_scalars(chunks["/metrics/lambda2"])
+    assert min(lambda2) > 0
+
+
+def test_video_shows_the_team(small_mission):
+    import imageio.v2 as imageio
+
+    _, out = small_mission
+    frames = [f for f in imageio.get_reader(out / "video.mp4")]
+    assert len(frames) > 30
+    middle = frames[len(frames) // 2].astype(float)
+    assert middle.std() > 10
+    # The prime traveler's marker (turquoise) and the planned path are drawn in some frame.
+    turquoise = [(np.abs(f[..., 0].astype(int) - 0) < 60) & (f[..., 1] > 180) & (f[..., 2] > 160) for f in frames]
+    assert max(int(t.sum()) for t in turquoise) > 20

@@ -1,0 +1,239 @@
+"""The tuning page: parameter metadata and live updates (pure), then
+`tether tune hover` driven in a real browser (Playwright on Debian's
+/usr/bin/chromium, never a downloaded browser)."""
+
+import json
+import os
+import re
+import select
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+import urllib.request
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from controllers.waypoints import WaypointParams
+from sim.config import ConfigError, build
+from sim.loop import Simulation, run
+from sim.scenario import dumps_toml, from_table, load, to_scenario_table
+from viz.tuning import describe_params
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+
+
+# --------------------------------------------------------------------------- without a browser
+
+
+def test_waypoint_params_describe_units_bounds_and_help():
+    fields = {f["name"]: f for f in describe_params(WaypointParams, WaypointParams())}
+    assert set(fields) == {"speed_mps", "ground_speed_mps", "dwell_s", "routes"}
+    speed = fields["speed_mps"]
+    assert (speed["kind"], speed["unit"], speed["min"], speed["max"]) == ("float", "m/s", 0.05, 3.0)
+    assert speed["value"] == 0.5
+    assert 0 < speed["step"] <= 0.03 and "peak speed" in speed["help"]
+    assert fields["dwell_s"]["unit"] == "s" and fields["routes"]["kind"] == "toml"
+
+
+def test_bounds_are_enforced_by_build_for_files_overrides_and_the_page():
+    with pytest.raises(ConfigError, match=r"strategy\.speed_mps: must be in \[0\.05, 3\] m/s, got 99"):
+        load("hover", ["strategy.speed_mps=99"])
+    with pytest.raises(ConfigError, match=r"strategy\.dwell_s: must be in \[0, 10\] s, got -1"):
+        build(WaypointParams, {"dwell_s": -1.0}, "strategy")
+    assert build(WaypointParams, {"speed_mps": 3}, "strategy").speed_mps == 3.0
+
+
+def test_speed_change_keeps_the_reference_continuous_and_scales_velocity():
+    scenario = load("hover")
+    sim = Simulation(scenario)
+    for _ in range(250):
+        frame, _ = sim.tick()
+    before = sim.strategy.step(sim.observe(read_targets=False))
+    params = build(WaypointParams, {**_table(scenario.strategy.params), "speed_mps": 1.0}, "strategy")
+    assert sim.set_strategy_params(params) == "updated"
+    after = sim.strategy.step(sim.observe(read_targets=False))
+    quads = [i for i, k in enumerate(sim.world.robot_kinds) if k == "quadrotor"]
+    np.testing.assert_allclose(after.position, before.position, atol=1e-9)
+    np.testing.assert_allclose(after.velocity[quads], 2.0 * before.velocity[quads], atol=1e-9)
+    assert sim.scenario.strategy.params.speed_mps == 1.0
+    # New routes restart the strategy from where the robots are.
+    routes = tuple(((1.0, 1.0, 1.0),) for _ in range(sim.world.n_robots))
+    params = build(WaypointParams, {**_table(params), "routes": [list(map(list, r)) for r in routes]}, "strategy")
+    assert sim.set_strategy_params(params) == "restarted"
+    frame, healthy = sim.tick()
+    assert healthy
+    np.testing.assert_allclose(frame.commands.position, frame.observation.position, atol=0.05)
+
+
+def _table(params):
+    from sim.config import to_table
+
+    return to_table(params)
+
+
+def test_scenario_toml_round_trips_and_keeps_unknown_key_checks(tmp_path):
+    scenario = load("hover", ["strategy.speed_mps=1.25", "video.camera=\"follow:quad1\""])
+    text = dumps_toml(to_scenario_table(scenario))
+    path = tmp_path / "saved.toml"
+    path.write_text(text)
+    back = load(str(path))
+    assert back.strategy == scenario.strategy and back.robots == scenario.robots
+    assert back.targets == scenario.targets and back.video == scenario.video and back.physics == scenario.physics
+    table = tomllib.loads(text)
+    table["strategy"]["colour"] = 3
+    with pytest.raises(ConfigError, match=r"strategy\.colour: unknown key"):
+        from_table(table, str(path))
+
+
+# --------------------------------------------------------------------------- in a real browser
+
+
+def _get(url: str) -> dict:
+    with urllib.request.urlopen(url, timeout=10) as response:
+        return json.load(response)
+
+
+def _wait_for(predicate, timeout_s: float = 15.0, what: str = "condition"):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    if not CHROMIUM.exists():
+        pytest.skip("Debian's chromium (/usr/bin/chromium) is not installed: run `make system-deps`")
+    folder = tmp_path_factory.mktemp("tune")
+    save = folder / "hover_tuned.toml"
+    stderr = open(folder / "stderr.txt", "w+")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sim.cli", "tune", "hover", "--port", "0", "--view-fps", "5",
+         "--video-size", "320x240", "--save", str(save)],
+        stdout=subprocess.PIPE, stderr=stderr, text=True, env=ENV,
+    )
+    ready, _, _ = select.select([proc.stdout], [], [], 120)
+    line = proc.stdout.readline() if ready else ""
+    match = re.search(r"http://127\.0\.0\.1:\d+/", line)
+    if not match:
+        proc.kill()
+        stderr.seek(0)
+        raise AssertionError(f"no URL printed: {line!r} {stderr.read()}")
+    url = match.group(0)
+    status = lambda: _get(url + "api/status?since=1000000000")  # noqa: E731  (figures, no series)
+    yield SimpleNamespace(url=url, save=save, proc=proc, status=status)
+    proc.send_signal(signal.SIGINT)
+    try:
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        stderr.close()
+
+
+@pytest.fixture(scope="module")
+def page(server):
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1300, "height": 1000})
+        errors = []
+        page.on("pageerror", lambda err: errors.append(str(err)))
+        page.goto(server.url)
+        page.errors = errors
+        yield page
+        browser.close()
+
+
+def ticks_advance(server, wait_s: float = 0.6) -> bool:
+    first = server.status()["tick"]
+    time.sleep(wait_s)
+    return server.status()["tick"] > first
+
+
+def test_page_shows_live_view_parameters_and_plots(page, server):
+    page.wait_for_selector("#range-speed_mps")
+    for name in ("speed_mps", "ground_speed_mps", "dwell_s"):
+        assert page.locator(f"#range-{name}").is_visible() and page.locator(f"#num-{name}").is_visible()
+    assert page.locator("#text-routes").is_visible()
+    assert page.get_attribute("#range-speed_mps", "min") == "0.05"
+    assert page.get_attribute("#range-speed_mps", "max") == "3"
+    assert "m/s" in page.inner_text('.param[data-name="speed_mps"]')
+    # Live view: the MJPEG stream shows frames of the requested size.
+    page.wait_for_function("document.getElementById('view').naturalWidth === 320", timeout=15000)
+    # Live plots of the foundation's figures and the strategy's scalars.
+    for name in ("tracking_error_mean_m", "links", "reference_speed_max_mps"):
+        page.wait_for_selector(f'.plot[data-name="{name}"] canvas', timeout=15000)
+    _wait_for(lambda: float(page.inner_text("#time")) > 0.5, what="sim time on the page")
+    assert ticks_advance(server)
+    assert not page.errors
+
+
+def test_slider_changes_the_running_strategy(page, server):
+    before = server.status()
+    assert before["params"]["speed_mps"] == 0.5
+    assert before["figures"]["reference_speed_max_mps"] <= 0.5 + 1e-6
+    page.fill("#range-speed_mps", "1.5")  # dispatches input + change, like a drag
+    after = _wait_for(lambda: (s := server.status())["params"]["speed_mps"] == 1.5 and s, what="speed_mps = 1.5")
+    assert after["params_tick"] >= before["tick"]
+    assert page.input_value("#num-speed_mps") == "1.5"
+    page.wait_for_function("document.getElementById('message').textContent.includes('applied')")
+    # The quadrotors now fly their segments up to three times faster.
+    _wait_for(lambda: server.status()["figures"]["reference_speed_max_mps"] > 0.75, what="faster references")
+
+
+def test_out_of_range_value_is_refused_visibly_and_the_sim_keeps_going(page, server):
+    field = page.locator("#num-speed_mps")
+    field.fill("99")
+    field.press("Tab")  # commit: the change event
+    message = page.locator("#message")
+    page.wait_for_function("document.getElementById('message').classList.contains('error')")
+    assert message.is_visible()
+    assert "strategy.speed_mps: must be in [0.05, 3] m/s, got 99" in message.inner_text()
+    assert server.status()["params"]["speed_mps"] == 1.5
+    page.wait_for_function("document.getElementById('num-speed_mps').value === '1.5'")
+    assert ticks_advance(server)
+
+
+def test_pause_step_resume_and_reset(page, server):
+    page.click("#pause")
+    _wait_for(lambda: server.status()["paused"], what="paused")
+    assert not ticks_advance(server, 0.4)
+    tick = server.status()["tick"]
+    page.click("#step")
+    _wait_for(lambda: server.status()["tick"] == tick + 1, what="one step")
+    page.click("#pause")  # now labelled Resume
+    _wait_for(lambda: not server.status()["paused"], what="running")
+    assert ticks_advance(server)
+    epoch, t = server.status()["epoch"], server.status()["time_s"]
+    page.click("#reset")
+    after = _wait_for(lambda: (s := server.status())["epoch"] == epoch + 1 and s, what="reset")
+    assert after["time_s"] < t
+    assert after["params"]["speed_mps"] == 1.5  # a reset keeps the tuned parameters
+    assert ticks_advance(server)
+
+
+def test_save_as_scenario_toml_reloads_with_tether_run(page, server, tmp_path):
+    page.click("#save")
+    page.wait_for_function("document.getElementById('message').textContent.includes('saved to')")
+    assert server.save.is_file()
+    with page.expect_download() as download:
+        page.click("#download")
+    assert Path(download.value.path()).read_text().split("\n", 1)[1] == server.save.read_text().split("\n", 1)[1]
+    scenario = load(str(server.save), duration_s=0.2)
+    assert scenario.strategy.params.speed_mps == 1.5
+    result = run(scenario, tmp_path / "out")
+    assert result.status == "completed"
+    assert json.loads((tmp_path / "out" / "metrics.json").read_text())["scenario"] == "hover_tuned"

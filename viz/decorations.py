@@ -1,0 +1,133 @@
+"""Optional strategy decorations for the video and the Rerun recording.
+
+A strategy may put these keys in ``commands.info`` (all optional; missing
+keys draw nothing, so strategies that do not use them are unaffected):
+
+- ``robot_colors``: (N, 4) RGBA in 0..1 per robot (e.g. its team's colour):
+  the colour of the robot's halo in the video and of its point in the
+  recording;
+- ``paths``: list of ``(points (K, 3) m, rgba (4,))`` polylines (planned paths);
+- ``meeting_points``: (P, 3) m and ``meeting_point_colors``: (P, 4) RGBA;
+- ``target_estimates``: (M, 3) m, estimated target positions;
+- ``target_covariances``: (M, 3, 3) m^2, their covariance blocks (drawn as
+  2-sigma ellipsoids in the recording);
+- ``events``: list of strings, logged once each in the recording's event log
+  at the tick they are reported (not subject to the recording period);
+- ``markers``: (K, 3) m and ``marker_colors``: (K, 4) RGBA, generic points of
+  interest (e.g. the connected strategy's current targets): spheres in the
+  video, ``world/markers`` in the recording;
+- with ``robot_colors``, quadrotors also get a small marker sphere of their
+  colour on top (e.g. the prime traveler highlighted).
+
+Pure drawing helpers: they only read the frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+PATH_WIDTH_M = 0.012  # video: planned-path capsule width, m
+MEETING_RADIUS_M = 0.05  # video: meeting-point sphere radius, m
+ESTIMATE_RADIUS_M = 0.07  # video: estimated-target sphere radius, m
+ESTIMATE_RGBA = np.array([1.0, 0.45, 0.0, 0.55], dtype=np.float32)
+HALO_ALPHA = 0.45
+MARKER_RADIUS_M = 0.12  # video: ``markers`` sphere radius, m
+QUAD_MARK_RADIUS_M = 0.12  # video: the ``robot_colors`` sphere on top of a quadrotor, m
+QUAD_MARK_HEIGHT_M = 0.12  # ... and its height above the body origin, m
+ELLIPSOID_SIGMAS = 2.0  # recording: covariance ellipsoid half-axes in standard deviations
+
+
+def halo_color(info: dict, robot: int, default: np.ndarray) -> np.ndarray:
+    """The video halo colour of ``robot``: its ``robot_colors`` entry, translucent."""
+    colors = info.get("robot_colors")
+    if colors is None or robot >= len(colors):
+        return default
+    rgba = np.array(colors[robot], dtype=np.float32)
+    rgba[3] = HALO_ALPHA
+    return rgba
+
+
+def draw_video_decorations(renderer, frame) -> None:
+    """Planned paths, meeting points and target estimates into a
+    :class:`viz.video.FrameRenderer`'s scene (its ``_add_capsule`` /
+    ``_add_sphere``)."""
+    info = frame.commands.info
+    for points, rgba in info.get("paths", ()):
+        rgba = np.asarray(rgba, dtype=np.float32)
+        points = np.asarray(points, dtype=float)
+        for a, b in zip(points[:-1], points[1:]):
+            if np.linalg.norm(b - a) > 1e-6:
+                renderer._add_capsule(a, b, PATH_WIDTH_M, rgba)
+    meeting = info.get("meeting_points")
+    if meeting is not None and len(meeting):
+        colors = info.get("meeting_point_colors")
+        for k, p in enumerate(np.asarray(meeting, dtype=float)):
+            rgba = np.asarray(colors[k], dtype=np.float32) if colors is not None else np.array([1, 1, 1, 0.5], np.float32)
+            renderer._add_sphere(p, MEETING_RADIUS_M, rgba)
+    estimates = info.get("target_estimates")
+    if estimates is not None:
+        for p in np.asarray(estimates, dtype=float):
+            renderer._add_sphere(p, ESTIMATE_RADIUS_M, ESTIMATE_RGBA)
+    markers = info.get("markers")
+    if markers is not None and len(markers):
+        colors = info.get("marker_colors")
+        for k, p in enumerate(np.asarray(markers, dtype=float)):
+            rgba = np.asarray(colors[k], dtype=np.float32) if colors is not None else np.array([1, 1, 1, 0.8], np.float32)
+            renderer._add_sphere(p, MARKER_RADIUS_M, rgba)
+    robot_colors = info.get("robot_colors")
+    if robot_colors is not None:
+        positions = frame.observation.position
+        for i in renderer.world.kind_index["quadrotor"]:
+            if i < len(robot_colors):
+                top = positions[i] + np.array([0.0, 0.0, QUAD_MARK_HEIGHT_M])
+                renderer._add_sphere(top, QUAD_MARK_RADIUS_M, np.asarray(robot_colors[i], dtype=np.float32))
+
+
+def _rgb8(rgba: np.ndarray) -> np.ndarray:
+    return np.clip(np.round(np.asarray(rgba, dtype=float) * 255), 0, 255).astype(np.uint8)
+
+
+def log_recording_decorations(rec, frame) -> None:
+    """Log the decorations of ``frame`` to a Rerun stream ``rec`` (time already set)."""
+    import rerun as rr
+
+    info = frame.commands.info
+    colors = info.get("robot_colors")
+    if colors is not None:
+        rec.log("world/robots", rr.Points3D(frame.observation.position, colors=_rgb8(colors)))
+    if "paths" in info:
+        paths = info["paths"]
+        rec.log("world/plans", rr.LineStrips3D([np.asarray(p, dtype=float) for p, _ in paths],
+                                               colors=[_rgb8(c) for _, c in paths], radii=0.01))
+    meeting = info.get("meeting_points")
+    if meeting is not None:
+        point_colors = info.get("meeting_point_colors")
+        rec.log("world/meetings", rr.Points3D(np.asarray(meeting, dtype=float).reshape(-1, 3),
+                                              colors=None if point_colors is None else _rgb8(point_colors),
+                                              radii=0.05))
+    estimates = info.get("target_estimates")
+    if estimates is not None:
+        estimates = np.asarray(estimates, dtype=float)
+        rec.log("world/targets/estimate", rr.Points3D(estimates, colors=_rgb8(ESTIMATE_RGBA), radii=0.05))
+        covariances = info.get("target_covariances")
+        if covariances is not None:
+            values, vectors = np.linalg.eigh(np.asarray(covariances, dtype=float))
+            vectors = vectors * np.where(np.linalg.det(vectors) < 0, -1.0, 1.0)[:, None, None]
+            from scipy.spatial.transform import Rotation
+
+            quats = Rotation.from_matrix(vectors).as_quat()  # x, y, z, w
+            half = ELLIPSOID_SIGMAS * np.sqrt(np.maximum(values, 0.0))
+            rec.log("world/targets/covariance", rr.Ellipsoids3D(centers=estimates, half_sizes=half,
+                                                                quaternions=quats, colors=_rgb8(ESTIMATE_RGBA)))
+    markers = info.get("markers")
+    if markers is not None:
+        marker_colors = info.get("marker_colors")
+        rec.log("world/markers", rr.Points3D(np.asarray(markers, dtype=float).reshape(-1, 3),
+                                             colors=None if marker_colors is None else _rgb8(marker_colors),
+                                             radii=0.08))
+
+
+def log_events(recorder, frame) -> None:
+    """Every string in ``info['events']`` as one event of the recording."""
+    for text in frame.commands.info.get("events", ()):
+        recorder.event(frame.observation.time_s, str(text))
