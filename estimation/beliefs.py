@@ -122,10 +122,11 @@ class Belief:
     motion: target model; prior: belief about x(prior.step) before any
     reading. ``estimate(k)`` is the posterior at step k given the records with
     step <= k received so far; it is computed lazily and cached.
+    mirror_plane_z: see :class:`estimation.ekf.TargetEKF` (None: plain EKF).
     """
 
-    def __init__(self, motion: TargetMotion, prior: FilterState):
-        self._ekf = TargetEKF(motion, prior)
+    def __init__(self, motion: TargetMotion, prior: FilterState, mirror_plane_z: float | None = None):
+        self._ekf = TargetEKF(motion, prior, mirror_plane_z)
         self._prior = prior
         self._records: dict[MeasurementKey, RangeMeasurement] = {}
         self._by_step: dict[int, dict[MeasurementKey, RangeMeasurement]] = {}
@@ -299,14 +300,16 @@ class NetworkBeliefs:
     """Information flow of Algorithm 5 over teams, plus the global belief.
 
     teams: the team structure; motion: the target model; prior: the common
-    initial belief (Sec. IV: x^0, C(0) = 0.25 I).
+    initial belief (Sec. IV: x^0, C(0) = 0.25 I); mirror_plane_z: passed to
+    every belief's EKF (see :class:`estimation.ekf.TargetEKF`).
     """
 
-    def __init__(self, teams: TeamStructure, motion: TargetMotion, prior: FilterState):
+    def __init__(self, teams: TeamStructure, motion: TargetMotion, prior: FilterState,
+                 mirror_plane_z: float | None = None):
         self.teams = teams
-        self.global_belief = Belief(motion, prior)
-        self.team_beliefs = tuple(Belief(motion, prior) for _ in range(teams.n_teams))
-        self.robot_beliefs = {robot: Belief(motion, prior) for robot in teams.robots}
+        self.global_belief = Belief(motion, prior, mirror_plane_z)
+        self.team_beliefs = tuple(Belief(motion, prior, mirror_plane_z) for _ in range(teams.n_teams))
+        self.robot_beliefs = {robot: Belief(motion, prior, mirror_plane_z) for robot in teams.robots}
         # Arrival-list positions at the last meeting of each (robot, team) pair:
         # what the robot had then, and what the team had then.
         self._robot_cursor: dict[tuple[int, int], int] = {}

@@ -191,19 +191,47 @@ def measurement_noise(predicted: np.ndarray) -> np.ndarray:
     return np.diag(range_sigma(predicted) ** 2)
 
 
+def reflect_below(state_mean: np.ndarray, covariance: np.ndarray, plane_z: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mirror every target estimate below the horizontal plane z = ``plane_z``
+    to its image above it (z -> 2 plane_z - z), and its covariance with it.
+
+    When every sensor lies in that plane (ground robots), each range reading
+    is the same for a target and its mirror image, so the likelihood cannot
+    tell them apart and an EKF started from a poor prior may settle on the
+    image below the floor. Targets are known to be above the floor, and the
+    reflection changes no predicted reading: it only picks the physical one of
+    the two equally likely answers. The covariance is mapped by the same
+    reflection J: C -> J C J (J flips the sign of the target's z).
+    """
+    mean = np.array(state_mean, dtype=float).reshape(-1)
+    cov = np.array(covariance, dtype=float)
+    z_index = np.arange(2, mean.size, 3)
+    below = z_index[mean[z_index] < plane_z]
+    if below.size == 0:
+        return mean, cov
+    mean[below] = 2.0 * plane_z - mean[below]
+    flip = np.ones(mean.size)
+    flip[below] = -1.0
+    return mean, cov * flip[:, None] * flip[None, :]
+
+
 class TargetEKF:
     """EKF for the stacked target positions on filterpy's ExtendedKalmanFilter.
 
     motion: the target model (A, B u(k), Q); initial: the belief to start from.
-    ``state`` is the current :class:`FilterState`.
+    ``state`` is the current :class:`FilterState`. ``mirror_plane_z`` (m,
+    optional): all sensors lie in the plane z = mirror_plane_z and the
+    targets above it; after every update an estimate that fell below is
+    reflected back (:func:`reflect_below`). None (default): plain EKF.
     """
 
-    def __init__(self, motion: TargetMotion, initial: FilterState):
+    def __init__(self, motion: TargetMotion, initial: FilterState, mirror_plane_z: float | None = None):
         n = 3 * motion.n_targets
         if initial.mean.size != n:
             raise ValueError(
                 f"initial: mean has {initial.mean.size} states, the motion model has {n} (3M)"
             )
+        self.mirror_plane_z = mirror_plane_z
         self.motion = motion
         self._filter = ExtendedKalmanFilter(dim_x=n, dim_z=1, dim_u=n)
         self._filter.F = motion.transition
@@ -247,4 +275,8 @@ class TargetEKF:
             Hx=lambda x: predicted_ranges(x, sensors, targets).reshape(-1, 1),
             R=noise,
         )
+        if self.mirror_plane_z is not None:
+            mean, cov = reflect_below(self._filter.x, self._filter.P, self.mirror_plane_z)
+            self._filter.x = mean.reshape(-1, 1)
+            self._filter.P = cov
         return self.state

@@ -33,6 +33,8 @@ class Boxes:
         assert self.centers.shape == (k, 3), self.centers.shape
         assert self.half_sizes.shape == (k, 3), self.half_sizes.shape
         assert self.rotations.shape == (k, 3, 3), self.rotations.shape
+        # All boxes axis-aligned (the usual scene): frame changes are plain offsets.
+        object.__setattr__(self, "aligned", bool(np.array_equal(self.rotations, np.broadcast_to(np.eye(3), (k, 3, 3)))))
 
     @staticmethod
     def axis_aligned(centers, half_sizes) -> "Boxes":
@@ -47,6 +49,8 @@ class Boxes:
     def to_local(self, points: np.ndarray) -> np.ndarray:
         """Points (P, 3) -> (P, K, 3) coordinates in each box frame."""
         rel = points[:, None, :] - self.centers[None, :, :]
+        if self.aligned:
+            return rel
         return np.einsum("pki,kij->pkj", rel, self.rotations)
 
     def point_distances(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -55,7 +59,10 @@ class Boxes:
         local = self.to_local(points)
         closest_local = np.clip(local, -self.half_sizes, self.half_sizes)
         dist = np.linalg.norm(local - closest_local, axis=-1)
-        closest = np.einsum("kij,pkj->pki", self.rotations, closest_local) + self.centers
+        if self.aligned:
+            closest = closest_local + self.centers
+        else:
+            closest = np.einsum("kij,pkj->pki", self.rotations, closest_local) + self.centers
         return dist, closest
 
 
@@ -64,8 +71,11 @@ def point_clearance(boxes: Boxes, points: np.ndarray) -> np.ndarray:
     points = np.atleast_2d(points)
     if len(boxes) == 0:
         return np.full(len(points), np.inf)
-    dist, _ = boxes.point_distances(points)
-    return dist.min(axis=1)
+    # Distance to a box = norm of how far each local coordinate exceeds the half extent
+    # (the closest point is not needed here).
+    excess = np.abs(boxes.to_local(points)) - boxes.half_sizes
+    np.maximum(excess, 0.0, out=excess)
+    return np.sqrt(np.einsum("pki,pki->pk", excess, excess).min(axis=1))
 
 
 def inside_any(boxes: Boxes, points: np.ndarray, margin: float = 0.0) -> np.ndarray:
@@ -112,16 +122,27 @@ def segment_clearance(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> SegmentClea
         return SegmentClearance(np.full(n, np.inf), np.zeros(n), np.full((n, 3), np.nan))
     k = len(boxes)
     # Prune (segment, box) pairs that cannot hold the minimum: a box whose
-    # bounding sphere is farther from the segment than the segment's nearest
-    # sampled point is from any box is skipped.
+    # distance from the segment is certainly above the segment's nearest
+    # sampled point's clearance is skipped. Lower bounds: the box's bounding
+    # sphere, and the gap between the world-frame bounding boxes of the
+    # segment and of the box (tight for axis-aligned walls and slabs).
     upper = point_clearance(boxes, np.concatenate([a, b, 0.5 * (a + b)])).reshape(3, n).min(axis=0)
     radius = np.linalg.norm(boxes.half_sizes, axis=1)
     lower = _point_segment_distance(boxes.centers, a, b) - radius[None, :]
+    box_half = boxes.half_sizes if boxes.aligned else np.einsum("kij,kj->ki", np.abs(boxes.rotations), boxes.half_sizes)
+    low_corner, high_corner = np.minimum(a, b), np.maximum(a, b)
+    gap = np.maximum(low_corner[:, None, :] - (boxes.centers + box_half)[None], 0.0)
+    gap += np.maximum((boxes.centers - box_half)[None] - high_corner[:, None, :], 0.0)
+    lower = np.maximum(lower, np.sqrt(np.einsum("nki,nki->nk", gap, gap)))
     rows, cols = np.nonzero(lower <= upper[:, None] + 1e-12)
     # Work in each candidate box's frame: (C, 3).
-    rot = boxes.rotations[cols]
-    la = np.einsum("ci,cij->cj", a[rows] - boxes.centers[cols], rot)
-    lb = np.einsum("ci,cij->cj", b[rows] - boxes.centers[cols], rot)
+    if boxes.aligned:
+        la = a[rows] - boxes.centers[cols]
+        lb = b[rows] - boxes.centers[cols]
+    else:
+        rot = boxes.rotations[cols]
+        la = np.einsum("ci,cij->cj", a[rows] - boxes.centers[cols], rot)
+        lb = np.einsum("ci,cij->cj", b[rows] - boxes.centers[cols], rot)
     half = boxes.half_sizes[cols]
 
     s_cand, d_cand = _segment_box_distance(la, lb, half)
@@ -136,8 +157,14 @@ def segment_clearance(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> SegmentClea
     s_best = s[segment, best_box]
     d_best = dist[segment, best_box]
     point = a + s_best[:, None] * (b - a)
-    _, closest = boxes.point_distances(point)
-    witness = closest[segment, best_box]
+    # Witness: the closest point of the best box only.
+    half = boxes.half_sizes[best_box]
+    if boxes.aligned:
+        witness = np.clip(point - boxes.centers[best_box], -half, half) + boxes.centers[best_box]
+    else:
+        rot = boxes.rotations[best_box]
+        local = np.clip(np.einsum("ni,nij->nj", point - boxes.centers[best_box], rot), -half, half)
+        witness = np.einsum("nij,nj->ni", rot, local) + boxes.centers[best_box]
     return SegmentClearance(d_best, s_best, witness)
 
 

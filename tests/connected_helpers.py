@@ -34,7 +34,7 @@ class InvariantLog:
         clearance = point_clearance(self.boxes, q).min()
         primes = int(np.sum(frame.commands.info["robot_scalars"]["role"] == Role.PRIME_TRAVELER))
         t = frame.observation.time_s
-        assert lambda2 > c.lambda2_min, f"t = {t:.2f} s: lambda2 = {lambda2} <= {c.lambda2_min}"
+        assert lambda2 > c.lambda2_min + 1e-9, f"t = {t:.2f} s: lambda2 = {lambda2} <= {c.lambda2_min}"
         assert distance > c.min_robot_distance, f"t = {t:.2f} s: virtual points {distance:.3f} m apart"
         assert clearance > c.min_obstacle_clearance, f"t = {t:.2f} s: virtual point {clearance:.3f} m from an obstacle"
         assert primes <= 1, f"t = {t:.2f} s: {primes} prime travelers"

@@ -104,8 +104,6 @@ def test_metrics_are_reported(room_run):
 
 def test_robots_follow_plans_within_the_speed_limit(room_run):
     sim, _ = room_run
-    for meeting in sim.strategy.meetings:
-        pass
     for queue in sim.strategy.queues:
         for segment in queue:
             path = segment.timed.path

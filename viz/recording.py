@@ -114,6 +114,7 @@ class RerunRecorder:
         self.rec = file_stream if live_stream is None else _Tee(file_stream, live_stream)
         self.rows = 0
         self._next_time = 0.0
+        self._robot_series: set[str] = set()
         self._log_static(scenario_name)
 
     def _log_static(self, scenario_name: str) -> None:
@@ -167,13 +168,14 @@ class RerunRecorder:
         self.rec.log("metrics/tracking_error_mean_m", rr.Scalars(float(error.mean())))
         for key, value in frame.commands.info.get("scalars", {}).items():
             self.rec.log(f"metrics/{key}", rr.Scalars(float(value)))
-        # Optional per-robot series, info['robot_scalars'] = {name: (N,) values}: robots/NAME/ROBOT
-        # (NaN = not defined for that robot at this tick: nothing logged).
+        # Optional per-robot series, info['robot_scalars'] = {name: (N,) values}: robots/NAME, one
+        # series per robot named after it (NaN = not defined for that robot at this tick: a gap).
         for key, values in frame.commands.info.get("robot_scalars", {}).items():
-            for robot, value in zip(self.world.robot_names, np.asarray(values, dtype=float)):
-                if np.isfinite(value):
-                    self.rec.log(f"robots/{key}/{robot}", rr.Scalars(float(value)))
-        log_recording_decorations(self.rec, frame)  # optional info keys: team colours, plans, estimates
+            if key not in self._robot_series:
+                self._robot_series.add(key)
+                self.rec.log(f"robots/{key}", rr.SeriesLines(names=list(self.world.robot_names)), static=True)
+            self.rec.log(f"robots/{key}", rr.Scalars(np.asarray(values, dtype=float)))
+        log_recording_decorations(self, frame)  # optional info keys: team colours, plans, estimates
         self.rows += 1
 
     def event(self, time_s: float, text: str, level: str = "INFO") -> None:

@@ -86,7 +86,8 @@ class AllTimeStrategy:
         self.planner = planner_params(params, world, self.planning, robot_radius=self.radius)
         self.motion = world.target_motion
         self.prior = prior_state(params, world.n_targets)
-        self.belief = Belief(self.motion, self.prior)
+        self.belief = Belief(self.motion, self.prior,
+                             self.planning.sensor_height if params.resolve_mirror else None)
         self.series = EstimateSeries()
         self.geodesic = GeodesicPlanner(self.planning.boxes, self.planning.bounds, self.planning.sensor_height,
                                         self.radius)
@@ -102,7 +103,7 @@ class AllTimeStrategy:
         self.events: list[str] = []
         self._time_s = 0.0
         self._scalars = {"lambda_max_m2": float(np.linalg.eigvalsh(self.prior.covariance)[-1]),
-                         "t_star_lag_s": 0.0, "local_error_m": 0.0}
+                         "t_star_s": 0.0, "t_star_lag_s": 0.0, "local_error_m": 0.0}
         self.segment = self._plan(self.centre0, 0.0, belief_step=0)
 
     # ---------------------------------------------------------------- planning
@@ -137,6 +138,7 @@ class AllTimeStrategy:
         self.plan_times.append(wall)
         self.cost_times.append(cost)
         self._paths_visual = [(lifted(path.positions), team_color(0))]
+        self._goal_visual = lifted(path.positions[-1])[None]
         return TimedPath(path, self.step_s, now_s - start_step * self.step_s)
 
     def _fallback(self, start: np.ndarray, start_step: int, estimate) -> RobotPath:
@@ -167,6 +169,7 @@ class AllTimeStrategy:
             self.belief.receive(records)
             self.last_step = step
             self._scalars["lambda_max_m2"] = self.series.record(self.belief.estimate(step))
+            self._scalars["t_star_s"] = step * self.step_s  # always connected: t*(t) = t
         self.ticks += 1
         self.connected_ticks += int(team_connected(observation.links.adjacency, tuple(range(len(self.offsets)))))
         if self.segment.finished(t):
@@ -189,7 +192,7 @@ class AllTimeStrategy:
             "overlay": f"all_time: formation of {len(self.offsets)}, {len(self.plan_times)} paths planned",
             "robot_colors": np.broadcast_to(team_color(0), (len(self.offsets), 4)).copy(),
             "paths": self._paths_visual,
-            "meeting_points": lifted(self.segment.path.positions[-1])[None],
+            "meeting_points": self._goal_visual,  # the end of the formation's current path
             "meeting_point_colors": (team_color(0) * (1, 1, 1, 0.5))[None],
             **self.series.info(),
         }

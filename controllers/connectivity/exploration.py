@@ -33,6 +33,13 @@ targets.py. Here:
   failed replanning keeps the previous path. The paper assumes paths exist.
 - The exploration layer does not read lambda2: eqs. (3)-(15) depend on it
   only through f_lambda.
+- Traveling efficiency (12) over the braking stretch: the tracking error is
+  scaled by v_cruise / |v_gamma| (|v_gamma| floored at 10 % of v_cruise), so
+  x_c and x_M keep meaning "fraction of the speed the traveler should have".
+  Without it a prime traveler stalled just short of its target (reference
+  slowed to, say, 40 % of cruise) still reads Lambda_p ~ 0.4, the secondary
+  travelers keep pulling (rho > 0) and the team can deadlock - which we saw
+  in the town scene; the paper, with no braking, has Lambda_p = 0 there.
 """
 
 from __future__ import annotations
@@ -59,6 +66,9 @@ from controllers.connectivity.travel import (
     tracking_error,
     travel_force,
 )
+
+# Floor of the reference speed, as a fraction of cruise, when scaling the efficiency error.
+_MIN_REFERENCE_FRACTION = 0.1
 
 
 @dataclass(frozen=True)
@@ -225,8 +235,16 @@ class ExplorationController:
         if len(travelers):
             batch = PathReference.stack([references[i] for i in travelers])
             f_travel = travel_force(q[travelers], v[travelers], batch, p.position_gain, p.velocity_gain, p.virtual_mass)
+            if np.isfinite(p.travel_force_limit):
+                magnitude = np.linalg.norm(f_travel, axis=1, keepdims=True)
+                f_travel *= np.minimum(1.0, p.travel_force_limit / np.maximum(magnitude, 1e-12))
             error[travelers] = tracking_error(q[travelers], v[travelers], batch, p.position_error_weight)
-            lam[travelers] = efficiency(error[travelers], p.efficiency_error_full, p.efficiency_error_zero)
+            # Over the braking stretch the reference slows down (travel.py); the error is
+            # weighed against the reference's own speed there, so a traveler held back near
+            # its target reads as inefficient, as one held back at cruise speed does.
+            reference_speed = np.linalg.norm(batch.velocity, axis=1)
+            scale = p.cruise_speed / np.maximum(reference_speed, _MIN_REFERENCE_FRACTION * p.cruise_speed)
+            lam[travelers] = efficiency(error[travelers] * scale, p.efficiency_error_full, p.efficiency_error_zero)
             path_points[travelers] = batch.point
             forces[travelers] = f_travel
         is_prime = roles == Role.PRIME_TRAVELER

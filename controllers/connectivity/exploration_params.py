@@ -32,6 +32,9 @@ The paper does not report the following; the defaults are ours:
   over the last ``braking_distance`` metres of the path so that travelers
   arrive at their target instead of overshooting it at cruise speed
   (Table 1 calls v_cruise the *maximum* cruise speed).
+- ``travel_force_limit``: eq. (3) grows without bound with the distance to
+  the path (k_p (q_gamma - q)), while Problem 1 asks for a bounded f_i; the
+  magnitude is capped (direction kept). Default: no cap.
 - ``anchor_force_limit``: eq. (7) is unbounded at ||q - z|| = R_z; a
   sampled-data controller can step past R_z, so the anchor force magnitude is
   capped (and points back to the target beyond R_z).
@@ -80,6 +83,7 @@ class ExplorationParams:
     dwell_time: float = 3.0  # Delta t, s: default time to stay within R_z
     anchor_gain: float = 1.0  # k_z, N
     anchor_force_limit: float = 20.0  # N: cap on |f_anchor|
+    travel_force_limit: float = math.inf  # N: cap on |f_travel| (Problem 1 asks for a bounded f_i)
     # Traveling efficiency, eqs. (9), (11), (12).
     efficiency_error_full: float = 0.1  # x_c, m/s: Lambda = 1 for errors up to this
     efficiency_error_zero: float = 0.6  # x_M, m/s: Lambda = 0 from this error on
@@ -115,6 +119,8 @@ class ExplorationParams:
             "path_min_clearance",
         )
         _require_non_negative(self, "dwell_time", "efficiency_error_full", "smoothing_tolerance")
+        if not (isinstance(self.travel_force_limit, (int, float)) and self.travel_force_limit > 0):
+            raise ValueError(f"travel_force_limit must be a positive number (inf: no cap), got {self.travel_force_limit!r}")
         if not self.efficiency_error_full < self.efficiency_error_zero:
             raise ValueError(
                 f"efficiency_error_full ({self.efficiency_error_full}) must be smaller than "

@@ -39,6 +39,8 @@ from controllers.connectivity.targets import TargetQueues
 from sim.config import ConfigError
 from sim.geometry import Boxes, point_clearance
 
+# lambda2 at or below lambda2_min + this is "disconnected" (eigh round-off is ~1e-16).
+LAMBDA2_TOLERANCE = 1e-9
 # Paper's allocation for the first ten robots (Sec. 4.1).
 PAPER_TARGET_COUNTS = (3, 3, 3, 3, 3, 2, 2, 2, 2, 2)
 # Uniform draws per batch and batches before giving up, for random targets.
@@ -129,7 +131,8 @@ def check_start(state: ConnectivityState, positions: np.ndarray, boxes: Boxes, n
                 params: ConnectedParams) -> None:
     """ConfigError('robots', ...) unless lambda2(0) > lambda2_min, naming what breaks the graph."""
     c = params.connectivity
-    if state.lambda2 > c.lambda2_min:
+    reached = _component(state.weights > 0, 0)
+    if state.lambda2 > c.lambda2_min + LAMBDA2_TOLERANCE and reached.all():
         return
     rules = (f"a link needs distance < R_s = {c.sensing_range:g} m, line-of-sight clearance > R_o = "
              f"{c.min_obstacle_clearance:g} m and no robot within R_c = {c.min_robot_distance:g} m of either end")
@@ -144,7 +147,6 @@ def check_start(state: ConnectivityState, positions: np.ndarray, boxes: Boxes, n
     if clearance[k] <= c.min_obstacle_clearance:
         raise ConfigError("robots", f"the starting graph is disconnected: {names[k]} starts {clearance[k]:.2f} m "
                           f"from an obstacle, within R_o = {c.min_obstacle_clearance:g} m ({rules})")
-    reached = _component(state.weights > 0, 0)
     cut = [names[r] for r in range(len(names)) if not reached[r]]
     raise ConfigError("robots", f"the starting graph is disconnected (lambda2 = {state.lambda2:.3g} <= lambda2_min "
                       f"= {c.lambda2_min:g}): {', '.join(cut)} cannot reach {names[0]} ({rules})")

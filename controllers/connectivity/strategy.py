@@ -193,7 +193,12 @@ class ConnectedStrategy:
         if self.estimator is not None:
             estimate = self.estimator.step(self._estimator_weights(state.weights, observation.links.adjacency),
                                            self.dt)
-            f_lambda = generalized_connectivity_force(state.links, estimate.lambda2, estimate.fiedler, c)
+            # Each robot also knows its own degree d_i = sum_j W_ij, and lambda2 <= N / (N - 1) min_i d_i
+            # (Fiedler 1973): it never uses an estimate above its own bound.
+            n = len(q)
+            bound = n / (n - 1) * state.weights.sum(axis=1)
+            lambda2_used = np.maximum(np.minimum(estimate.lambda2, bound), c.lambda2_min + p.estimator_floor)
+            f_lambda = generalized_connectivity_force(state.links, lambda2_used, estimate.fiedler, c)
         elif p.spectrum_smoothing > 0:
             values, vectors = np.linalg.eigh(state.laplacian)
             smooth, gradient = smooth_lambda2_gradient(state.links, values, vectors, p.spectrum_smoothing)

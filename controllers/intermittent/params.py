@@ -41,9 +41,12 @@ class IntermittentParams:
     max_replans: int = 2  # extra planner runs (fresh samples) after a failed plan, before the fallback, -
     prior_mean: tuple[Vec3, ...] = ()  # EKF initial estimate x^0 per target, m; empty: the paper's x^0
     prior_variance_m2: float = 0.25  # EKF initial covariance C(0) = this * I, m^2 (paper: 0.25)
+    # Range readings from sensors all at one height cannot tell a target from
+    # its mirror image below that plane; reflect estimates that fall below it
+    # (targets are above the floor). false: the paper's plain EKF.
+    resolve_mirror: bool = True
     lag_team: int = 1  # team whose t*(t) and e_i(t) are plotted (paper Fig. 7: T_2, index 1), -
     random_clearance_m: float = 0.3  # random_meeting: meeting points keep this from walls, m
-    formation_spacing_m: float = 0.12  # all_time: spacing of the formation if the start is not connected, m
 
     def __post_init__(self):
         require(isinstance(self.n_sample, int) and self.n_sample >= 1, "n_sample",
@@ -51,7 +54,7 @@ class IntermittentParams:
         require(self.n_uniform >= 0, "n_uniform", f"must be >= 0, got {self.n_uniform}")
         require(self.delta_m2 > 0, "delta_m2", f"must be positive (a variance threshold, m^2), got {self.delta_m2}")
         for name in ("step_size_m", "speed_mps", "step_s", "clearance_m", "arrival_tolerance_m",
-                     "prior_variance_m2", "random_clearance_m", "formation_spacing_m"):
+                     "prior_variance_m2", "random_clearance_m"):
             value = getattr(self, name)
             require(value > 0, name, f"must be positive, got {value}")
         for name in ("link_margin_m", "gather_after_s"):

@@ -229,27 +229,27 @@ class EstimateSeries:
     steps: list[int] = field(default_factory=list)
     lambda_max: list[float] = field(default_factory=list)
     last: FilterState | None = None
+    _info: dict = field(default_factory=dict)
 
     def record(self, state: FilterState) -> float:
         value = float(np.linalg.eigvalsh(state.covariance)[-1])
         self.steps.append(state.step)
         self.lambda_max.append(value)
         self.last = state
+        m = state.n_targets
+        mean = state.mean.reshape(m, 3)
+        idx = np.arange(m)
+        self._info = {
+            "target_estimate": mean,
+            "target_estimate_step": state.step,
+            "target_estimates": mean,
+            "target_covariances": state.covariance.reshape(m, 3, m, 3)[idx, :, idx, :],
+        }
         return value
 
     def info(self) -> dict:
-        if self.last is None:
-            return {}
-        m = self.last.n_targets
-        mean = self.last.mean.reshape(m, 3)
-        idx = np.arange(m)
-        blocks = self.last.covariance.reshape(m, 3, m, 3)[idx, :, idx, :]
-        return {
-            "target_estimate": mean,
-            "target_estimate_step": self.last.step,
-            "target_estimates": mean,
-            "target_covariances": blocks,
-        }
+        """The entries of the latest recorded state (the same objects until the next)."""
+        return self._info
 
     def summary(self) -> dict:
         """lambda-bar of eq. (13b): mean and population std over steps >= 1."""

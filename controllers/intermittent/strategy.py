@@ -203,7 +203,8 @@ class MeetingStrategy:
         self.planner = planner_params(params, world, self.planning)
         self.motion = world.target_motion
         self.prior = prior_state(params, world.n_targets)
-        self.beliefs = NetworkBeliefs(self.teams, self.motion, self.prior)
+        mirror = self.planning.sensor_height if params.resolve_mirror else None
+        self.beliefs = NetworkBeliefs(self.teams, self.motion, self.prior, mirror_plane_z=mirror)
         self.series = EstimateSeries()
         starts = initial.position[:, :2].copy()
         free = points_free(self.planning.boxes, self.planning.bounds, starts, self.planning.sensor_height,
@@ -234,12 +235,12 @@ class MeetingStrategy:
         # Footnote 4: the paths to the first meeting of every team, a priori.
         for epoch in range(1, self.schedule.period + 1):
             for team in self.schedule.teams_meeting_at(epoch):
-                self._plan(team, epoch, 0.0, belief_step=0, estimate=self.prior)
+                self._plan(team, epoch, belief_step=0, estimate=self.prior)
         for queue in self.queues:
             queue[0].started = True
             queue[0].timed.offset_s = 0.0
         self._scalars.update({"lambda_max_m2": float(np.linalg.eigvalsh(self.prior.covariance)[-1]),
-                              "t_star_lag_s": 0.0, "local_error_m": 0.0, "meetings_held": 0.0,
+                              "t_star_s": 0.0, "t_star_lag_s": 0.0, "local_error_m": 0.0, "meetings_held": 0.0,
                               "robots_waiting": 0.0})
 
     # ------------------------------------------------------------- designing
@@ -257,7 +258,7 @@ class MeetingStrategy:
         path = shifted(last.timed.path, shift)
         return MemberStart(path.positions[-1].copy(), path.end_time, path)
 
-    def _plan(self, team: int, epoch: int, now_s: float, belief_step: int, estimate: FilterState) -> Meeting:
+    def _plan(self, team: int, epoch: int, belief_step: int, estimate: FilterState) -> Meeting:
         members = tuple(self.teams.members[team])
         starts = [self._member_start(r) for r in members]
         design = self.design(team, epoch, members, starts, belief_step, estimate)
@@ -317,6 +318,7 @@ class MeetingStrategy:
         local = self.beliefs.local_error(team, step)
         self.lags.append((step, agreement, local))
         self._scalars["lambda_max_m2"] = lam
+        self._scalars["t_star_s"] = agreement * self.step_s  # t*(t) of eq. (14), Fig. 7
         self._scalars["t_star_lag_s"] = (step - agreement) * self.step_s
         self._scalars["local_error_m"] = local
 
@@ -341,7 +343,7 @@ class MeetingStrategy:
         )
         belief_step = self.last_step if self.last_step is not None else 0
         estimate = self.beliefs.team_estimate(meeting.team, belief_step)
-        self._plan(meeting.team, meeting.epoch + self.schedule.period, t, belief_step, estimate)
+        self._plan(meeting.team, meeting.epoch + self.schedule.period, belief_step, estimate)
         self._scalars["meetings_held"] = float(sum(m.held_s is not None for m in self.meetings))
 
     def _gather_reference(self, meeting: Meeting, robot: int, t: float) -> np.ndarray:
