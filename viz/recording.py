@@ -19,6 +19,7 @@ late still gets the whole run.
 
 from __future__ import annotations
 
+import datetime
 from urllib.parse import quote
 
 import numpy as np
@@ -34,6 +35,8 @@ KIND_COLORS = {"quadrotor": (230, 120, 40), "ground": (60, 160, 80)}
 TARGET_COLOR = (240, 200, 30)
 LINK_COLOR = (40, 190, 60)
 REFERENCE_COLOR = (60, 110, 255)
+FILE_FLUSH_PERIOD = datetime.timedelta(seconds=2)  # run.rrd: rows are batched this long (wall time)
+FILE_FLUSH_BYTES = 8 * 1024 * 1024  # ... or up to this many bytes
 
 
 def default_blueprint() -> rrb.Blueprint:
@@ -109,7 +112,12 @@ class RerunRecorder:
                  live_stream: rr.RecordingStream | None = None):
         self.world = world
         self.period_s = period_s
-        file_stream = rr.RecordingStream("tether", recording_id=None)
+        # The file needs no low latency: batching rows for a few seconds of wall time gives fewer,
+        # larger chunks (a 200 s connected-office run: about 5x smaller than with the default 200 ms).
+        batching = rr.ChunkBatcherConfig()
+        batching.flush_tick = FILE_FLUSH_PERIOD
+        batching.flush_num_bytes = FILE_FLUSH_BYTES
+        file_stream = rr.RecordingStream("tether", recording_id=None, batcher_config=batching)
         file_stream.save(path, default_blueprint=default_blueprint())
         self.rec = file_stream if live_stream is None else _Tee(file_stream, live_stream)
         self.rows = 0

@@ -76,6 +76,9 @@ def smooth_lambda2(eigenvalues: np.ndarray, kappa: float) -> tuple[float, np.nda
         mean = float(weights @ values)
         derivative = kappa * (h - mean) / tau - 1.0
         step = s - g / derivative
+        if g == 0 or abs(step - s) < _TOLERANCE * lowest:
+            s = step
+            break
         s = step if low < step < high else 0.5 * (low + high)
         if high - low < _TOLERANCE * lowest:
             break

@@ -53,10 +53,19 @@ paths.py, travel.py, roles.py, election.py, targets.py). Here:
   does not discuss start-up of the estimator.
 - The estimator exchanges messages only over links that are in both G^lambda
   (W_ij > 0) and the simulator's communication graph.
+- Estimator mode: robot i evaluates V' at min(its estimate, N/(N-1) d_i),
+  with d_i = sum_j W_ij its own degree (lambda2 <= N/(N-1) min_i d_i,
+  Fiedler 1973: a bound every robot knows), and at no less than
+  lambda2_min + ``estimator_floor`` (an estimator transient below the true
+  lambda2 would otherwise launch the virtual points with the barrier's
+  near-singular slope).
+- Exact mode with ``spectrum_smoothing`` > 0: V acts on a smooth lower bound
+  of lambda2 (smooth_spectrum.py) instead of lambda2 itself.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -159,8 +168,6 @@ class ConnectedStrategy:
         """Take new gains from the next tick on; False (restart) when a field
         that shapes the set-up (graph ranges, planner, targets, estimator,
         election) changes."""
-        import dataclasses
-
         for f in dataclasses.fields(params):
             if f.init and not f.metadata.get("tunable", True) and getattr(params, f.name) != getattr(self.params, f.name):
                 return False
