@@ -15,14 +15,14 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import mujoco
 import numpy as np
 
 from sim.actuation import LowLevelControl
 from sim.estimation_observer import EstimationMetrics
-from sim.observers import Frame, LinkMetrics, TrackingMetrics
+from sim.observers import Frame, LinkMetrics, Observer, TrackingMetrics
 from sim.registry import strategy_class
 from sim.config import ConfigError
 from sim.scenario import Scenario, StrategyConfig
@@ -183,10 +183,13 @@ def run(
     live: Any = None,
     keep_trajectory: bool = False,
     progress: Callable[[float], None] | None = None,
+    extra_observers: Sequence[Observer] = (),
 ) -> RunResult:
     """Run a scenario headless; write metrics.json (+ video.mp4, run.rrd) to out_dir.
 
-    Validation errors (ConfigError) are raised before anything is written.
+    ``extra_observers`` see every tick after the built-in ones and are closed
+    with them. Validation errors (ConfigError) are raised before anything is
+    written.
     """
     wall_start = time.perf_counter()
     _mujoco_warnings.clear()
@@ -208,13 +211,13 @@ def run(
             (out / stale).unlink(missing_ok=True)
         from viz.plots import PlotRecorder
 
-        plots = PlotRecorder(sim.world.robot_kinds, out / "plots")
+        plots = PlotRecorder(sim.world.robot_kinds, out / "plots", robot_names=sim.world.robot_names)
         observers.append(plots)
     if video:
         from viz.video import VideoRecorder
 
         files["video"] = str(out / "video.mp4")
-        observers.append(VideoRecorder(sim.world, scenario.video, files["video"]))
+        observers.append(VideoRecorder(sim.world, scenario.video, files["video"], sim.dt))
     recorder = None
     if rrd or live is not None:
         from viz.recording import RerunRecorder
@@ -222,6 +225,7 @@ def run(
         files["recording"] = str(out / "run.rrd")
         recorder = RerunRecorder(sim.world, files["recording"], scenario.name, live_stream=live)
         observers.append(recorder)
+    observers += list(extra_observers)
 
     n_ticks = int(round(scenario.duration_s / sim.dt))
     status = "completed"
@@ -239,14 +243,14 @@ def run(
                 detail = _mujoco_warnings[-1] if _mujoco_warnings else "non-finite state"
                 message = f"physics diverged at t = {sim.time_s:.3f} s: {detail}"
                 if recorder is not None:
-                    recorder.event(sim.time_s, message, level="ERROR")
+                    recorder.event(sim.time_s, message, level="ERROR", tick=sim.tick_count)
                 break
             if progress is not None and sim.tick_count % 100 == 0:
                 progress(sim.time_s / scenario.duration_s)
             if getattr(sim.strategy, "finished", False):
                 # The strategy's mission is over (e.g. every target visited): stop early.
                 if recorder is not None:
-                    recorder.event(sim.time_s, f"strategy finished at t = {sim.time_s:.2f} s")
+                    recorder.event(sim.time_s, f"strategy finished at t = {sim.time_s:.2f} s", tick=sim.tick_count)
                 break
     finally:
         for observer in observers:

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from connected_helpers import run_checked
+from helpers import TickLog, recorded_ticks, rrd_chunks, rrd_column, rrd_rows, rrd_scalars, rrd_texts
 from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.roles import Role
 from sim.config import ConfigError, build, to_table
@@ -195,13 +196,15 @@ SMALL_MISSION = [
 
 @pytest.fixture(scope="module")
 def small_mission(tmp_path_factory):
+    """The run's result, its folder and every tick's strategy scalars (an extra observer)."""
     out = tmp_path_factory.mktemp("mission")
-    result = run(load("connected-office", SMALL_MISSION), out, video=True, rrd=True)
-    return result, out
+    log = TickLog()
+    result = run(load("connected-office", SMALL_MISSION), out, video=True, rrd=True, extra_observers=[log])
+    return result, out, log
 
 
 def test_small_mission_completes_and_stops_early(small_mission):
-    result, out = small_mission
+    result, out, _ = small_mission
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["status"] == "completed"
     assert metrics["targets_total"] == metrics["targets_visited"] == 3
@@ -220,9 +223,7 @@ def test_small_mission_completes_and_stops_early(small_mission):
 
 
 def test_recording_logs_the_fig_14_series(small_mission):
-    from helpers import rrd_chunks, rrd_scalars
-
-    _, out = small_mission
+    _, out, _ = small_mission
     chunks = rrd_chunks(out / "run.rrd")
     for entity in ("/metrics/lambda2", "/metrics/edges", "/metrics/prime_efficiency",
                    "/metrics/prime_efficiency_estimate_mean", "/metrics/prime_traveler", "/robots/role",
@@ -245,14 +246,121 @@ def test_recording_logs_the_fig_14_series(small_mission):
 def test_video_shows_the_team(small_mission):
     import imageio.v2 as imageio
 
-    _, out = small_mission
+    _, out, _ = small_mission
     frames = [f for f in imageio.get_reader(out / "video.mp4")]
-    assert len(frames) > 30
+    metrics = json.loads((out / "metrics.json").read_text())
+    # 10 fps over the run, which stopped early (6.22 s: frames at 0, 0.1, ..., 6.2 s).
+    assert len(frames) == int(np.ceil(metrics["sim_time_s"] * 10 - 1e-9)) > 30
     middle = frames[len(frames) // 2].astype(float)
     assert middle.std() > 10
     # The prime traveler's marker (turquoise) and the planned path are drawn in some frame.
     turquoise = [(np.abs(f[..., 0].astype(int) - 0) < 60) & (f[..., 1] > 180) & (f[..., 2] > 160) for f in frames]
     assert max(int(t.sum()) for t in turquoise) > 8
+
+
+RECORDING_PERIOD_TICKS = 5  # the recorder's 0.05 s at the office's 0.01 s control period
+CONTROL_PERIOD_S = 0.01
+
+
+def test_recording_lambda2_and_edges_equal_every_tick_and_metrics_json(small_mission):
+    _, out, log = small_mission
+    metrics = json.loads((out / "metrics.json").read_text())
+    n = metrics["control_ticks"]
+    assert len(log.scalars) == n
+    # metrics.json summarises the exact lambda2 of every tick ...
+    lambda2 = log.series("lambda2")
+    assert lambda2.min() == metrics["lambda2_min"]
+    assert lambda2.mean() == pytest.approx(metrics["lambda2_mean"], rel=1e-12)
+    # ... and the recording holds that very value at each recorded tick (every 0.05 s, and the last).
+    chunks = rrd_chunks(out / "run.rrd")
+    ticks, values = rrd_scalars(chunks["/metrics/lambda2"], "tick")
+    assert ticks == recorded_ticks(n, RECORDING_PERIOD_TICKS)
+    np.testing.assert_array_equal(values, lambda2[ticks])
+    assert min(values) >= metrics["lambda2_min"] > 0
+    # One edges series (the weighted graph's, W_ij > 0), the one edges_min / edges_mean summarise.
+    edges = log.series("edges")
+    assert edges.min() == metrics["edges_min"]
+    assert edges.mean() == pytest.approx(metrics["edges_mean"], rel=1e-12)
+    ticks, values = rrd_scalars(chunks["/metrics/edges"], "tick")
+    assert ticks == recorded_ticks(n, RECORDING_PERIOD_TICKS)
+    np.testing.assert_array_equal(values, edges[ticks])
+    # Stretch, visits and prime travelers agree with their summaries.
+    assert log.series("stretch_m").max() == metrics["max_stretch_m"]
+    assert max(rrd_scalars(chunks["/metrics/stretch_m"], "tick")[1]) <= metrics["max_stretch_m"]
+    assert rrd_scalars(chunks["/metrics/targets_visited"], "tick")[1][-1] == metrics["targets_visited"] == 3
+    assert max(rrd_scalars(chunks["/metrics/prime_travelers"], "tick")[1]) == metrics["prime_travelers_max"] == 1
+
+
+def test_recording_entity_tree_colours_events_and_static_data(small_mission):
+    from controllers.connectivity.strategy import ROLE_COLORS
+    from helpers import check_static_once_and_both_timelines, unpack_rgba
+    from viz.video import link_color
+
+    _, out, log = small_mission
+    metrics = json.loads((out / "metrics.json").read_text())
+    n = metrics["control_ticks"]
+    expected = recorded_ticks(n, RECORDING_PERIOD_TICKS)
+    chunks = rrd_chunks(out / "run.rrd")
+    check_static_once_and_both_timelines(chunks, CONTROL_PERIOD_S)
+    # The scene's walls: static boxes, logged once.
+    world = Simulation(load("connected-office", SMALL_MISSION)).world
+    (walls,) = chunks["/world/obstacles"]
+    assert walls.is_static and walls.num_rows == 1
+    assert len(walls.to_record_batch().column("Boxes3D:half_sizes").to_pylist()[0]) == len(world.obstacles.centers)
+    # Robots: names static, positions and role colours at every recorded tick.
+    (names,) = [c for c in chunks["/world/robots"] if c.is_static]
+    assert names.to_record_batch().column("Points3D:labels").to_pylist()[0] == list(world.robot_names)
+    for entity, column in (("/world/robots", "Points3D:positions"), ("/world/references", "Points3D:positions"),
+                           ("/world/links", "LineStrips3D:strips"), ("/world/markers", "Points3D:positions")):
+        assert [t for t, _ in rrd_column(chunks[entity], column)] == expected, entity
+    assert 0 < len(rrd_column(chunks["/world/plans"], "LineStrips3D:strips")) <= len(expected)
+    prime_rgb = tuple(int(round(255 * c)) for c in ROLE_COLORS[Role.PRIME_TRAVELER][:3])
+    prime_ticks = 0
+    for tick, colors in rrd_column(chunks["/world/robots"], "Points3D:colors"):
+        rgb = [unpack_rgba(c)[:3] for c in colors]
+        prime = int(log.scalars[tick]["prime_traveler"])
+        assert [i for i, c in enumerate(rgb) if c == prime_rgb] == ([prime] if prime >= 0 else []), tick
+        prime_ticks += prime >= 0
+    assert prime_ticks > len(expected) / 2
+    # Links: one segment per communication link, coloured by weight (green 1 ... red 0).
+    seen = set()
+    for tick, strips in rrd_column(chunks["/world/links"], "LineStrips3D:strips"):
+        assert len(strips) == log.links[tick], tick
+    for _, colors in rrd_column(chunks["/world/links"], "LineStrips3D:colors"):
+        for r, g, b, _ in map(unpack_rgba, colors):
+            weight = 1.0 - r / 255
+            assert np.allclose((r, g, b), np.round(255 * link_color(weight)[:3]), atol=1), (r, g, b)
+            seen.add((r, g, b))
+    assert len(seen) > 5  # weights vary
+    # Events: start, every election (role change to prime traveler) and visit, at its own tick; the end.
+    events = rrd_texts(chunks["/events"])
+    assert events[0] == (0, "run started: scenario connected-office, 10 robots")
+    elections = [(t, e) for t, e in events if "becomes prime traveler" in e]
+    assert len(elections) == metrics["prime_elections"] >= 2
+    assert sum("visited its target" in e for _, e in events) == metrics["targets_visited"]
+    for tick, text in events:
+        if text.startswith("t = "):
+            assert tick == round(float(text.split()[2]) / CONTROL_PERIOD_S), (tick, text)
+    assert events[-2:] == [(n, f"strategy finished at t = {n * CONTROL_PERIOD_S:.2f} s"), (n, "run ended: completed")]
+    assert max(t for t, _ in events) == n
+
+
+def test_plots_draw_every_series_with_the_fig_14_panels(small_mission):
+    import math
+
+    from helpers import png_is_a_drawn_figure
+    from viz.plots import PANELS_PER_FIGURE
+
+    _, out, log = small_mission
+    # Fig. 14 a-c, f-i as series (d: roles, g-i per robot too); every one gets a panel.
+    fig_14 = {"lambda2", "edges", "stretch_m", "prime_efficiency", "prime_efficiency_estimate_mean",
+              "alignment_mean", "gain_mean", "secondary_travelers", "anchors"}
+    assert fig_14 <= set(log.scalars[-1])
+    assert {"role", "prime_efficiency_estimate", "alignment", "gain"} <= log.robot_scalar_names
+    panels = 2 + len(log.scalars[-1]) + len(log.robot_scalar_names)  # + tracking error and links
+    pngs = sorted((out / "plots").glob("timeseries*.png"))
+    assert len(pngs) == math.ceil(panels / PANELS_PER_FIGURE)
+    assert all(png_is_a_drawn_figure(p) for p in pngs)
 
 
 def test_tuning_updates_gains_in_place_and_restarts_for_set_up_fields():

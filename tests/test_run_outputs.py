@@ -12,7 +12,7 @@ import pytest
 from sim.loop import run
 from sim.scenario import load
 
-from helpers import rrd_chunks, rrd_rows, write_scenario
+from helpers import check_static_once_and_both_timelines, recorded_ticks, rrd_chunks, rrd_rows, write_scenario
 
 DURATION_S = 2.0
 
@@ -72,10 +72,14 @@ def test_recording_has_entities_rows_and_a_blueprint(hover_run):
     for entity in ("/world/obstacles", "/world/robots", "/world/references", "/world/targets/true",
                    "/world/links", "/metrics/edges", "/events"):
         assert entity in chunks, entity
-    expected_rows = round(DURATION_S / 0.05)
+    expected_rows = len(recorded_ticks(round(DURATION_S / 0.01), 5))  # every 0.05 s, and the last tick
     assert rrd_rows(chunks["/world/targets/true"]) == expected_rows
     assert rrd_rows(chunks["/world/links"]) == expected_rows
     assert rrd_rows(chunks["/world/obstacles"]) == 1
+    check_static_once_and_both_timelines(chunks, 0.01)
+    (names,) = [c for c in chunks["/world/robots"] if c.is_static]  # labels show on every timeline
+    assert names.to_record_batch().column("Points3D:labels").to_pylist()[0] == [
+        *(f"quad{i}" for i in range(4)), *(f"ground{i}" for i in range(4))]
     assert RrdReader(str(out / "run.rrd")).blueprints(), "default blueprint missing"
 
 

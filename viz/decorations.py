@@ -87,6 +87,15 @@ def _rgb8(rgba: np.ndarray) -> np.ndarray:
     return np.clip(np.round(np.asarray(rgba, dtype=float) * 255), 0, 255).astype(np.uint8)
 
 
+def robot_colors_rgb8(info: dict, default: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8 recording colours of the robots: ``robot_colors`` when the
+    strategy gives one per robot, else ``default``."""
+    colors = info.get("robot_colors")
+    if colors is None or len(colors) != len(default):
+        return default
+    return _rgb8(np.asarray(colors, dtype=float)[:, :3])
+
+
 def _changed(recorder, key: str, value) -> bool:
     """True the first time and whenever ``value`` is a different object than
     last logged (strategies rebuild these only when they change)."""
@@ -98,16 +107,14 @@ def _changed(recorder, key: str, value) -> bool:
 
 
 def log_recording_decorations(recorder, frame) -> None:
-    """Log the decorations of ``frame`` to ``recorder.rec`` (time already set).
+    """Log the decorations of ``frame`` to ``recorder.rec`` (time already set;
+    the recorder colours the robots itself, :func:`robot_colors_rgb8`).
     Plans, meeting points and estimates are logged only when the strategy
     hands over new objects, so the recording stays small."""
     import rerun as rr
 
     rec = recorder.rec
     info = frame.commands.info
-    colors = info.get("robot_colors")
-    if colors is not None:
-        rec.log("world/robots", rr.Points3D(frame.observation.position, colors=_rgb8(colors)))
     if "paths" in info and _changed(recorder, "paths", info["paths"]):
         paths = info["paths"]
         rec.log("world/plans", rr.LineStrips3D([np.asarray(p, dtype=float) for p, _ in paths],
@@ -143,4 +150,4 @@ def log_recording_decorations(recorder, frame) -> None:
 def log_events(recorder, frame) -> None:
     """Every string in ``info['events']`` as one event of the recording."""
     for text in frame.commands.info.get("events", ()):
-        recorder.event(frame.observation.time_s, str(text))
+        recorder.event(frame.observation.time_s, str(text), tick=frame.observation.tick)

@@ -2,14 +2,22 @@
 
 Entity tree:
   world/obstacles          static boxes of the scene (logged once)
-  world/robots             robot positions, coloured by kind, labelled
+  world/robots             robot positions, coloured by kind (or by the strategy's
+                           ``robot_colors``); names and sizes static
   world/references         each robot's reference (virtual point)
   world/targets/true       true target positions
-  world/links              communication links as line segments
-  metrics/...              scalar time series (tracking error, edges, ...)
-  events                   text log (start, warnings, end status)
-Timelines: ``sim_time`` (s) and ``tick``. A default blueprint (3D view beside
-time series and the event log) is embedded in the file.
+  world/links              communication links as line segments (coloured by
+                           the strategy's ``link_weights`` when given)
+  world/plans, world/meetings, world/targets/estimate, world/targets/covariance,
+  world/markers            the strategy's decorations (viz.decorations)
+  metrics/...              scalar time series (tracking error, edges, and the
+                           strategy's ``scalars``, which win a name clash)
+  robots/...               per-robot series (the strategy's ``robot_scalars``)
+  events                   text log (start, the strategy's events, warnings,
+                           end status)
+Timelines: ``sim_time`` (s) and ``tick``; every temporal row has both. A
+default blueprint (3D view beside time series and the event log) is embedded
+in the file.
 
 Live (``tether run --rerun-live``): :class:`LiveViewer` serves a gRPC stream
 on 127.0.0.1 and the web viewer; the recorder logs everything to it as well as
@@ -28,10 +36,11 @@ import rerun.blueprint as rrb
 
 from sim.observers import Frame, tracking_errors
 from sim.world import INFINITE_PLANE_HALF_SIZE, World
-from viz.decorations import log_events, log_recording_decorations
+from viz.decorations import log_events, log_recording_decorations, robot_colors_rgb8
 from viz.video import link_color
 
 KIND_COLORS = {"quadrotor": (230, 120, 40), "ground": (60, 160, 80)}
+ROBOT_RADIUS_M = 0.08
 TARGET_COLOR = (240, 200, 30)
 LINK_COLOR = (40, 190, 60)
 REFERENCE_COLOR = (60, 110, 255)
@@ -89,6 +98,10 @@ class _Tee:
         self.file_stream.set_time(*args, **kwargs)
         self.live_stream.set_time(*args, **kwargs)
 
+    def disable_timeline(self, timeline: str) -> None:
+        self.file_stream.disable_timeline(timeline)
+        self.live_stream.disable_timeline(timeline)
+
     def flush(self) -> None:
         self.file_stream.flush()
         self.live_stream.flush()
@@ -102,7 +115,8 @@ class _Tee:
 
 
 class RerunRecorder:
-    """Logs a frame every ``period_s`` of sim time (and always the last one).
+    """Logs a frame every ``period_s`` of sim time, and the run's last frame
+    when it closes; events (``info['events']``) at the tick they happen.
 
     ``live_stream`` (e.g. :attr:`LiveViewer.stream`) gets everything the file
     gets; the recorder flushes it at the end but leaves it open.
@@ -122,7 +136,10 @@ class RerunRecorder:
         self.rec = file_stream if live_stream is None else _Tee(file_stream, live_stream)
         self.rows = 0
         self._next_time = 0.0
+        self._unlogged: Frame | None = None  # the latest frame, when the period skipped it
+        self._latest = (0.0, 0)  # latest (sim time, tick) logged at, for the closing event
         self._robot_series: set[str] = set()
+        self._kind_colors = np.array([KIND_COLORS[k] for k in world.robot_kinds], dtype=np.uint8)
         self._log_static(scenario_name)
 
     def _log_static(self, scenario_name: str) -> None:
@@ -141,44 +158,53 @@ class RerunRecorder:
                        fill_mode="solid"),
             static=True,
         )
+        # Names and sizes never change: static, so they show on every timeline (rows without a
+        # sim_time would not show on it). Positions and colours are logged with each frame.
         labels = list(self.world.robot_names)
-        self.rec.log("world/robots", rr.Points3D(np.zeros((len(labels), 3)), labels=labels,
-                                                  colors=[KIND_COLORS[k] for k in self.world.robot_kinds],
-                                                  radii=0.08), static=False)
-        self.rec.log("events", rr.TextLog(f"run started: scenario {scenario_name}, {len(labels)} robots"), static=False)
+        self.rec.log("world/robots", rr.Points3D.from_fields(labels=labels, radii=ROBOT_RADIUS_M), static=True)
+        self.event(0.0, f"run started: scenario {scenario_name}, {len(labels)} robots", tick=0)
 
-    def _set_time(self, frame: Frame) -> None:
-        self.rec.set_time("sim_time", duration=frame.observation.time_s)
-        self.rec.set_time("tick", sequence=frame.observation.tick)
+    def _set_time(self, time_s: float, tick: int | None) -> None:
+        self.rec.set_time("sim_time", duration=time_s)
+        if tick is None:  # (no stale tick from an earlier frame)
+            self.rec.disable_timeline("tick")
+        else:
+            self.rec.set_time("tick", sequence=tick)
+        if time_s >= self._latest[0]:
+            self._latest = (time_s, tick)
 
     def on_tick(self, frame: Frame) -> None:
         log_events(self, frame)  # a strategy's info['events'], every tick
         if frame.observation.time_s + 1e-9 < self._next_time:
+            self._unlogged = frame
             return
         self._next_time += self.period_s
+        self._unlogged = None
         self.log_frame(frame)
 
     def log_frame(self, frame: Frame) -> None:
         obs = frame.observation
-        self._set_time(frame)
-        self.rec.log("world/robots", rr.Points3D(obs.position))
+        info = frame.commands.info
+        self._set_time(obs.time_s, obs.tick)
+        self.rec.log("world/robots", rr.Points3D(obs.position, colors=robot_colors_rgb8(info, self._kind_colors)))
         self.rec.log("world/references", rr.Points3D(frame.commands.position, colors=REFERENCE_COLOR, radii=0.03))
         if len(frame.target_positions):
             self.rec.log("world/targets/true", rr.Points3D(frame.target_positions, colors=TARGET_COLOR, radii=0.06))
         edges = obs.links.edges
         strips = obs.position[edges] if len(edges) else np.zeros((0, 2, 3))
-        weights = frame.commands.info.get("link_weights")  # optional (N, N): green (1) to red (0)
+        weights = info.get("link_weights")  # optional (N, N): green (1) to red (0)
         colors = LINK_COLOR if weights is None or not len(edges) else [
             tuple(int(round(255 * c)) for c in link_color(weights[i, j])[:3]) for i, j in edges]
         self.rec.log("world/links", rr.LineStrips3D(strips, colors=colors, radii=0.01))
-        self.rec.log("metrics/edges", rr.Scalars(float(len(edges))))
         error = tracking_errors(self.world.robot_kinds, obs.position, frame.commands.position)
-        self.rec.log("metrics/tracking_error_mean_m", rr.Scalars(float(error.mean())))
-        for key, value in frame.commands.info.get("scalars", {}).items():
+        foundation = {"edges": float(len(edges)), "tracking_error_mean_m": float(error.mean())}
+        # A strategy's series of the same name replaces the foundation's (as its summary does in
+        # metrics.json): one value per entity and tick.
+        for key, value in {**foundation, **info.get("scalars", {})}.items():
             self.rec.log(f"metrics/{key}", rr.Scalars(float(value)))
         # Optional per-robot series, info['robot_scalars'] = {name: (N,) values}: robots/NAME, one
         # series per robot named after it (NaN = not defined for that robot at this tick: a gap).
-        for key, values in frame.commands.info.get("robot_scalars", {}).items():
+        for key, values in info.get("robot_scalars", {}).items():
             if key not in self._robot_series:
                 self._robot_series.add(key)
                 self.rec.log(f"robots/{key}", rr.SeriesLines(names=list(self.world.robot_names)), static=True)
@@ -186,12 +212,17 @@ class RerunRecorder:
         log_recording_decorations(self, frame)  # optional info keys: team colours, plans, estimates
         self.rows += 1
 
-    def event(self, time_s: float, text: str, level: str = "INFO") -> None:
-        self.rec.set_time("sim_time", duration=time_s)
+    def event(self, time_s: float, text: str, level: str = "INFO", tick: int | None = None) -> None:
+        """One line of the event log at ``time_s`` (and ``tick``, when known)."""
+        self._set_time(time_s, tick)
         self.rec.log("events", rr.TextLog(text, level=level))
 
     def close(self, status: str) -> None:
-        self.rec.log("events", rr.TextLog(f"run ended: {status}", level="INFO" if status == "completed" else "WARN"))
+        if self._unlogged is not None:  # the run's last frame, off the period's grid
+            self.log_frame(self._unlogged)
+            self._unlogged = None
+        time_s, tick = self._latest
+        self.event(time_s, f"run ended: {status}", level="INFO" if status == "completed" else "WARN", tick=tick)
         self.rec.flush()
         self.rec.disconnect()
 

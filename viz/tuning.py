@@ -258,6 +258,8 @@ class TuningSession:
                     rate_wall, rate_sim = anchor_wall, anchor_sim
                     continue
                 with self._lock:
+                    if self.paused and self._steps == 0:  # paused while this thread waited for the lock
+                        continue
                     stepping = self._steps > 0
                     if stepping:
                         self._steps -= 1

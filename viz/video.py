@@ -2,7 +2,8 @@
 
 An observer: it reads ``MjData`` and the tick's frame, never writes to the
 simulation. Frames are taken at the video fps in sim time and written one by
-one to the encoder, so memory does not grow with the video's length.
+one to the encoder (an ffmpeg process fed through a pipe), so memory does not
+grow with the video's length.
 Communication links are drawn as capsules between robots; robot references
 (virtual points) as small spheres. :class:`FrameRenderer` draws one frame
 (scene, decorations, overlay band); the video recorder and the tuning page
@@ -185,31 +186,35 @@ class FrameRenderer:
 
 
 class VideoRecorder:
-    """Observer writing ``video.mp4``: a frame every 1/fps of sim time."""
+    """Observer writing ``video.mp4`` at ``config.fps`` frames per second of
+    sim time: frame k shows the state of the tick at or just before k / fps
+    (a tick's image is repeated when the fps exceeds the control rate), so a
+    run of T s gives ceil(T * fps) frames and the video lasts as long as the
+    run at any fps. Each image goes to the encoder as soon as it is rendered."""
 
-    def __init__(self, world: World, config: VideoConfig, path: str):
+    def __init__(self, world: World, config: VideoConfig, path: str, control_period_s: float):
         import imageio.v2 as imageio
 
         self.world = world
         self.config = config
         self.path = path
+        self.control_period_s = control_period_s
         self.view = FrameRenderer(world, config)
         self.writer = imageio.get_writer(
             path, fps=config.fps, codec="libx264", quality=7, macro_block_size=1,
             ffmpeg_log_level="error", output_params=["-pix_fmt", "yuv420p"],
         )
         self.frames_written = 0
-        self._next_time = 0.0
 
     def on_tick(self, frame: Frame) -> None:
-        if frame.observation.time_s + 1e-9 < self._next_time:
-            return
-        self._next_time += 1.0 / self.config.fps
-        self.write_frame(frame)
-
-    def write_frame(self, frame: Frame) -> None:
-        self.writer.append_data(self.view.render(frame))
-        self.frames_written += 1
+        # This tick's state stands for [t, t + control period): the frames due in that interval.
+        until = frame.observation.time_s + self.control_period_s - 1e-9
+        image = None
+        while self.frames_written / self.config.fps < until:
+            if image is None:
+                image = self.view.render(frame)
+            self.writer.append_data(image)
+            self.frames_written += 1
 
     def close(self, status: str) -> None:
         self.writer.close()

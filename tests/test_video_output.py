@@ -1,0 +1,140 @@
+"""The video: a link appearing changes the frame where it is drawn and the
+overlay's link count; frames == duration x fps at any fps, without changing
+the trajectory; frames stream to the encoder, so memory stays flat."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+
+from helpers import write_scenario, write_scene
+from sim.loop import Simulation, run
+from sim.scenario import load
+from viz.video import FrameRenderer, VideoRecorder
+
+OPEN_FLOOR = """
+<mujoco model="open_floor">
+  <custom><numeric name="tether_bounds" data="0 0 0 10 10 5"/></custom>
+  <worldbody>
+    <light pos="5 5 8" dir="0 0 -1" directional="true"/>
+    <geom name="floor" type="plane" size="5 5 0.05" pos="5 5 0" rgba="0.8 0.8 0.8 1" group="0"/>
+    <camera name="top" pos="5 5 8" xyaxes="1 0 0 0 1 0" projection="orthographic" fovy="4"/>
+  </worldbody>
+</mujoco>
+"""
+# Two quadrotors 2 m apart, centred under an orthographic top camera 4 m tall: 60 px per metre at
+# 320 x 240, the robots at columns 100 and 220 of row 120.
+TWO_QUADS = """
+scene = "scene.xml"
+duration_s = 1.0
+[video]
+width = 320
+height = 240
+camera = "top"
+[strategy]
+kind = "waypoints"
+[[robots]]
+kind = "quadrotor"
+starts = [[4.0, 5.0, 1.0], [6.0, 5.0, 1.0]]
+"""
+BAND_ROWS = 20  # the overlay band's height, px (text at y = 4 in PIL's default font)
+
+
+def first_frame(path, comm_range_m: float):
+    sim = Simulation(load(str(path), [f"sensing.comm_range_m={comm_range_m}"]))
+    frame, healthy = sim.tick()
+    assert healthy
+    view = FrameRenderer(sim.world, sim.scenario.video)
+    try:
+        return frame, view.render(frame).astype(int)
+    finally:
+        view.close()
+
+
+def test_a_link_appearing_changes_its_pixels_and_the_overlay_count(tmp_path):
+    write_scene(tmp_path, OPEN_FLOOR)
+    path = write_scenario(tmp_path, TWO_QUADS)
+    # The same bodies in the same place; only the communication range differs: 1.5 m (no link) or 2.5 m.
+    apart, without = first_frame(path, 1.5)
+    linked, with_link = first_frame(path, 2.5)
+    np.testing.assert_array_equal(apart.observation.position, linked.observation.position)
+    assert len(apart.observation.links.edges) == 0 and len(linked.observation.links.edges) == 1
+    changed = np.abs(with_link - without).sum(axis=2) > 0
+    # Between the robots (clear of their bodies), every column shows the line in the link's green.
+    between = with_link[114:127, 130:191]
+    greenness = between[..., 1] - np.maximum(between[..., 0], between[..., 2])
+    assert np.all(greenness.max(axis=0) > 80)
+    before = without[114:127, 130:191]
+    assert np.all(before[..., 1] - np.maximum(before[..., 0], before[..., 2]) < 10)  # bare floor before
+    # The overlay's "links 0" became "links 1".
+    assert changed[:BAND_ROWS].sum() > 5
+    # Nothing else changed: below the band, only pixels on the segment between the two robots.
+    rows, cols = np.nonzero(changed[BAND_ROWS:])
+    assert rows.min() + BAND_ROWS >= 116 and rows.max() + BAND_ROWS <= 124
+    assert cols.min() >= 95 and cols.max() <= 225
+
+
+def count_frames(path) -> int:
+    return sum(1 for _ in imageio.get_reader(path))
+
+
+def without_timing(metrics: dict) -> dict:
+    return {k: v for k, v in metrics.items() if k not in ("wall_time_s", "real_time_factor")}
+
+
+@pytest.fixture(scope="module")
+def hover_plain():
+    scenario = load("hover", ["video.width=64", "video.height=48"], duration_s=1.0)
+    return scenario, run(scenario, keep_trajectory=True)
+
+
+@pytest.mark.parametrize("fps", [100.0, 250.0, 7.0])  # the control rate, above it, and not a divisor of it
+def test_frames_equal_duration_times_fps_and_video_leaves_the_trajectory_alone(tmp_path, hover_plain, fps):
+    scenario, plain = hover_plain
+    scenario = dataclasses.replace(scenario, video=dataclasses.replace(scenario.video, fps=fps))
+    watched = run(scenario, tmp_path, video=True, rrd=True, keep_trajectory=True)
+    np.testing.assert_array_equal(plain.trajectory, watched.trajectory)
+    assert without_timing(plain.metrics) == without_timing(watched.metrics)
+    video = tmp_path / "video.mp4"
+    assert count_frames(video) == math.ceil(scenario.duration_s * fps)
+    assert imageio.get_reader(video).get_meta_data()["fps"] == pytest.approx(fps)
+
+
+def test_connected_run_rendered_at_the_control_rate_follows_the_same_trajectory(tmp_path):
+    scenario = load("connected-office", ["video.width=64", "video.height=48", "video.fps=100"], duration_s=0.5)
+    plain = run(scenario, keep_trajectory=True)
+    watched = run(scenario, tmp_path, video=True, rrd=True, keep_trajectory=True)
+    np.testing.assert_array_equal(plain.trajectory, watched.trajectory)
+    assert without_timing(plain.metrics) == without_timing(watched.metrics)
+    assert count_frames(tmp_path / "video.mp4") == 50  # one per control tick
+
+
+def vm_rss_bytes() -> int:
+    with open("/proc/self/status") as status:
+        for line in status:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    raise AssertionError("no VmRSS in /proc/self/status")
+
+
+def test_frames_stream_to_the_encoder_so_memory_stays_flat(tmp_path):
+    frames, width, height = 600, 320, 240
+    sim = Simulation(load("hover", [f"video.width={width}", f"video.height={height}", "video.fps=100"]))
+    recorder = VideoRecorder(sim.world, sim.scenario.video, str(tmp_path / "video.mp4"), sim.dt)
+    warm_up = 60  # GL buffers, the encoder's pipe and first allocations
+    rss = []
+    for _ in range(frames):
+        frame, healthy = sim.tick()
+        assert healthy
+        recorder.on_tick(frame)
+        rss.append(vm_rss_bytes())
+    recorder.close("completed")
+    assert recorder.frames_written == frames
+    growth = max(rss[warm_up:]) - rss[warm_up - 1]
+    kept_frames = (frames - warm_up) * width * height * 3  # what a list of the frames would hold
+    assert growth < 0.1 * kept_frames, (growth, kept_frames)
+    assert count_frames(tmp_path / "video.mp4") == frames
