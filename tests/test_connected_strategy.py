@@ -160,8 +160,8 @@ def test_invariants_hold_on_every_tick_of_each_builtin_scenario(name, duration):
 
 
 def test_estimator_mode_tracks_lambda2_and_reports_its_error():
-    # Only the start: under the office's full pulls the estimator loses track later and the
-    # graph can break (README: estimator vs exact); the exact mode is the one with the guarantee.
+    # Only the first second (the defaults: two tracked modes, speedup 10, cost ~4x real time);
+    # whole missions are compared in the README (estimator vs exact).
     sim = Simulation(load("connected-office", ['strategy.lambda2_source="estimator"']))
     for _ in range(100):
         frame, healthy = sim.tick()

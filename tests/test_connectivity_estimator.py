@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controllers.connectivity.estimator import FiedlerEstimator
+from controllers.connectivity.estimator import FiedlerEstimator, SubspaceEstimator, ritz_connectivity_gradient
 from controllers.connectivity.graph import fiedler_pair, link_weights, weighted_laplacian
 from controllers.connectivity.params import ConnectivityParams, FiedlerEstimatorParams
+from controllers.connectivity.smooth_spectrum import smooth_lambda2_gradient
 
 GAINS = FiedlerEstimatorParams()
 OFFICE = ConnectivityParams.office()
@@ -146,3 +147,192 @@ def test_invalid_inputs_are_rejected():
         estimator.step(np.zeros((4, 4)), 0.0)
     with pytest.raises(ValueError, match="num_robots"):
         FiedlerEstimator(1, GAINS, np.random.default_rng(0))
+
+
+# ---------------------------------------------------------------------------
+# SubspaceEstimator: K eigenpairs by decentralised subspace iteration + Rayleigh-Ritz.
+# ---------------------------------------------------------------------------
+
+
+def ritz_vectors(estimator: SubspaceEstimator, estimate, robot: int) -> np.ndarray:
+    """(N, K) unit-norm Ritz vectors as robot ``robot`` forms them from the messages X_j."""
+    centred = estimate.components - estimator.mean[robot]
+    return centred @ estimate.coefficients[robot] / np.sqrt(estimator.num_robots)
+
+
+def subspace_gap(vectors: np.ndarray, reference: np.ndarray) -> float:
+    """Largest sine of the principal angles between the column spans."""
+    q, _ = np.linalg.qr(vectors)
+    return float(np.linalg.norm(reference - q @ (q.T @ reference), ord=2))
+
+
+@pytest.mark.parametrize("modes", [2, 3])
+@pytest.mark.parametrize("seed, n", [(0, 6), (1, 8), (2, 10), (3, 12)])
+def test_subspace_estimator_converges_to_the_lowest_eigenpairs(seed, n, modes):
+    weights = sensor_graph(seed, n)
+    eigenvalues, eigenvectors = np.linalg.eigh(weighted_laplacian(weights))
+    assert eigenvalues[modes] < 0.8 * GAINS.lambda2_ceiling  # every tracked mode below the ceiling
+    estimator = SubspaceEstimator(n, GAINS, np.random.default_rng(seed), modes)
+    estimate = run(estimator, weights, 8.0)
+    assert estimate.valid.all()
+    # Every robot's Ritz values are lambda2..lambda_{K+1} within 1 %.
+    np.testing.assert_allclose(estimate.values, np.broadcast_to(eigenvalues[1:modes + 1], (n, modes)), rtol=0.01)
+    np.testing.assert_allclose(estimate.lambda2, eigenvalues[1], rtol=0.01)
+    for robot in (0, n - 1):
+        vectors = ritz_vectors(estimator, estimate, robot)
+        np.testing.assert_allclose(vectors.T @ vectors, np.eye(modes), atol=0.01)
+        for k in range(modes):
+            gaps = np.abs(eigenvalues[1:modes + 2] - eigenvalues[k + 1])
+            if np.sort(gaps)[1] > 0.05:  # a simple eigenvalue: the vector itself up to sign
+                assert abs(vectors[:, k] @ eigenvectors[:, k + 1]) > 0.999
+        assert subspace_gap(vectors, eigenvectors[:, 1:modes + 1]) < 0.02
+    # Robot i's own component of its first Ritz vector is v2_i up to sign.
+    aligned = sign_aligned(estimate.fiedler, eigenvectors[:, 1])
+    np.testing.assert_allclose(np.abs(aligned), np.abs(eigenvectors[:, 1]), atol=0.02)
+
+
+def test_subspace_estimator_resolves_a_degenerate_pair():
+    n = 8
+    weights = np.zeros((n, n))
+    for i in range(n):  # ring: lambda2 = lambda3 = 2 - 2 cos(2 pi / n), lambda4 = 2 above the ceiling
+        weights[i, (i + 1) % n] = weights[(i + 1) % n, i] = 1.0
+    eigenvalues, eigenvectors = np.linalg.eigh(weighted_laplacian(weights))
+    estimator = SubspaceEstimator(n, GAINS, np.random.default_rng(2), 2)
+    estimate = run(estimator, weights, 8.0)
+    np.testing.assert_allclose(estimate.values, eigenvalues[1], rtol=0.01)
+    # Any basis of the eigenspace (eigh's is arbitrary inside it).
+    assert subspace_gap(ritz_vectors(estimator, estimate, 3), eigenvectors[:, 1:3]) < 0.02
+
+
+def test_subspace_estimator_tracks_a_slowly_varying_graph():
+    n, modes = 8, 2
+    base = sensor_graph(11, n)
+    phases = np.random.default_rng(4).uniform(0, 2 * np.pi, (n, n))
+    phases = np.triu(phases, 1) + np.triu(phases, 1).T
+
+    def weights_at(t):
+        return base * (1.0 + 0.25 * np.sin(0.5 * t + phases))
+
+    estimator = SubspaceEstimator(n, GAINS, np.random.default_rng(0), modes)
+    errors, gaps = [], []
+    for k in range(round(15.0 / DT)):
+        t = k * DT
+        estimate = estimator.step(weights_at(t), DT)
+        if t > 5.0:
+            eigenvalues, eigenvectors = np.linalg.eigh(weighted_laplacian(weights_at(t + DT)))
+            errors.append(np.abs(estimate.values - eigenvalues[1:modes + 1]).max() / eigenvalues[1])
+            gaps.append(subspace_gap(ritz_vectors(estimator, estimate, 0), eigenvectors[:, 1:modes + 1]))
+    assert max(errors) < 0.05
+    assert max(gaps) < 0.1
+
+
+def _star_of_arms(first_arm_weight: float) -> np.ndarray:
+    """Robot 0 with three two-robot arms; arm 1 hangs on ``first_arm_weight``, arm 2 on 0.3."""
+    weights = np.zeros((7, 7))
+    for i, j, w in [(0, 1, first_arm_weight), (1, 2, 1.0), (0, 3, 0.3), (3, 4, 1.0), (0, 5, 1.0), (5, 6, 1.0)]:
+        weights[i, j] = weights[j, i] = w
+    return weights
+
+
+def test_subspace_estimator_follows_a_mode_crossing_that_traps_one_vector():
+    """A link fading within 0.3 s (a robot passing a wall corner) makes another
+    mode the lowest; one power-iteration vector stays on the old mode (its
+    estimate overshoots lambda2 several times), the two-vector subspace
+    already contains the new one."""
+    n = 7
+    errors = {}
+    for modes in (1, 2):
+        estimator = (FiedlerEstimator(n, GAINS, np.random.default_rng(0)) if modes == 1
+                     else SubspaceEstimator(n, GAINS, np.random.default_rng(0), modes))
+        run(estimator, _star_of_arms(1.0), 5.0)
+        for k in range(100):
+            weights = _star_of_arms(1.0 - 0.95 * min(k * DT / 0.3, 1.0))
+            estimate = estimator.step(weights, DT)
+        lambda2 = np.linalg.eigvalsh(weighted_laplacian(weights))[1]
+        errors[modes] = np.abs(estimate.lambda2 - lambda2).max() / lambda2
+    assert errors[1] > 1.0
+    assert errors[2] < 0.05
+
+
+def test_subspace_estimator_with_one_mode_is_the_single_vector_estimator():
+    n = 8
+    weights = sensor_graph(1, n)
+    single = FiedlerEstimator(n, GAINS, np.random.default_rng(5))
+    subspace = SubspaceEstimator(n, GAINS, np.random.default_rng(5), 1)
+    for k in range(300):
+        weights_now = weights * (1.0 + 0.2 * np.sin(0.01 * k))
+        a = single.step(weights_now, DT)
+        b = subspace.step(weights_now, DT)
+        # Same x, Ave(x), Ave(x^2) trajectories (same equations, same random draws).
+        np.testing.assert_allclose(subspace.components[:, 0], single.eigenvector, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(subspace.mean[:, 0], single.mean, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(subspace.gram[:, 0, 0], single.square_mean, rtol=1e-9, atol=1e-12)
+    a, b = run(single, weights, 4.0), run(subspace, weights, 4.0)
+    # Once converged, its Rayleigh quotient and (k3/k2)(1 - y2) agree, as do the vectors.
+    np.testing.assert_allclose(b.lambda2, a.lambda2, rtol=0.02)
+    np.testing.assert_allclose(b.fiedler, a.fiedler, atol=0.01)
+
+
+def test_subspace_updates_use_only_neighbours():
+    n = 8
+    weights = sensor_graph(2, n)
+    robot = 0
+    strangers = np.flatnonzero(weights[robot] == 0)
+    strangers = strangers[strangers != robot]
+    a = SubspaceEstimator(n, GAINS, np.random.default_rng(3), 3)
+    b = SubspaceEstimator(n, GAINS, np.random.default_rng(3), 3)
+    b.components[strangers] += 5.0
+    b.consensus[strangers] -= 0.3
+    b.consensus_integral[strangers] += 1.0
+    dt = 1e-5
+    assert a.substep_count(weights, dt) == 1
+    a.step(weights, dt)
+    b.step(weights, dt)
+    np.testing.assert_array_equal(a.components[robot], b.components[robot])
+    np.testing.assert_array_equal(a.consensus[robot], b.consensus[robot])
+    np.testing.assert_array_equal(a.consensus_integral[robot], b.consensus_integral[robot])
+    for name in ("values", "coefficients"):
+        np.testing.assert_array_equal(getattr(a.estimate, name)[robot], getattr(b.estimate, name)[robot])
+
+
+def test_ritz_gradient_matches_the_exact_smooth_gradient_once_converged():
+    rng = np.random.default_rng(7)
+    n, modes = 7, 3
+    while True:
+        positions = np.cumsum(rng.uniform(-1.6, 1.6, (n, 3)) * [1, 1, 0.2], axis=0)
+        links = link_weights(positions, None, OFFICE)
+        eigenvalues, eigenvectors = np.linalg.eigh(weighted_laplacian(links.weights))
+        if 0.05 < eigenvalues[1] and eigenvalues[modes + 1] < 0.8 * GAINS.lambda2_ceiling and np.all(
+                np.diff(eigenvalues[1:modes + 2]) > 0.02):
+            break
+    estimator = SubspaceEstimator(n, GAINS, np.random.default_rng(1), modes)
+    estimate = run(estimator, links.weights, 10.0)
+    for kappa in (0.0, 0.05):
+        smooth, gradient = ritz_connectivity_gradient(links, estimate, kappa)
+        # The exact surrogate over the same K + 1 lowest eigenvalues (modes above are not tracked).
+        exact_smooth, exact_gradient = smooth_lambda2_gradient(
+            links, eigenvalues[:modes + 1], eigenvectors[:, :modes + 1], kappa)
+        np.testing.assert_allclose(smooth, exact_smooth, rtol=0.01)
+        np.testing.assert_allclose(gradient, exact_gradient, atol=0.02 * np.abs(exact_gradient).max())
+
+
+def test_subspace_estimator_rejects_invalid_modes():
+    with pytest.raises(ValueError, match="modes"):
+        SubspaceEstimator(4, GAINS, np.random.default_rng(0), 4)
+    with pytest.raises(ValueError, match="modes"):
+        SubspaceEstimator(4, GAINS, np.random.default_rng(0), 0)
+
+
+def test_strategy_with_two_modes_uses_the_ritz_estimate():
+    from sim.loop import Simulation
+    from sim.scenario import load
+
+    sim = Simulation(load("connected-office", ['strategy.lambda2_source="estimator"', "strategy.estimator_modes=2"]))
+    assert isinstance(sim.strategy.estimator, SubspaceEstimator)
+    for _ in range(50):
+        frame, healthy = sim.tick()
+        assert healthy
+    estimates = frame.commands.info["robot_scalars"]["lambda2_estimate"]
+    exact = frame.commands.info["scalars"]["lambda2"]
+    assert np.abs(estimates - exact).max() < 0.05 * exact
+    assert np.all(np.isfinite(frame.commands.info["scalars"]["connectivity_force_max_n"]))

@@ -121,16 +121,23 @@ class ConnectedParams:
     # Where lambda2 and the Fiedler vector come from: "exact" (centralised eigh) or
     # "estimator" (decentralised, Yang et al. 2010)
     lambda2_source: Literal["exact", "estimator"] = param("exact", tunable=False)
-    # Exact mode only: kappa of the smooth lower bound of lambda2 that drives V (0: the paper's lambda2;
-    # see smooth_spectrum.py)
+    # Exact mode and estimator with estimator_modes >= 2: kappa of the smooth lower bound of lambda2 that
+    # drives V (0: the paper's lambda2; see smooth_spectrum.py; the estimator takes the soft minimum of its
+    # Ritz values)
     spectrum_smoothing: float = param(0.0, min=0.0, max=1.0)
     # Estimator only: seconds of estimator iterations on the start graph before the mission starts
     estimator_warmup_s: float = param(5.0, unit="s", min=0.0, max=60.0, tunable=False)
     # Estimator only: all its gains times this (faster convergence, proportionally more message rounds)
-    estimator_speedup: float = param(1.0, min=0.1, max=20.0, tunable=False)
+    estimator_speedup: float = param(10.0, min=0.1, max=20.0, tunable=False)
+    # Estimator only: the graph its two average-consensus loops run on: "links" (every message link
+    # with weight 1) or "weights" (W, as in Yang et al.; consensus slows down as lambda2 -> 0)
+    estimator_consensus: Literal["links", "weights"] = param("links", tunable=False)
     # Estimator only: V' is evaluated at no less than lambda2_min + this (an estimator transient below the
     # true lambda2 must not launch the virtual points)
-    estimator_floor: float = param(0.02, min=0.0, max=1.0)
+    estimator_floor: float = param(0.003, min=0.0, max=1.0)
+    # Estimator only: eigenpairs tracked. 1: Yang et al.'s single power-iteration vector (FiedlerEstimator);
+    # K >= 2: K vectors (subspace iteration) with Rayleigh-Ritz, lambda2..lambda_{K+1} (SubspaceEstimator)
+    estimator_modes: int = param(2, min=1, max=5, tunable=False)
 
     # -- connectivity layer, Appendix A (link weight W_ij = range x line of sight x inter-robot factors)
 

@@ -61,6 +61,11 @@ paths.py, travel.py, roles.py, election.py, targets.py). Here:
   near-singular slope).
 - Exact mode with ``spectrum_smoothing`` > 0: V acts on a smooth lower bound
   of lambda2 (smooth_spectrum.py) instead of lambda2 itself.
+- Estimator mode with ``estimator_modes`` K >= 2 (not in the paper): the
+  robots track the K lowest non-trivial eigenpairs (estimator.SubspaceEstimator)
+  and robot i drives V with the soft minimum (``spectrum_smoothing``) of its
+  own Ritz values and its gradient from its Ritz vectors
+  (estimator.ritz_connectivity_gradient), bounded as above.
 """
 
 from __future__ import annotations
@@ -72,7 +77,7 @@ import numpy as np
 
 from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.dynamics import step_virtual_dynamics
-from controllers.connectivity.estimator import FiedlerEstimator
+from controllers.connectivity.estimator import FiedlerEstimator, SubspaceEstimator, ritz_connectivity_gradient
 from controllers.connectivity.exploration import ExplorationController, ExplorationStep
 from controllers.connectivity.graph import connectivity_state, generalized_connectivity_force
 from controllers.connectivity.mission import (
@@ -150,10 +155,17 @@ class ConnectedStrategy:
         self.explorer = ExplorationController(p.exploration, self.planner, self.queues)
         self.estimator = None
         if p.lambda2_source == "estimator":
-            self.estimator = FiedlerEstimator(n, p.estimator, rng)
+            if p.estimator_modes == 1:
+                self.estimator = FiedlerEstimator(n, p.estimator, rng)
+            else:
+                if p.estimator_modes >= n:
+                    raise ConfigError("strategy.estimator_modes", f"must be below the team size {n}, "
+                                      f"got {p.estimator_modes}")
+                self.estimator = SubspaceEstimator(n, p.estimator, rng, p.estimator_modes)
             weights = self._estimator_weights(state.weights, initial.links.adjacency)
+            consensus = self._consensus_weights(weights)
             for _ in range(int(round(p.estimator_warmup_s / _WARMUP_STEP_S))):
-                self.estimator.step(weights, _WARMUP_STEP_S)
+                self.estimator.step(weights, _WARMUP_STEP_S, consensus)
         self.stats = MissionStatistics(self.explorers, self.targets_total)
         self.roles = np.full(n, int(Role.CONNECTOR))
         self.completion_time: float | None = None
@@ -182,6 +194,13 @@ class ConnectedStrategy:
         """W on the links that also carry messages in the simulator's graph."""
         return weights * np.asarray(adjacency, dtype=bool)
 
+    def _consensus_weights(self, estimator_weights: np.ndarray) -> np.ndarray | None:
+        """The averaging loops' graph: every message link at weight 1 ("links"),
+        or W itself (None, "weights")."""
+        if self.params.estimator_consensus == "weights":
+            return None
+        return (estimator_weights > 0).astype(float)
+
     # ------------------------------------------------------------------ per tick
     @property
     def finished(self) -> bool:
@@ -198,14 +217,21 @@ class ConnectedStrategy:
         state = connectivity_state(q, self.boxes, c)
         estimate = None
         if self.estimator is not None:
-            estimate = self.estimator.step(self._estimator_weights(state.weights, observation.links.adjacency),
-                                           self.dt)
+            weights = self._estimator_weights(state.weights, observation.links.adjacency)
+            estimate = self.estimator.step(weights, self.dt, self._consensus_weights(weights))
             # Each robot also knows its own degree d_i = sum_j W_ij, and lambda2 <= N / (N - 1) min_i d_i
             # (Fiedler 1973): it never uses an estimate above its own bound.
             n = len(q)
             bound = n / (n - 1) * state.weights.sum(axis=1)
-            lambda2_used = np.maximum(np.minimum(estimate.lambda2, bound), c.lambda2_min + p.estimator_floor)
-            f_lambda = generalized_connectivity_force(state.links, lambda2_used, estimate.fiedler, c)
+            floor = c.lambda2_min + p.estimator_floor
+            if isinstance(self.estimator, SubspaceEstimator):
+                # Soft minimum of each robot's Ritz values and its gradient from its Ritz vectors.
+                smooth, gradient = ritz_connectivity_gradient(state.links, estimate, p.spectrum_smoothing)
+                lambda2_used = np.maximum(np.minimum(smooth, bound), floor)
+                f_lambda = -guarded_potential_slope(lambda2_used, c)[:, None] * gradient
+            else:
+                lambda2_used = np.maximum(np.minimum(estimate.lambda2, bound), floor)
+                f_lambda = generalized_connectivity_force(state.links, lambda2_used, estimate.fiedler, c)
         elif p.spectrum_smoothing > 0:
             values, vectors = np.linalg.eigh(state.laplacian)
             smooth, gradient = smooth_lambda2_gradient(state.links, values, vectors, p.spectrum_smoothing)
