@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import math
 import time
+from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -177,7 +178,7 @@ def ring_points(center: np.ndarray, n: int, geodesic: GeodesicPlanner, radius: f
     return np.repeat(center[None], n, axis=0)
 
 
-class MeetingStrategy:
+class MeetingStrategy(ABC):
     """Teams, schedules, beliefs and meetings on ground robots; subclasses
     design the segments (:meth:`design`)."""
 
@@ -244,9 +245,11 @@ class MeetingStrategy:
                               "robots_waiting": 0.0})
 
     # ------------------------------------------------------------- designing
+    @abstractmethod
     def design(self, team: int, epoch: int, members: tuple[int, ...], starts: list[MemberStart],
                belief_step: int, estimate: FilterState) -> TeamDesign:
-        raise NotImplementedError
+        """The paths of ``members`` (from ``starts``) to their meeting at ``epoch``,
+        planned on the team's belief at ``belief_step`` (``estimate``)."""
 
     def _member_start(self, robot: int) -> MemberStart:
         """The end of the robot's last committed segment (its start before any)."""
