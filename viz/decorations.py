@@ -58,22 +58,14 @@ def draw_video_decorations(renderer, frame) -> None:
         for a, b in zip(points[:-1], points[1:]):
             if np.linalg.norm(b - a) > 1e-6:
                 renderer._add_capsule(a, b, PATH_WIDTH_M, rgba)
-    meeting = info.get("meeting_points")
-    if meeting is not None and len(meeting):
-        colors = info.get("meeting_point_colors")
-        for k, p in enumerate(np.asarray(meeting, dtype=float)):
-            rgba = np.asarray(colors[k], dtype=np.float32) if colors is not None else np.array([1, 1, 1, 0.5], np.float32)
-            renderer._add_sphere(p, MEETING_RADIUS_M, rgba)
+    _draw_spheres(renderer, info.get("meeting_points"), info.get("meeting_point_colors"), MEETING_RADIUS_M,
+                  np.array([1, 1, 1, 0.5], np.float32))
     estimates = info.get("target_estimates")
     if estimates is not None:
         for p in np.asarray(estimates, dtype=float):
             renderer._add_sphere(p, ESTIMATE_RADIUS_M, ESTIMATE_RGBA)
-    markers = info.get("markers")
-    if markers is not None and len(markers):
-        colors = info.get("marker_colors")
-        for k, p in enumerate(np.asarray(markers, dtype=float)):
-            rgba = np.asarray(colors[k], dtype=np.float32) if colors is not None else np.array([1, 1, 1, 0.8], np.float32)
-            renderer._add_sphere(p, MARKER_RADIUS_M, rgba)
+    _draw_spheres(renderer, info.get("markers"), info.get("marker_colors"), MARKER_RADIUS_M,
+                  np.array([1, 1, 1, 0.8], np.float32))
     robot_colors = info.get("robot_colors")
     if robot_colors is not None:
         positions = frame.observation.position
@@ -81,6 +73,15 @@ def draw_video_decorations(renderer, frame) -> None:
             if i < len(robot_colors):
                 top = positions[i] + np.array([0.0, 0.0, QUAD_MARK_HEIGHT_M])
                 renderer._add_sphere(top, QUAD_MARK_RADIUS_M, np.asarray(robot_colors[i], dtype=np.float32))
+
+
+def _draw_spheres(renderer, points, colors, radius: float, default_rgba: np.ndarray) -> None:
+    """One sphere per point, in its ``colors`` entry (or ``default_rgba``)."""
+    if points is None or not len(points):
+        return
+    for k, p in enumerate(np.asarray(points, dtype=float)):
+        rgba = np.asarray(colors[k], dtype=np.float32) if colors is not None else default_rgba
+        renderer._add_sphere(p, radius, rgba)
 
 
 def _rgb8(rgba: np.ndarray) -> np.ndarray:

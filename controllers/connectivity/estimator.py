@@ -79,6 +79,45 @@ _MIN_SQUARE_MEAN = 1e-6
 _STABILITY_FRACTION = 0.5
 
 
+def _euler_substeps(params: FiedlerEstimatorParams, weights: np.ndarray, consensus_weights: np.ndarray | None,
+                    dt: float, normalisation_deviation: float) -> int:
+    """Euler substeps for a control period ``dt`` (s): half the stability limit
+    of the estimator's linear part (Gershgorin bounds of both Laplacians), at
+    most ``max_substep``. ``normalisation_deviation`` bounds |Ave(x^2) - 1|."""
+    p = params
+    laplacian_bound = 2.0 * float(weights.sum(axis=1).max())
+    consensus_bound = laplacian_bound if consensus_weights is None else 2.0 * float(consensus_weights.sum(axis=1).max())
+    damping = p.consensus_input_gain + p.consensus_proportional_gain * consensus_bound
+    # Per Laplacian mode mu the PI block has trace -(gamma + K_P mu) and
+    # determinant K_I^2 mu^2; Euler is stable for h < 2 Re(-s) / |s|^2.
+    limit = 2.0 / damping
+    if consensus_bound > 0:
+        limit = min(limit, damping / (p.consensus_integral_gain * consensus_bound) ** 2)
+    power_rate = p.mean_removal_gain + p.normalisation_gain * max(1.0, normalisation_deviation)
+    limit = min(limit, 2.0 / (power_rate + p.laplacian_gain * laplacian_bound))
+    substep = min(p.max_substep, _STABILITY_FRACTION * limit)
+    return max(1, math.ceil(dt / substep))
+
+
+def _checked_laplacians(n: int, weights, dt: float, consensus_weights) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                                  np.ndarray | None]:
+    """Validate a step's inputs; (weights, Laplacian of weights, consensus
+    Laplacian, consensus_weights or None) as float arrays."""
+    weights = np.asarray(weights, dtype=float)
+    if weights.shape != (n, n):
+        raise ValueError(f"weights must have shape ({n}, {n}), got {weights.shape}")
+    if consensus_weights is not None:
+        consensus_weights = np.asarray(consensus_weights, dtype=float)
+        if consensus_weights.shape != (n, n):
+            raise ValueError(f"consensus_weights must have shape ({n}, {n}), got {consensus_weights.shape}")
+    if not dt > 0:
+        raise ValueError(f"dt must be positive, got {dt}")
+    laplacian = np.diag(weights.sum(axis=1)) - weights
+    consensus_laplacian = laplacian if consensus_weights is None else (
+        np.diag(consensus_weights.sum(axis=1)) - consensus_weights)
+    return weights, laplacian, consensus_laplacian, consensus_weights
+
+
 @dataclass(frozen=True)
 class FiedlerEstimate:
     """What each robot believes, (N,) arrays.
@@ -121,19 +160,8 @@ class FiedlerEstimator:
     def substep_count(self, weights: np.ndarray, dt: float, consensus_weights: np.ndarray | None = None) -> int:
         """Euler substeps used for a control period ``dt`` (s) under ``weights``
         (and ``consensus_weights`` for the averaging, default ``weights``)."""
-        p = self.params
-        laplacian_bound = 2.0 * float(weights.sum(axis=1).max())
-        consensus_bound = laplacian_bound if consensus_weights is None else 2.0 * float(consensus_weights.sum(axis=1).max())
-        damping = p.consensus_input_gain + p.consensus_proportional_gain * consensus_bound
-        # Per Laplacian mode mu the PI block has trace -(gamma + K_P mu) and
-        # determinant K_I^2 mu^2; Euler is stable for h < 2 Re(-s) / |s|^2.
-        limit = 2.0 / damping
-        if consensus_bound > 0:
-            limit = min(limit, damping / (p.consensus_integral_gain * consensus_bound) ** 2)
-        power_rate = p.mean_removal_gain + p.normalisation_gain * max(1.0, float(np.abs(self.square_mean - 1).max()))
-        limit = min(limit, 2.0 / (power_rate + p.laplacian_gain * laplacian_bound))
-        substep = min(p.max_substep, _STABILITY_FRACTION * limit)
-        return max(1, math.ceil(dt / substep))
+        return _euler_substeps(self.params, weights, consensus_weights, dt,
+                               float(np.abs(self.square_mean - 1).max()))
 
     def _rate_matrices(self) -> tuple[np.ndarray, np.ndarray]:
         """(5, 5) matrices of the linear part of the rate, columns x, y1, z1, y2, z2:
@@ -160,23 +188,11 @@ class FiedlerEstimator:
         gives the same averages; the power iteration always uses ``weights``
         (whose lambda2 is being estimated)."""
         n = self.num_robots
-        weights = np.asarray(weights, dtype=float)
-        if weights.shape != (n, n):
-            raise ValueError(f"weights must have shape ({n}, {n}), got {weights.shape}")
-        if consensus_weights is not None:
-            consensus_weights = np.asarray(consensus_weights, dtype=float)
-            if consensus_weights.shape != (n, n):
-                raise ValueError(f"consensus_weights must have shape ({n}, {n}), got {consensus_weights.shape}")
-        if not dt > 0:
-            raise ValueError(f"dt must be positive, got {dt}")
+        weights, laplacian, consensus_laplacian, consensus_weights = _checked_laplacians(
+            n, weights, dt, consensus_weights)
         p = self.params
         count = self.substep_count(weights, dt, consensus_weights)
         h = dt / count
-        laplacian = np.diag(weights.sum(axis=1)) - weights
-        if consensus_weights is None:
-            consensus_laplacian = laplacian
-        else:
-            consensus_laplacian = np.diag(consensus_weights.sum(axis=1)) - consensus_weights
         k2, k3, gamma = p.laplacian_gain, p.normalisation_gain, p.consensus_input_gain
         local, coupling = self._rate_matrices()
         coupling[0, 0] = 0.0  # the power iteration's -k2 L x is added separately (it uses W)
@@ -370,37 +386,17 @@ class SubspaceEstimator:
 
     def substep_count(self, weights: np.ndarray, dt: float, consensus_weights: np.ndarray | None = None) -> int:
         """Euler substeps for a control period ``dt`` (s): FiedlerEstimator's rule."""
-        p = self.params
-        laplacian_bound = 2.0 * float(weights.sum(axis=1).max())
-        consensus_bound = laplacian_bound if consensus_weights is None else 2.0 * float(consensus_weights.sum(axis=1).max())
-        damping = p.consensus_input_gain + p.consensus_proportional_gain * consensus_bound
-        limit = 2.0 / damping
-        if consensus_bound > 0:
-            limit = min(limit, damping / (p.consensus_integral_gain * consensus_bound) ** 2)
         deviation = np.abs(self.gram - np.eye(self.modes)[None]).sum(axis=2).max()
-        power_rate = p.mean_removal_gain + p.normalisation_gain * max(1.0, float(deviation))
-        limit = min(limit, 2.0 / (power_rate + p.laplacian_gain * laplacian_bound))
-        substep = min(p.max_substep, _STABILITY_FRACTION * limit)
-        return max(1, math.ceil(dt / substep))
+        return _euler_substeps(self.params, weights, consensus_weights, dt, float(deviation))
 
     def step(self, weights: np.ndarray, dt: float, consensus_weights: np.ndarray | None = None) -> SubspaceEstimate:
         """Advance all robots by ``dt`` (s); arguments as FiedlerEstimator.step."""
         n, k = self.num_robots, self.modes
-        weights = np.asarray(weights, dtype=float)
-        if weights.shape != (n, n):
-            raise ValueError(f"weights must have shape ({n}, {n}), got {weights.shape}")
-        if consensus_weights is not None:
-            consensus_weights = np.asarray(consensus_weights, dtype=float)
-            if consensus_weights.shape != (n, n):
-                raise ValueError(f"consensus_weights must have shape ({n}, {n}), got {consensus_weights.shape}")
-        if not dt > 0:
-            raise ValueError(f"dt must be positive, got {dt}")
+        weights, laplacian, consensus_laplacian, consensus_weights = _checked_laplacians(
+            n, weights, dt, consensus_weights)
         p = self.params
         count = self.substep_count(weights, dt, consensus_weights)
         h = dt / count
-        laplacian = np.diag(weights.sum(axis=1)) - weights
-        consensus_laplacian = laplacian if consensus_weights is None else (
-            np.diag(consensus_weights.sum(axis=1)) - consensus_weights)
         k1, k2, k3 = p.mean_removal_gain, p.laplacian_gain, p.normalisation_gain
         gamma, k_p, k_i = p.consensus_input_gain, p.consensus_proportional_gain, p.consensus_integral_gain
         d = self.channels
