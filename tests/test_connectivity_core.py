@@ -13,6 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from connected_helpers import grown_positions
 from controllers.connectivity.graph import (
     connectivity_state,
     generalized_connectivity_force,
@@ -70,15 +71,7 @@ def grown_configuration(rng: np.random.Generator, n: int, params: ConnectivityPa
     """Random connected team: each robot placed 0.9-2.2 m from an earlier one,
     never closer than 1.05 R_c to any."""
     while True:
-        positions = [np.zeros(3)]
-        while len(positions) < n:
-            direction = rng.normal(size=3)
-            candidate = positions[rng.integers(len(positions))] + rng.uniform(0.9, 2.2) * direction / np.linalg.norm(
-                direction
-            )
-            if min(np.linalg.norm(candidate - p) for p in positions) > 1.05 * params.min_robot_distance:
-                positions.append(candidate)
-        positions = np.array(positions)
+        positions = grown_positions(rng, n, params.min_robot_distance)
         if lambda2_of(positions, None, params) > 0.02:
             return positions
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from connected_helpers import grown_positions
 from controllers.connectivity.estimator import FiedlerEstimator, SubspaceEstimator, ritz_connectivity_gradient
 from controllers.connectivity.graph import fiedler_pair, link_weights, weighted_laplacian
 from controllers.connectivity.params import ConnectivityParams, FiedlerEstimatorParams
@@ -21,15 +22,7 @@ def sensor_graph(seed: int, n: int) -> np.ndarray:
     lambda2 lies below the estimator's ceiling and is separated from lambda3."""
     rng = np.random.default_rng(seed)
     while True:
-        positions = [np.zeros(3)]
-        while len(positions) < n:
-            direction = rng.normal(size=3)
-            candidate = positions[rng.integers(len(positions))] + rng.uniform(0.9, 2.2) * direction / np.linalg.norm(
-                direction
-            )
-            if min(np.linalg.norm(candidate - p) for p in positions) > 1.05 * OFFICE.min_robot_distance:
-                positions.append(candidate)
-        weights = link_weights(np.array(positions), None, OFFICE).weights
+        weights = link_weights(grown_positions(rng, n, OFFICE.min_robot_distance), None, OFFICE).weights
         eigenvalues = np.linalg.eigvalsh(weighted_laplacian(weights))
         if 0.1 < eigenvalues[1] < 0.8 * GAINS.lambda2_ceiling and eigenvalues[2] - eigenvalues[1] > 0.1:
             return weights
