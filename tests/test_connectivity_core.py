@@ -246,6 +246,45 @@ def test_lambda2_gradient_matches_finite_differences_on_random_teams(seed):
     np.testing.assert_allclose(state.lambda2_gradient, reference, atol=1e-6 * np.abs(reference).max() + 1e-9)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_gradient_on_the_message_links_matches_finite_differences_of_that_graph(seed):
+    """Estimator mode controls lambda2(W o A), A the links that carry messages
+    (held fixed): its gradient drops the missing links' terms but keeps every
+    robot's collision factor."""
+    positions = jittered_wall_configuration(seed)
+    links = link_weights(positions, WALL, OFFICE)
+    first, second = links.edges.T
+    adjacency = np.zeros((len(positions),) * 2, dtype=bool)
+    adjacency[first, second] = adjacency[second, first] = True
+    # Drop one link that moves with q, and keep a pair in the collision fade band.
+    dropped = int(np.argmax(np.abs(links.link_factor_grad_first).sum(axis=1) * (links.weights[links.pairs[:, 0],
+                                                                                       links.pairs[:, 1]] > 0)))
+    i, j = links.pairs[dropped]
+    adjacency[i, j] = adjacency[j, i] = False
+    assert np.any(links.collision_log_slope != 0)
+    restricted = links.restricted_to(adjacency)
+
+    def restricted_lambda2(q):
+        weights = link_weights(q, WALL, OFFICE).weights * adjacency
+        return np.linalg.eigvalsh(weighted_laplacian(weights))[1]
+
+    eigenvalues, vectors = np.linalg.eigh(weighted_laplacian(restricted.weights))
+    assert eigenvalues[1] > 1e-3 and eigenvalues[2] - eigenvalues[1] > 1e-3
+    assert eigenvalues[1] < lambda2_of(positions, WALL, OFFICE)  # the dropped link mattered
+    step = 1e-6
+    reference = np.zeros_like(positions)
+    for robot in range(len(positions)):
+        for axis in range(3):
+            plus, minus = positions.copy(), positions.copy()
+            plus[robot, axis] += step
+            minus[robot, axis] -= step
+            reference[robot, axis] = (restricted_lambda2(plus) - restricted_lambda2(minus)) / (2 * step)
+    gradient = restricted.lambda2_gradient(vectors[:, 1])
+    np.testing.assert_allclose(gradient, reference, atol=1e-6 * np.abs(reference).max() + 1e-9)
+    full = links.lambda2_gradient(vectors[:, 1])
+    assert np.abs(full - reference).max() > 1e-3 * np.abs(reference).max()
+
+
 def test_translating_the_team_changes_lambda2_only_through_obstacles():
     positions = jittered_wall_configuration(7)
     direction = np.array([0.3, -0.8, 0.2])

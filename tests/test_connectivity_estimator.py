@@ -3,10 +3,13 @@ numpy eigh of the same weighted Laplacian."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from connected_helpers import grown_positions
+from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.estimator import FiedlerEstimator, SubspaceEstimator, ritz_connectivity_gradient
 from controllers.connectivity.graph import fiedler_pair, link_weights, weighted_laplacian
 from controllers.connectivity.params import ConnectivityParams, FiedlerEstimatorParams
@@ -90,9 +93,13 @@ def test_saturates_at_the_ceiling_on_dense_graphs_and_recovers():
     np.testing.assert_allclose(estimate.lambda2, lambda2, rtol=0.02)
 
 
+FIEDLER_STATE = ("eigenvector", "mean", "mean_integral", "square_mean", "square_mean_integral")
+SUBSPACE_STATE = ("components", "consensus", "consensus_integral")
+
+
 def test_updates_use_only_neighbours():
-    """One message exchange: a robot's new state depends on its own and its
-    neighbours' states only."""
+    """Robot i's rates (the continuous-time estimator) depend on its own and
+    its neighbours' states only."""
     n = 8
     weights = sensor_graph(2, n)
     robot = 0
@@ -104,12 +111,59 @@ def test_updates_use_only_neighbours():
     b.eigenvector[strangers] += 5.0
     b.square_mean[strangers] -= 0.3
     b.mean_integral[strangers] += 1.0
-    dt = 1e-5  # one substep
-    assert a.substep_count(weights, dt) == 1
-    a.step(weights, dt)
-    b.step(weights, dt)
-    for name in ("eigenvector", "mean", "mean_integral", "square_mean", "square_mean_integral"):
-        assert getattr(a, name)[robot] == getattr(b, name)[robot], name
+    rates_a, rates_b = a.rates(weights), b.rates(weights)
+    for name in FIEDLER_STATE:
+        assert rates_a[name][robot] == rates_b[name][robot], name
+        assert np.any(rates_a[name] != rates_b[name]) or name == "mean_integral", name
+
+
+def reference_step(estimator, names, weights, dt, consensus_weights=None, substeps=20000):
+    """Classical RK4 of ``estimator.rates`` with fine steps (no dither)."""
+    state = {name: getattr(estimator, name).copy() for name in names}
+
+    def rate_at(values):
+        for name in names:
+            setattr(estimator, name, values[name])
+        return estimator.rates(weights, consensus_weights)
+
+    h = dt / substeps
+    for _ in range(substeps):
+        k1 = rate_at(state)
+        k2 = rate_at({name: state[name] + 0.5 * h * k1[name] for name in names})
+        k3 = rate_at({name: state[name] + 0.5 * h * k2[name] for name in names})
+        k4 = rate_at({name: state[name] + h * k3[name] for name in names})
+        state = {name: state[name] + h / 6 * (k1[name] + 2 * k2[name] + 2 * k3[name] + k4[name]) for name in names}
+    return state
+
+
+@pytest.mark.parametrize("modes", [0, 2])
+def test_a_step_integrates_the_continuous_time_estimator(modes):
+    """Over one control period from a state far from convergence, ``step``
+    (exact consensus flow, Euler power iteration) follows a fine RK4
+    integration of ``rates`` (links as consensus graph, 10x gains)."""
+    n = 8
+    weights = sensor_graph(4, n)
+    links = (weights > 0).astype(float)
+    fast = ConnectedParams(lambda2_source="estimator").estimator
+    fast = dataclasses.replace(fast, dither=0.0)
+
+    def make():
+        if modes == 0:
+            return FiedlerEstimator(n, fast, np.random.default_rng(8)), FIEDLER_STATE
+        return SubspaceEstimator(n, fast, np.random.default_rng(8), modes), SUBSPACE_STATE
+
+    (estimator, names), (reference, _) = make(), make()
+    for _ in range(3):  # a few periods in: the consensus is mid-transient
+        estimator.step(weights, DT, links)
+        reference.step(weights, DT, links)
+    before = {name: getattr(reference, name).copy() for name in names}
+    expected = reference_step(reference, names, weights, DT, links, substeps=4000)
+    estimator.step(weights, DT, links)
+    for name in names:
+        moved = np.abs(expected[name] - before[name]).max()
+        error = np.abs(expected[name] - getattr(estimator, name)).max()
+        assert moved > 1e-3, name  # the period really changed the state
+        assert error < 0.04 * moved, (name, error, moved)
 
 
 def test_reset_with_the_same_seed_repeats_the_run():
@@ -123,13 +177,17 @@ def test_reset_with_the_same_seed_repeats_the_run():
 
 
 def test_substeps_keep_dense_large_teams_stable():
+    """With no accuracy cap on the substep, the stability rule alone keeps a
+    dense 35-robot graph (Laplacian eigenvalues up to ~26) stable."""
     n = 35
     weights = np.random.default_rng(0).uniform(0.5, 1.0, (n, n))
     weights = np.triu(weights, 1) + np.triu(weights, 1).T
-    estimator = FiedlerEstimator(n, GAINS, np.random.default_rng(0))
-    assert estimator.substep_count(weights, DT) > DT / GAINS.max_substep
-    estimate = run(estimator, weights, 0.5)
+    uncapped = dataclasses.replace(GAINS, max_substep=1.0)
+    estimator = FiedlerEstimator(n, uncapped, np.random.default_rng(0))
+    assert estimator.substep_count(weights, DT) > 1
+    estimate = run(estimator, weights, 2.0)
     assert np.all(np.isfinite(estimate.lambda2)) and np.all(np.abs(estimator.eigenvector) < 10)
+    np.testing.assert_allclose(estimate.lambda2, GAINS.lambda2_ceiling, rtol=0.05)
 
 
 def test_invalid_inputs_are_rejected():
@@ -277,13 +335,11 @@ def test_subspace_updates_use_only_neighbours():
     b.components[strangers] += 5.0
     b.consensus[strangers] -= 0.3
     b.consensus_integral[strangers] += 1.0
-    dt = 1e-5
-    assert a.substep_count(weights, dt) == 1
-    a.step(weights, dt)
-    b.step(weights, dt)
-    np.testing.assert_array_equal(a.components[robot], b.components[robot])
-    np.testing.assert_array_equal(a.consensus[robot], b.consensus[robot])
-    np.testing.assert_array_equal(a.consensus_integral[robot], b.consensus_integral[robot])
+    rates_a, rates_b = a.rates(weights), b.rates(weights)
+    for name in SUBSPACE_STATE:
+        np.testing.assert_array_equal(rates_a[name][robot], rates_b[name][robot])
+        assert np.any(rates_a[name] != rates_b[name]), name
+    # Robot i's estimate is a function of its own consensus values only.
     for name in ("values", "coefficients"):
         np.testing.assert_array_equal(getattr(a.estimate, name)[robot], getattr(b.estimate, name)[robot])
 
@@ -329,3 +385,47 @@ def test_strategy_with_two_modes_uses_the_ritz_estimate():
     exact = frame.commands.info["scalars"]["lambda2"]
     assert np.abs(estimates - exact).max() < 0.05 * exact
     assert np.all(np.isfinite(frame.commands.info["scalars"]["connectivity_force_max_n"]))
+
+
+@pytest.mark.parametrize("estimator_links", ["sensing", "messages"])
+def test_strategy_estimates_the_graph_its_messages_travel_on(estimator_links):
+    """With a link of G^lambda missing from the bodies' message graph A, the
+    robots estimate lambda2(W) ("sensing", the paper's single graph) or
+    lambda2(W o A) ("messages"), and their force is that graph's gradient."""
+    import dataclasses as dc
+
+    from controllers.connectivity.graph import connectivity_state
+    from sim.loop import Simulation
+    from sim.scenario import load
+
+    sim = Simulation(load("connected-office", ['strategy.lambda2_source="estimator"',
+                                               f'strategy.estimator_links="{estimator_links}"']))
+    strategy = sim.strategy
+    observation = sim.observe()
+    state = connectivity_state(strategy.q, strategy.boxes, strategy.params.connectivity)
+    # Cut the message link whose loss lowers lambda2 the most but keeps W o A connected.
+    candidates = []
+    for i, j in state.edges:
+        adjacency = observation.links.adjacency.copy()
+        adjacency[i, j] = adjacency[j, i] = False
+        cut = np.linalg.eigvalsh(weighted_laplacian(state.weights * adjacency))[1]
+        if cut > 0.02:
+            candidates.append((cut, adjacency))
+    cut_lambda2, adjacency = min(candidates, key=lambda item: item[0])
+    assert cut_lambda2 < 0.8 * state.lambda2
+    cut_observation = dc.replace(observation, links=dc.replace(observation.links, adjacency=adjacency))
+    for _ in range(100):  # the virtual points barely move in 1 s: the graph is nearly static
+        commands = strategy.step(cut_observation)
+    state = connectivity_state(strategy.q, strategy.boxes, strategy.params.connectivity)
+    restricted = state.links.restricted_to(adjacency)
+    expected = state.lambda2 if estimator_links == "sensing" else np.linalg.eigvalsh(
+        weighted_laplacian(restricted.weights))[1]
+    estimates = commands.info["robot_scalars"]["lambda2_estimate"]
+    np.testing.assert_allclose(estimates, expected, rtol=0.05)
+    # Its own gradient: with exact Ritz pairs of the estimated graph, ritz_connectivity_gradient equals the
+    # smooth gradient computed on that graph's links.
+    links = state.links if estimator_links == "sensing" else restricted
+    smooth, gradient = ritz_connectivity_gradient(links, strategy.estimator.estimate, strategy.params.spectrum_smoothing)
+    values, vectors = np.linalg.eigh(weighted_laplacian(links.weights))
+    _, reference = smooth_lambda2_gradient(links, values, vectors, strategy.params.spectrum_smoothing)
+    np.testing.assert_allclose(gradient, reference, atol=0.05 * np.abs(reference).max())

@@ -127,11 +127,16 @@ class ConnectedParams:
     spectrum_smoothing: float = param(0.0, min=0.0, max=1.0)
     # Estimator only: seconds of estimator iterations on the start graph before the mission starts
     estimator_warmup_s: float = param(5.0, unit="s", min=0.0, max=60.0, tunable=False)
-    # Estimator only: all its gains times this (faster convergence, proportionally more message rounds)
+    # Estimator only: all its gains times this and its substep divided by it (faster convergence, proportionally
+    # more computation)
     estimator_speedup: float = param(10.0, min=0.1, max=20.0, tunable=False)
     # Estimator only: the graph its two average-consensus loops run on: "links" (every message link
     # with weight 1) or "weights" (W, as in Yang et al.; consensus slows down as lambda2 -> 0)
     estimator_consensus: Literal["links", "weights"] = param("links", tunable=False)
+    # Estimator only: the links its messages travel on, i.e. the graph whose lambda2 the robots estimate and
+    # control: "sensing" (G^lambda, W_ij > 0, as in the paper) or "messages" (W o A: also in the
+    # simulator's body-to-body communication graph A; f_lambda is then the gradient of lambda2(W o A))
+    estimator_links: Literal["sensing", "messages"] = param("sensing", tunable=False)
     # Estimator only: V' is evaluated at no less than lambda2_min + this (an estimator transient below the
     # true lambda2 must not launch the virtual points)
     estimator_floor: float = param(0.003, min=0.0, max=1.0)
@@ -261,7 +266,8 @@ class ConnectedParams:
         base = FiedlerEstimatorParams()
         rates = ("mean_removal_gain", "laplacian_gain", "normalisation_gain", "consensus_input_gain",
                  "consensus_proportional_gain", "consensus_integral_gain")
-        estimator = dataclasses.replace(base, **{name: getattr(base, name) * self.estimator_speedup for name in rates})
+        estimator = dataclasses.replace(base, **{name: getattr(base, name) * self.estimator_speedup for name in rates},
+                                        max_substep=base.max_substep / self.estimator_speedup)
         object.__setattr__(self, "estimator", estimator)
 
 

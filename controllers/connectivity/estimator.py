@@ -18,11 +18,17 @@ estimates are lambda2_i = (k3 / k2) (1 - y2_i) and, since ||x||^2 = N Ave(x^2),
 the unit-norm eigenvector component nu_2i = x_i / sqrt(N y2_i). N is assumed
 known to every robot, as in Yang et al.
 
-Discretisation: forward Euler, one substep per neighbour message exchange,
-with W held over the control period. The substep is the shorter of
-``max_substep`` and half the explicit-Euler stability limit of the
-estimator's linear part, which depends on the largest Laplacian eigenvalue;
-its Gershgorin bound 2 max_i sum_j W_ij is used.
+Discretisation: the estimator is a continuous-time system (as in Yang et al.)
+integrated with W held over the control period, in substeps. The PI
+consensus part is linear in (y, z) with a constant Laplacian over the
+period, so each substep applies its exact flow with the input a_i held at
+the mean of its values at the substep's two ends (its matrix exponential,
+computed once per change of the message graph);
+the power iteration x takes a forward-Euler substep, the shorter of
+``max_substep`` and half its explicit-Euler stability limit (Gershgorin
+bound 2 max_i sum_j W_ij of the Laplacian). Integrating the stiff consensus
+by Euler instead needs substeps of 1 / (K_I lambda_max(L_c)), some 50 times
+more (a 10-robot team: ~1,100 per 10 ms tick).
 
 Use in closed loop
 ------------------
@@ -37,8 +43,10 @@ ones; faster gains cost proportionally more substeps. The exact oracle
 Deviations from the paper
 -------------------------
 - The paper (and Yang et al.) state the estimator in continuous time; the
-  substep rule above is our discretisation. It stands for a message rate high
-  enough for the estimator (the paper's controller ran at 1 kHz).
+  integration above is our discretisation. Robot i's rates depend only on its
+  own and its neighbours' states (``rates``; tested), but over a substep the
+  exact consensus flow lets information cross more than one hop, as the
+  continuous-time system does: the substep is not one message round.
 - The eigenvector estimate is normalised by each robot's own y2_i; before
   convergence y2_i may be near or below zero, so it is floored at a small
   positive value for that division.
@@ -47,8 +55,7 @@ Deviations from the paper
   a real team; without it the estimator can lock onto the constant vector
   after saturating on a dense, symmetric graph.
 - The substep count is taken from the global Gershgorin bound (a simulator
-  choice; a real robot would fix its message rate for the densest graph it
-  expects).
+  choice).
 
 Several eigenpairs (not in the paper)
 -------------------------------------
@@ -70,6 +77,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 
 from controllers.connectivity.params import FiedlerEstimatorParams
 
@@ -79,24 +87,49 @@ _MIN_SQUARE_MEAN = 1e-6
 _STABILITY_FRACTION = 0.5
 
 
-def _euler_substeps(params: FiedlerEstimatorParams, weights: np.ndarray, consensus_weights: np.ndarray | None,
-                    dt: float, normalisation_deviation: float) -> int:
-    """Euler substeps for a control period ``dt`` (s): half the stability limit
-    of the estimator's linear part (Gershgorin bounds of both Laplacians), at
-    most ``max_substep``. ``normalisation_deviation`` bounds |Ave(x^2) - 1|."""
+def _euler_substeps(params: FiedlerEstimatorParams, weights: np.ndarray, dt: float,
+                    normalisation_deviation: float) -> int:
+    """Substeps for a control period ``dt`` (s): half the explicit-Euler
+    stability limit of the power iteration (Gershgorin bound of the
+    Laplacian of ``weights``), at most ``max_substep``.
+    ``normalisation_deviation`` bounds |Ave(x^2) - 1|."""
     p = params
     laplacian_bound = 2.0 * float(weights.sum(axis=1).max())
-    consensus_bound = laplacian_bound if consensus_weights is None else 2.0 * float(consensus_weights.sum(axis=1).max())
-    damping = p.consensus_input_gain + p.consensus_proportional_gain * consensus_bound
-    # Per Laplacian mode mu the PI block has trace -(gamma + K_P mu) and
-    # determinant K_I^2 mu^2; Euler is stable for h < 2 Re(-s) / |s|^2.
-    limit = 2.0 / damping
-    if consensus_bound > 0:
-        limit = min(limit, damping / (p.consensus_integral_gain * consensus_bound) ** 2)
     power_rate = p.mean_removal_gain + p.normalisation_gain * max(1.0, normalisation_deviation)
-    limit = min(limit, 2.0 / (power_rate + p.laplacian_gain * laplacian_bound))
+    limit = 2.0 / (power_rate + p.laplacian_gain * laplacian_bound)
     substep = min(p.max_substep, _STABILITY_FRACTION * limit)
     return max(1, math.ceil(dt / substep))
+
+
+class _ConsensusFlow:
+    """Exact flow over one substep h of the PI average consensus of every channel,
+
+        y' = gamma (a - y) - K_P L_c y + K_I L_c z,   z' = -K_I L_c y,
+
+    with L_c and the input a held: [y; z] <- transition [y; z] + inflow a.
+    The matrices are the blocks of expm(h [[A, B], [0, 0]]) (A the (2N, 2N)
+    system matrix, B = [gamma I; 0]), recomputed only when L_c or h change
+    (the message graph changes far less often than every tick)."""
+
+    def __init__(self, params: FiedlerEstimatorParams):
+        self.params = params
+        self._key: tuple[bytes, float] | None = None
+
+    def matrices(self, consensus_laplacian: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+        key = (consensus_laplacian.tobytes(), h)
+        if key != self._key:
+            p = self.params
+            n = len(consensus_laplacian)
+            system = np.zeros((3 * n, 3 * n))
+            identity = np.eye(n)
+            system[:n, :n] = -p.consensus_input_gain * identity - p.consensus_proportional_gain * consensus_laplacian
+            system[:n, n:2 * n] = p.consensus_integral_gain * consensus_laplacian
+            system[n:2 * n, :n] = -p.consensus_integral_gain * consensus_laplacian
+            system[:n, 2 * n:] = p.consensus_input_gain * identity
+            flow = scipy.linalg.expm(h * system)
+            self._matrices = (np.ascontiguousarray(flow[:2 * n, :2 * n]), np.ascontiguousarray(flow[:2 * n, 2 * n:]))
+            self._key = key
+        return self._matrices
 
 
 def _checked_laplacians(n: int, weights, dt: float, consensus_weights) -> tuple[np.ndarray, np.ndarray, np.ndarray,
@@ -138,6 +171,7 @@ class FiedlerEstimator:
             raise ValueError(f"num_robots must be at least 2, got {num_robots}")
         self.num_robots = num_robots
         self.params = params
+        self._flow = _ConsensusFlow(params)
         self.reset(rng)
 
     def reset(self, rng: np.random.Generator) -> None:
@@ -157,28 +191,27 @@ class FiedlerEstimator:
         norm = np.sqrt(self.num_robots * np.maximum(self.square_mean, _MIN_SQUARE_MEAN))
         return FiedlerEstimate(lambda2=lambda2, fiedler=self.eigenvector / norm)
 
-    def substep_count(self, weights: np.ndarray, dt: float, consensus_weights: np.ndarray | None = None) -> int:
-        """Euler substeps used for a control period ``dt`` (s) under ``weights``
-        (and ``consensus_weights`` for the averaging, default ``weights``)."""
-        return _euler_substeps(self.params, weights, consensus_weights, dt,
-                               float(np.abs(self.square_mean - 1).max()))
+    def substep_count(self, weights: np.ndarray, dt: float) -> int:
+        """Substeps used for a control period ``dt`` (s) under ``weights``."""
+        return _euler_substeps(self.params, weights, dt, float(np.abs(self.square_mean - 1).max()))
 
-    def _rate_matrices(self) -> tuple[np.ndarray, np.ndarray]:
-        """(5, 5) matrices of the linear part of the rate, columns x, y1, z1, y2, z2:
-        rate = state @ local + (L @ state) @ coupling (+ the two products)."""
+    def rates(self, weights: np.ndarray, consensus_weights: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The continuous-time estimator: time derivatives (N,) of each robot's
+        five scalars, named as the attributes. Row i of L @ s is
+        sum_j W_ij (s_i - s_j): robot i's own and its neighbours' values only."""
         p = self.params
-        k1, k2, k3 = p.mean_removal_gain, p.laplacian_gain, p.normalisation_gain
+        _, laplacian, consensus_laplacian, _ = _checked_laplacians(self.num_robots, weights, 1.0, consensus_weights)
+        x, y1, z1, y2, z2 = (self.eigenvector, self.mean, self.mean_integral, self.square_mean,
+                             self.square_mean_integral)
         gamma, k_p, k_i = p.consensus_input_gain, p.consensus_proportional_gain, p.consensus_integral_gain
-        local = np.zeros((5, 5))
-        local[0, 0] = k3  # from -k3 (y2 - 1) x
-        local[1, 0] = -k1
-        local[0, 1], local[1, 1] = gamma, -gamma
-        local[3, 3] = -gamma
-        coupling = np.zeros((5, 5))
-        coupling[0, 0] = -k2
-        coupling[1, 1], coupling[2, 1], coupling[1, 2] = -k_p, k_i, -k_i
-        coupling[3, 3], coupling[4, 3], coupling[3, 4] = -k_p, k_i, -k_i
-        return local, coupling
+        return {
+            "eigenvector": -p.mean_removal_gain * y1 - p.laplacian_gain * (laplacian @ x)
+            - p.normalisation_gain * (y2 - 1.0) * x,
+            "mean": gamma * (x - y1) - k_p * (consensus_laplacian @ y1) + k_i * (consensus_laplacian @ z1),
+            "mean_integral": -k_i * (consensus_laplacian @ y1),
+            "square_mean": gamma * (x * x - y2) - k_p * (consensus_laplacian @ y2) + k_i * (consensus_laplacian @ z2),
+            "square_mean_integral": -k_i * (consensus_laplacian @ y2),
+        }
 
     def step(self, weights: np.ndarray, dt: float, consensus_weights: np.ndarray | None = None) -> FiedlerEstimate:
         """Advance all estimators by ``dt`` (s) with the (N, N) weighted adjacency.
@@ -188,38 +221,30 @@ class FiedlerEstimator:
         gives the same averages; the power iteration always uses ``weights``
         (whose lambda2 is being estimated)."""
         n = self.num_robots
-        weights, laplacian, consensus_laplacian, consensus_weights = _checked_laplacians(
-            n, weights, dt, consensus_weights)
+        weights, laplacian, consensus_laplacian, _ = _checked_laplacians(n, weights, dt, consensus_weights)
         p = self.params
-        count = self.substep_count(weights, dt, consensus_weights)
+        count = self.substep_count(weights, dt)
         h = dt / count
-        k2, k3, gamma = p.laplacian_gain, p.normalisation_gain, p.consensus_input_gain
-        local, coupling = self._rate_matrices()
-        coupling[0, 0] = 0.0  # the power iteration's -k2 L x is added separately (it uses W)
-        step_local = np.eye(5) + h * local
-        step_coupling = h * coupling
-        power_step = -h * k2 * laplacian
-        # Columns: x, y1, z1, y2, z2. Row i of laplacian @ state is
-        # sum_j W_ij (s_i - s_j): what robot i computes from its neighbours'
-        # messages. The rate is consensus_laplacian @ state @ coupling +
-        # state @ local - k2 laplacian @ x plus the two products -k3 y2 x and
-        # gamma x^2.
-        state = np.stack(
-            [self.eigenvector, self.mean, self.mean_integral, self.square_mean, self.square_mean_integral], axis=1
-        )
+        k1, k2, k3 = p.mean_removal_gain, p.laplacian_gain, p.normalisation_gain
+        transition, inflow = self._flow.matrices(consensus_laplacian, h)
+        x = self.eigenvector
+        # Consensus state: rows y (N), then z (N); columns: the Ave(x) and Ave(x^2) channels.
+        consensus = np.concatenate([np.stack([self.mean, self.square_mean], axis=1),
+                                    np.stack([self.mean_integral, self.square_mean_integral], axis=1)])
+        inputs = np.stack([x, x * x], axis=1)
         for _ in range(count):
-            x, y2 = state[:, 0], state[:, 3]
-            product_x = (-h * k3) * x * y2 + power_step @ x
-            product_y2 = (h * gamma) * x * x
-            state = state @ step_local + (consensus_laplacian @ state) @ step_coupling
-            state[:, 0] += product_x
-            state[:, 3] += product_y2
-        self.eigenvector, self.mean, self.mean_integral, self.square_mean, self.square_mean_integral = (
-            np.ascontiguousarray(state.T)
-        )
+            y1, y2 = consensus[:n, 0], consensus[:n, 1]
+            x = x - h * (k1 * y1 + k2 * (laplacian @ x) + k3 * (y2 - 1.0) * x)
+            # The consensus input over the substep: mean of its values at both ends (second order).
+            next_inputs = np.stack([x, x * x], axis=1)
+            consensus = transition @ consensus + inflow @ (0.5 * (inputs + next_inputs))
+            inputs = next_inputs
+        self.eigenvector = x
+        self.mean, self.square_mean = np.ascontiguousarray(consensus[:n].T)
+        self.mean_integral, self.square_mean_integral = np.ascontiguousarray(consensus[n:].T)
         if p.dither > 0:
             # Each robot's own noise, integrated over the period (Euler-Maruyama).
-            self.eigenvector += p.dither * np.sqrt(dt) * self._rng.standard_normal(n)
+            self.eigenvector = self.eigenvector + p.dither * np.sqrt(dt) * self._rng.standard_normal(n)
         return self.estimate
 
 
@@ -303,6 +328,7 @@ class SubspaceEstimator:
         self.num_robots = num_robots
         self.modes = int(modes)
         self.params = params
+        self._flow = _ConsensusFlow(params)
         k = self.modes
         self._pairs = np.triu_indices(k)  # (a, b), a <= b: the Gram channels
         self._pair_count = len(self._pairs[0])
@@ -384,43 +410,58 @@ class SubspaceEstimator:
         return SubspaceEstimate(lambda2=lambda2, values=values, valid=valid, coefficients=coefficients,
                                 components=self.components.copy(), fiedler=fiedler)
 
-    def substep_count(self, weights: np.ndarray, dt: float, consensus_weights: np.ndarray | None = None) -> int:
-        """Euler substeps for a control period ``dt`` (s): FiedlerEstimator's rule."""
+    def substep_count(self, weights: np.ndarray, dt: float) -> int:
+        """Substeps for a control period ``dt`` (s): FiedlerEstimator's rule."""
         deviation = np.abs(self.gram - np.eye(self.modes)[None]).sum(axis=2).max()
-        return _euler_substeps(self.params, weights, consensus_weights, dt, float(deviation))
+        return _euler_substeps(self.params, weights, dt, float(deviation))
+
+    def _power_rate(self, x: np.ndarray, lx: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """X_i' = -k1 m_i - k2 (L X)_i - k3 X_i (G_i - I), (N, K)."""
+        p = self.params
+        n, k = self.num_robots, self.modes
+        gram = y[:, self._gram_index].reshape(n, k, k)
+        return (p.normalisation_gain * x - p.mean_removal_gain * y[:, :k] - p.laplacian_gain * lx
+                - p.normalisation_gain * np.matmul(x[:, None, :], gram)[:, 0, :])
+
+    def rates(self, weights: np.ndarray, consensus_weights: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The continuous-time estimator: time derivatives of ``components``
+        (N, K), ``consensus`` and ``consensus_integral`` (N, D). Row i depends
+        only on robot i's own and its neighbours' states."""
+        p = self.params
+        _, laplacian, consensus_laplacian, _ = _checked_laplacians(self.num_robots, weights, 1.0, consensus_weights)
+        x, y, z = self.components, self.consensus, self.consensus_integral
+        lx = laplacian @ x
+        ly, lz = consensus_laplacian @ y, consensus_laplacian @ z
+        return {
+            "components": self._power_rate(x, lx, y),
+            "consensus": p.consensus_input_gain * (self._inputs(x, lx) - y) - p.consensus_proportional_gain * ly
+            + p.consensus_integral_gain * lz,
+            "consensus_integral": -p.consensus_integral_gain * ly,
+        }
 
     def step(self, weights: np.ndarray, dt: float, consensus_weights: np.ndarray | None = None) -> SubspaceEstimate:
         """Advance all robots by ``dt`` (s); arguments as FiedlerEstimator.step."""
         n, k = self.num_robots, self.modes
-        weights, laplacian, consensus_laplacian, consensus_weights = _checked_laplacians(
-            n, weights, dt, consensus_weights)
+        weights, laplacian, consensus_laplacian, _ = _checked_laplacians(n, weights, dt, consensus_weights)
         p = self.params
-        count = self.substep_count(weights, dt, consensus_weights)
+        count = self.substep_count(weights, dt)
         h = dt / count
-        k1, k2, k3 = p.mean_removal_gain, p.laplacian_gain, p.normalisation_gain
-        gamma, k_p, k_i = p.consensus_input_gain, p.consensus_proportional_gain, p.consensus_integral_gain
-        d = self.channels
+        transition, inflow = self._flow.matrices(consensus_laplacian, h)
         x = self.components
-        y, z = self.consensus.copy(), self.consensus_integral.copy()
-        ones = np.ones((n, 1))
-        left, right, gram_index = self._input_left, self._input_right, self._gram_index
-        h_gamma, h_kp, h_ki = h * gamma, h * k_p, h * k_i
+        consensus = np.concatenate([self.consensus, self.consensus_integral])  # rows: y (N), then z (N)
+        lx = laplacian @ x  # row i: sum_j W_ij (X_i - X_j), from neighbours' messages
+        inputs = self._inputs(x, lx)
         for _ in range(count):
-            lx = laplacian @ x  # row i: sum_j W_ij (X_i - X_j), from neighbours' messages
-            columns = np.concatenate([x, lx, ones], axis=1)
-            inputs = columns[:, left] * columns[:, right]
-            gram = y[:, gram_index].reshape(n, k, k)
-            # X_i' = -k1 m_i - k2 (L X)_i - k3 X_i (G_i - I)
-            x = (1.0 + h * k3) * x - (h * k1) * y[:, :k] - (h * k2) * lx - (h * k3) * np.matmul(
-                x[:, None, :], gram)[:, 0, :]
-            # PI consensus: y' = gamma (a - y) - K_P L_c y + K_I L_c z,  z' = -K_I L_c y
-            ly = consensus_laplacian @ y
-            lz = consensus_laplacian @ z
-            y += h_gamma * (inputs - y) - h_kp * ly + h_ki * lz
-            z -= h_ki * ly
+            x = x + h * self._power_rate(x, lx, consensus[:n])
+            lx = laplacian @ x
+            # The consensus input over the substep: mean of its values at both ends (second order).
+            next_inputs = self._inputs(x, lx)
+            consensus = transition @ consensus + inflow @ (0.5 * (inputs + next_inputs))
+            inputs = next_inputs
         if p.dither > 0:
             x = x + p.dither * np.sqrt(dt) * self._rng.standard_normal((n, k))
-        self.components, self.consensus, self.consensus_integral = x, y, z
+        self.components = x
+        self.consensus, self.consensus_integral = consensus[:n].copy(), consensus[n:].copy()
         return self.estimate
 
 

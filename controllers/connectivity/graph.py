@@ -107,6 +107,31 @@ class LinkWeights:
         first, second = self.pairs.T
         return self.pairs[self.weights[first, second] > 0]
 
+    def restricted_to(self, adjacency: np.ndarray) -> "LinkWeights":
+        """The same robots with only the links in ``adjacency`` (N, N, bool):
+        the weights W o A and their derivative data, A held fixed.
+
+        The collision factors still count every robot within R'_c (condition
+        (c) is about proximity, not messages), so lambda2_gradient of the
+        result is d lambda2(W o A) / dq.
+        """
+        adjacency = np.asarray(adjacency, dtype=bool)
+        n = self.num_robots
+        if adjacency.shape != (n, n):
+            raise ValueError(f"adjacency must have shape ({n}, {n}), got {adjacency.shape}")
+        first, second = self.pairs.T
+        kept = adjacency[first, second] & adjacency[second, first]
+        return LinkWeights(
+            pairs=self.pairs,
+            weights=self.weights * (adjacency & adjacency.T),
+            link_factor=self.link_factor * kept,
+            link_factor_grad_first=self.link_factor_grad_first * kept[:, None],
+            link_factor_grad_second=self.link_factor_grad_second * kept[:, None],
+            collision_factor=self.collision_factor,
+            collision_log_slope=self.collision_log_slope,
+            unit=self.unit,
+        )
+
     def lambda2_gradient(self, vector: np.ndarray) -> np.ndarray:
         """sum_{i<j} dW_ij/dq (v_i - v_j)^2 for v = ``vector`` (N,): (N, 3), 1/m.
 

@@ -191,8 +191,9 @@ class FiedlerEstimatorParams:
 
     Time scales (defaults): the consensus must be faster than the power
     iteration, K_P lambda2 >> gamma >~ k1; for graphs with lambda2 ~ 0.05-0.5
-    the defaults converge in about 1-3 s. The Euler substep shrinks as
-    1 / (K_P lambda_max(L)): the cost grows with the consensus gains.
+    the defaults converge in about 1-3 s. The substep shrinks as
+    1 / (k2 lambda_max(L) + k1 + k3) (the consensus loops are integrated
+    exactly, estimator.py): the cost grows with the power-iteration gains.
     """
 
     mean_removal_gain: float = 15.0  # k1, 1/s: drives Ave(x) -> 0 (deflates the 1 eigenvector)
@@ -201,7 +202,7 @@ class FiedlerEstimatorParams:
     consensus_input_gain: float = 20.0  # gamma, 1/s: pull of y_i towards the local input a_i
     consensus_proportional_gain: float = 400.0  # K_P, 1/s per unit weight
     consensus_integral_gain: float = 400.0  # K_I, 1/s per unit weight
-    max_substep: float = 1e-3  # s: longest Euler substep (one neighbour message exchange)
+    max_substep: float = 1e-3  # s: longest integration substep (accuracy of the Euler power iteration)
     dither: float = 1e-4  # 1/sqrt(s): intensity of the white noise each robot adds to x_i (0: none)
 
     def __post_init__(self) -> None:

@@ -51,8 +51,15 @@ paths.py, travel.py, roles.py, election.py, targets.py). Here:
   ``estimator_warmup_s`` seconds on the start graph (the robots exchange
   estimator messages on the ground before the mission starts); the paper
   does not discuss start-up of the estimator.
-- The estimator exchanges messages only over links that are in both G^lambda
-  (W_ij > 0) and the simulator's communication graph.
+- The estimator's messages travel on the links of G^lambda (W_ij > 0, on the
+  virtual points), as the paper assumes one graph for sensing and
+  communication; election and efficiency consensus use the simulator's
+  body-to-body graph A (range and mj_ray line of sight). The two differ when
+  bodies lag their points (0.2-0.3 m at peaks): a link of weight ~0.06 can
+  be out of range for the bodies. ``estimator_links = "messages"`` restricts
+  the estimator to W o A and makes f_lambda the gradient of lambda2(W o A)
+  (A held fixed; lambda2(W) >= lambda2(W o A)); a dropped bridge then
+  isolates a robot discontinuously (README: seed 1 disconnects).
 - Estimator mode: robot i evaluates V' at min(its estimate, N/(N-1) d_i),
   with d_i = sum_j W_ij its own degree (lambda2 <= N/(N-1) min_i d_i,
   Fiedler 1973: a bound every robot knows), and at no less than
@@ -162,7 +169,7 @@ class ConnectedStrategy:
                     raise ConfigError("strategy.estimator_modes", f"must be below the team size {n}, "
                                       f"got {p.estimator_modes}")
                 self.estimator = SubspaceEstimator(n, p.estimator, rng, p.estimator_modes)
-            weights = self._estimator_weights(state.weights, initial.links.adjacency)
+            weights = self._estimator_links(state, initial.links.adjacency).weights
             consensus = self._consensus_weights(weights)
             for _ in range(int(round(p.estimator_warmup_s / _WARMUP_STEP_S))):
                 self.estimator.step(weights, _WARMUP_STEP_S, consensus)
@@ -189,10 +196,13 @@ class ConnectedStrategy:
         self.explorer.params = params.exploration
         return True
 
-    @staticmethod
-    def _estimator_weights(weights: np.ndarray, adjacency: np.ndarray) -> np.ndarray:
-        """W on the links that also carry messages in the simulator's graph."""
-        return weights * np.asarray(adjacency, dtype=bool)
+    def _estimator_links(self, state, adjacency: np.ndarray):
+        """The graph the estimator's messages travel on, whose lambda2 the robots estimate and control:
+        G^lambda itself ("sensing"), or W o A ("messages"). Its force is always the gradient of that
+        graph's lambda2, never of links the estimator cannot see."""
+        if self.params.estimator_links == "messages":
+            return state.links.restricted_to(adjacency)
+        return state.links
 
     def _consensus_weights(self, estimator_weights: np.ndarray) -> np.ndarray | None:
         """The averaging loops' graph: every message link at weight 1 ("links"),
@@ -217,21 +227,21 @@ class ConnectedStrategy:
         state = connectivity_state(q, self.boxes, c)
         estimate = None
         if self.estimator is not None:
-            weights = self._estimator_weights(state.weights, observation.links.adjacency)
-            estimate = self.estimator.step(weights, self.dt, self._consensus_weights(weights))
+            links = self._estimator_links(state, observation.links.adjacency)
+            estimate = self.estimator.step(links.weights, self.dt, self._consensus_weights(links.weights))
             # Each robot also knows its own degree d_i = sum_j W_ij, and lambda2 <= N / (N - 1) min_i d_i
             # (Fiedler 1973): it never uses an estimate above its own bound.
             n = len(q)
-            bound = n / (n - 1) * state.weights.sum(axis=1)
+            bound = n / (n - 1) * links.weights.sum(axis=1)
             floor = c.lambda2_min + p.estimator_floor
             if isinstance(self.estimator, SubspaceEstimator):
                 # Soft minimum of each robot's Ritz values and its gradient from its Ritz vectors.
-                smooth, gradient = ritz_connectivity_gradient(state.links, estimate, p.spectrum_smoothing)
+                smooth, gradient = ritz_connectivity_gradient(links, estimate, p.spectrum_smoothing)
                 lambda2_used = np.maximum(np.minimum(smooth, bound), floor)
                 f_lambda = -guarded_potential_slope(lambda2_used, c)[:, None] * gradient
             else:
                 lambda2_used = np.maximum(np.minimum(estimate.lambda2, bound), floor)
-                f_lambda = generalized_connectivity_force(state.links, lambda2_used, estimate.fiedler, c)
+                f_lambda = generalized_connectivity_force(links, lambda2_used, estimate.fiedler, c)
         elif p.spectrum_smoothing > 0:
             values, vectors = np.linalg.eigh(state.laplacian)
             smooth, gradient = smooth_lambda2_gradient(state.links, values, vectors, p.spectrum_smoothing)
