@@ -35,3 +35,14 @@ def test_office_with_35_robots_completes():
 def test_office_with_the_papers_raw_lambda2_gradient_completes():
     sim, log = run_checked(load("connected-office", ["strategy.spectrum_smoothing=0.0"], seed=1))
     assert sim.strategy.finished and sim.strategy.summary()["targets_visited"] == 25
+
+
+@pytest.mark.parametrize("seed", [1, 4])
+def test_office_with_the_decentralised_estimator_completes(seed):
+    """The README's estimator table: seed 4 used to disconnect at 56.75 s when
+    the force pulled on a link the estimator did not contain."""
+    sim, log = run_checked(load("connected-office", ['strategy.lambda2_source="estimator"'], seed=seed))
+    summary = sim.strategy.summary()
+    assert sim.strategy.finished and summary["targets_visited"] == 25
+    assert log.lambda2_min > 0 and log.primes_max == 1
+    assert summary["lambda2_estimate_error_mean"] < 1e-3

@@ -52,15 +52,20 @@ def lambda2_of(positions: np.ndarray, boxes, params: ConnectivityParams) -> floa
     return np.linalg.eigvalsh(weighted_laplacian(link_weights(positions, boxes, params).weights))[1]
 
 
-def central_difference_gradient(positions, boxes, params, step=1e-6) -> np.ndarray:
+def central_difference(function, positions, step=1e-6) -> np.ndarray:
+    """d function / d positions (N, 3) by central differences of a scalar function of (N, 3) positions."""
     gradient = np.zeros_like(positions)
     for i in range(len(positions)):
         for axis in range(3):
             plus, minus = positions.copy(), positions.copy()
             plus[i, axis] += step
             minus[i, axis] -= step
-            gradient[i, axis] = (lambda2_of(plus, boxes, params) - lambda2_of(minus, boxes, params)) / (2 * step)
+            gradient[i, axis] = (function(plus) - function(minus)) / (2 * step)
     return gradient
+
+
+def central_difference_gradient(positions, boxes, params, step=1e-6) -> np.ndarray:
+    return central_difference(lambda q: lambda2_of(q, boxes, params), positions, step)
 
 
 def jittered_wall_configuration(seed: int) -> np.ndarray:
@@ -271,14 +276,7 @@ def test_gradient_on_the_message_links_matches_finite_differences_of_that_graph(
     eigenvalues, vectors = np.linalg.eigh(weighted_laplacian(restricted.weights))
     assert eigenvalues[1] > 1e-3 and eigenvalues[2] - eigenvalues[1] > 1e-3
     assert eigenvalues[1] < lambda2_of(positions, WALL, OFFICE)  # the dropped link mattered
-    step = 1e-6
-    reference = np.zeros_like(positions)
-    for robot in range(len(positions)):
-        for axis in range(3):
-            plus, minus = positions.copy(), positions.copy()
-            plus[robot, axis] += step
-            minus[robot, axis] -= step
-            reference[robot, axis] = (restricted_lambda2(plus) - restricted_lambda2(minus)) / (2 * step)
+    reference = central_difference(restricted_lambda2, positions)
     gradient = restricted.lambda2_gradient(vectors[:, 1])
     np.testing.assert_allclose(gradient, reference, atol=1e-6 * np.abs(reference).max() + 1e-9)
     full = links.lambda2_gradient(vectors[:, 1])
