@@ -109,6 +109,16 @@ class SegmentClearance:
         return (1.0 - self.s)[:, None] * unit, self.s[:, None] * unit
 
 
+def bounding_box_gaps(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(S, K) distance between the world-frame bounding boxes of each segment
+    [a_s, b_s] and of each box: a cheap lower bound of their clearance."""
+    box_half = boxes.half_sizes if boxes.aligned else np.einsum("kij,kj->ki", np.abs(boxes.rotations), boxes.half_sizes)
+    low_corner, high_corner = np.minimum(a, b), np.maximum(a, b)
+    gap = np.maximum(low_corner[:, None, :] - (boxes.centers + box_half)[None], 0.0)
+    gap += np.maximum((boxes.centers - box_half)[None] - high_corner[:, None, :], 0.0)
+    return np.sqrt(np.einsum("nki,nki->nk", gap, gap))
+
+
 def segment_clearance(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> SegmentClearance:
     """Minimum distance from each segment [a_p, b_p] to all boxes.
 
@@ -129,11 +139,7 @@ def segment_clearance(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> SegmentClea
     upper = point_clearance(boxes, np.concatenate([a, b, 0.5 * (a + b)])).reshape(3, n).min(axis=0)
     radius = np.linalg.norm(boxes.half_sizes, axis=1)
     lower = _point_segment_distance(boxes.centers, a, b) - radius[None, :]
-    box_half = boxes.half_sizes if boxes.aligned else np.einsum("kij,kj->ki", np.abs(boxes.rotations), boxes.half_sizes)
-    low_corner, high_corner = np.minimum(a, b), np.maximum(a, b)
-    gap = np.maximum(low_corner[:, None, :] - (boxes.centers + box_half)[None], 0.0)
-    gap += np.maximum((boxes.centers - box_half)[None] - high_corner[:, None, :], 0.0)
-    lower = np.maximum(lower, np.sqrt(np.einsum("nki,nki->nk", gap, gap)))
+    lower = np.maximum(lower, bounding_box_gaps(boxes, a, b))
     rows, cols = np.nonzero(lower <= upper[:, None] + 1e-12)
     # Work in each candidate box's frame: (C, 3).
     if boxes.aligned:

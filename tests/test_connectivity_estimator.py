@@ -372,21 +372,6 @@ def test_subspace_estimator_rejects_invalid_modes():
         SubspaceEstimator(4, GAINS, np.random.default_rng(0), 0)
 
 
-def test_strategy_with_two_modes_uses_the_ritz_estimate():
-    from sim.loop import Simulation
-    from sim.scenario import load
-
-    sim = Simulation(load("connected-office", ['strategy.lambda2_source="estimator"', "strategy.estimator_modes=2"]))
-    assert isinstance(sim.strategy.estimator, SubspaceEstimator)
-    for _ in range(50):
-        frame, healthy = sim.tick()
-        assert healthy
-    estimates = frame.commands.info["robot_scalars"]["lambda2_estimate"]
-    exact = frame.commands.info["scalars"]["lambda2"]
-    assert np.abs(estimates - exact).max() < 0.05 * exact
-    assert np.all(np.isfinite(frame.commands.info["scalars"]["connectivity_force_max_n"]))
-
-
 @pytest.mark.parametrize("estimator_links", ["sensing", "messages"])
 def test_strategy_estimates_the_graph_its_messages_travel_on(estimator_links):
     """With a link of G^lambda missing from the bodies' message graph A, the

@@ -259,6 +259,14 @@ def test_tracking_error_and_efficiency_of_eqs_11_12():
     reference_ff = PathReference(**{**reference.__dict__, "acceleration": np.ones((2, 3))})
     f = travel_force(q, v, reference_ff, position_gain=4.0, velocity_gain=2.0, mass=2.0)
     np.testing.assert_allclose(f[0], 2.0 * (np.ones(3) + 2.0 * np.array([0.2, 0, 0]) + 4.0 * np.array([0, -0.3, 0])))
+    # Capped (the simulator's bounded f_i): the magnitude is limited, the direction kept, and a
+    # force below the cap is left as it is.
+    limit = 0.5 * np.linalg.norm(f[0])
+    capped = travel_force(q, v, reference_ff, position_gain=4.0, velocity_gain=2.0, mass=2.0, max_force=limit)
+    np.testing.assert_allclose(np.linalg.norm(capped, axis=1), np.minimum(np.linalg.norm(f, axis=1), limit))
+    np.testing.assert_allclose(capped[0], 0.5 * f[0])
+    loose = travel_force(q, v, reference_ff, position_gain=4.0, velocity_gain=2.0, mass=2.0, max_force=1e6)
+    np.testing.assert_array_equal(loose, f)
 
 
 @pytest.mark.parametrize("damping, expected_speed_fraction", [(0.0, 1.0), (2.0, 10.0 / 12.0)])

@@ -97,37 +97,36 @@ def robot_colors_rgb8(info: dict, default: np.ndarray) -> np.ndarray:
     return _rgb8(np.asarray(colors, dtype=float)[:, :3])
 
 
-def _changed(recorder, key: str, value) -> bool:
+def _changed(logged: dict, key: str, value) -> bool:
     """True the first time and whenever ``value`` is a different object than
     last logged (strategies rebuild these only when they change)."""
-    cache = recorder.__dict__.setdefault("_decoration_cache", {})
-    if key in cache and cache[key] is value:
+    if key in logged and logged[key] is value:
         return False
-    cache[key] = value
+    logged[key] = value
     return True
 
 
-def log_recording_decorations(recorder, frame) -> None:
-    """Log the decorations of ``frame`` to ``recorder.rec`` (time already set;
-    the recorder colours the robots itself, :func:`robot_colors_rgb8`).
-    Plans, meeting points and estimates are logged only when the strategy
-    hands over new objects, so the recording stays small."""
+def log_recording_decorations(rec, frame, logged: dict) -> None:
+    """Log the decorations of ``frame`` to the Rerun stream ``rec`` (time
+    already set; the recorder colours the robots itself,
+    :func:`robot_colors_rgb8`). Plans, meeting points and estimates are
+    logged only when the strategy hands over new objects (``logged``: the
+    caller's record of what it last logged), so the recording stays small."""
     import rerun as rr
 
-    rec = recorder.rec
     info = frame.commands.info
-    if "paths" in info and _changed(recorder, "paths", info["paths"]):
+    if "paths" in info and _changed(logged, "paths", info["paths"]):
         paths = info["paths"]
         rec.log("world/plans", rr.LineStrips3D([np.asarray(p, dtype=float) for p, _ in paths],
                                                colors=[_rgb8(c) for _, c in paths], radii=0.01))
     meeting = info.get("meeting_points")
-    if meeting is not None and _changed(recorder, "meeting_points", meeting):
+    if meeting is not None and _changed(logged, "meeting_points", meeting):
         point_colors = info.get("meeting_point_colors")
         rec.log("world/meetings", rr.Points3D(np.asarray(meeting, dtype=float).reshape(-1, 3),
                                               colors=None if point_colors is None else _rgb8(point_colors),
                                               radii=0.05))
     estimates = info.get("target_estimates")
-    if estimates is not None and _changed(recorder, "target_estimates", estimates):
+    if estimates is not None and _changed(logged, "target_estimates", estimates):
         estimates = np.asarray(estimates, dtype=float)
         rec.log("world/targets/estimate", rr.Points3D(estimates, colors=_rgb8(ESTIMATE_RGBA), radii=0.05))
         covariances = info.get("target_covariances")

@@ -139,6 +139,7 @@ class RerunRecorder:
         self._unlogged: Frame | None = None  # the latest frame, when the period skipped it
         self._latest = (0.0, 0)  # latest (sim time, tick) logged at, for the closing event
         self._robot_series: set[str] = set()
+        self._decorations_logged: dict = {}  # decoration key -> the object last logged
         self._kind_colors = np.array([KIND_COLORS[k] for k in world.robot_kinds], dtype=np.uint8)
         self._log_static(scenario_name)
 
@@ -209,7 +210,7 @@ class RerunRecorder:
                 self._robot_series.add(key)
                 self.rec.log(f"robots/{key}", rr.SeriesLines(names=list(self.world.robot_names)), static=True)
             self.rec.log(f"robots/{key}", rr.Scalars(np.asarray(values, dtype=float)))
-        log_recording_decorations(self, frame)  # optional info keys: team colours, plans, estimates
+        log_recording_decorations(self.rec, frame, self._decorations_logged)  # optional: plans, estimates, ...
         self.rows += 1
 
     def event(self, time_s: float, text: str, level: str = "INFO", tick: int | None = None) -> None:

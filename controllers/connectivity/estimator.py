@@ -479,8 +479,8 @@ def ritz_connectivity_gradient(links, estimate: SubspaceEstimate, kappa: float) 
 
     n = len(estimate.lambda2)
     smooth = np.zeros(n)
-    gradient = np.zeros((n, 3))
     scale = 1.0 / math.sqrt(n)
+    terms = []  # (robot, soft-min slope, its Ritz vector): each robot's own terms, in order
     for i in range(n):
         valid = estimate.valid[i]
         if not valid.any():
@@ -490,6 +490,11 @@ def ritz_connectivity_gradient(links, estimate: SubspaceEstimate, kappa: float) 
         s, slope = smooth_lambda2(np.concatenate([[0.0], values]), kappa)
         smooth[i] = s
         vectors = estimate.components @ estimate.coefficients[i][:, valid] * scale
-        for k in np.flatnonzero(slope > 1e-9 * slope.max()):
-            gradient[i] += slope[k] * links.lambda2_gradient(vectors[:, k])[i]
+        terms += [(i, slope[k], vectors[:, k]) for k in np.flatnonzero(slope > 1e-9 * slope.max())]
+    gradient = np.zeros((n, 3))
+    if terms:
+        # One batched eq. (17) for all the Ritz vectors; robot i keeps its own row.
+        rows = links.lambda2_gradients(np.stack([vector for _, _, vector in terms], axis=1))
+        for (i, slope, _), row in zip(terms, rows):
+            gradient[i] += slope * row[i]
     return smooth, gradient

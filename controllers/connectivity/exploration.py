@@ -234,10 +234,8 @@ class ExplorationController:
         travelers = np.array(sorted(references), dtype=int)
         if len(travelers):
             batch = PathReference.stack([references[i] for i in travelers])
-            f_travel = travel_force(q[travelers], v[travelers], batch, p.position_gain, p.velocity_gain, p.virtual_mass)
-            if np.isfinite(p.travel_force_limit):
-                magnitude = np.linalg.norm(f_travel, axis=1, keepdims=True)
-                f_travel *= np.minimum(1.0, p.travel_force_limit / np.maximum(magnitude, 1e-12))
+            f_travel = travel_force(q[travelers], v[travelers], batch, p.position_gain, p.velocity_gain, p.virtual_mass,
+                                    p.travel_force_limit)
             error[travelers] = tracking_error(q[travelers], v[travelers], batch, p.position_error_weight)
             # Over the braking stretch the reference slows down (travel.py); the error is
             # weighed against the reference's own speed there, so a traveler held back near

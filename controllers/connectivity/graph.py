@@ -55,7 +55,7 @@ import numpy as np
 
 from controllers.connectivity.params import ConnectivityParams
 from controllers.connectivity.potential import guarded_potential_slope
-from sim.geometry import Boxes, segment_clearance
+from sim.geometry import Boxes, bounding_box_gaps, segment_clearance
 
 
 def half_cosine_rise(x, start: float, end: float) -> tuple[np.ndarray, np.ndarray]:
@@ -69,8 +69,13 @@ def half_cosine_rise(x, start: float, end: float) -> tuple[np.ndarray, np.ndarra
 
 
 def _scatter_add(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """Sum rows of values (P, 3) into (n, 3) by index (P,)."""
-    return np.stack([np.bincount(index, values[:, d], minlength=n) for d in range(3)], axis=1)
+    """Sum rows of values (P, ...) into (n, ...) by index (P,). Each output
+    entry is summed in row order (np.bincount), whatever the trailing shape."""
+    trailing = values.shape[1:]
+    width = int(np.prod(trailing))
+    flat = values.reshape(len(index), width)
+    bins = (index[:, None] * width + np.arange(width)).ravel()
+    return np.bincount(bins, flat.ravel(), minlength=n * width).reshape((n, *trailing))
 
 
 @dataclass(frozen=True)
@@ -143,22 +148,29 @@ class LinkWeights:
         vector = np.asarray(vector, dtype=float)
         if vector.shape != (n,):
             raise ValueError(f"vector must have shape ({n},), got {vector.shape}")
+        return self.lambda2_gradients(vector[:, None])[0]
+
+    def lambda2_gradients(self, vectors: np.ndarray) -> np.ndarray:
+        """:meth:`lambda2_gradient` of every column of ``vectors`` (N, M) at
+        once: (M, N, 3), each equal to the single-vector result bit for bit."""
+        n = self.num_robots
+        vectors = np.asarray(vectors, dtype=float)
+        if vectors.ndim != 2 or len(vectors) != n:
+            raise ValueError(f"vectors must have shape ({n}, M), got {vectors.shape}")
         first, second = self.pairs.T
-        squared_gap = (vector[first] - vector[second]) ** 2
+        squared_gap = (vectors[first] - vectors[second]) ** 2  # (P, M)
         collision_pair = self.collision_factor[first] * self.collision_factor[second]
         # Through alpha and beta: only the two ends of a link move its weight.
-        coefficient = (squared_gap * collision_pair)[:, None]
-        gradient = _scatter_add(first, coefficient * self.link_factor_grad_first, n)
-        gradient += _scatter_add(second, coefficient * self.link_factor_grad_second, n)
+        coefficient = (squared_gap * collision_pair[:, None])[:, :, None]
+        gradient = _scatter_add(first, coefficient * self.link_factor_grad_first[:, None, :], n)
+        gradient += _scatter_add(second, coefficient * self.link_factor_grad_second[:, None, :], n)
         # Through the collision factors: robot i moves every link of i and of
         # each robot within R'_c of it.
-        pair_weight = self.link_factor * collision_pair
-        node_sum = np.bincount(first, pair_weight * squared_gap, minlength=n) + np.bincount(
-            second, pair_weight * squared_gap, minlength=n
-        )
-        push = (self.collision_log_slope * (node_sum[first] + node_sum[second]))[:, None] * self.unit
+        pair_weight = (self.link_factor * collision_pair)[:, None]
+        node_sum = _scatter_add(first, pair_weight * squared_gap, n) + _scatter_add(second, pair_weight * squared_gap, n)
+        push = (self.collision_log_slope[:, None] * (node_sum[first] + node_sum[second]))[:, :, None] * self.unit[:, None, :]
         gradient += _scatter_add(first, push, n) - _scatter_add(second, push, n)
-        return gradient
+        return np.moveaxis(gradient, 1, 0)
 
 
 def _pairwise(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -183,12 +195,7 @@ def _line_of_sight_factor(
     # Cheap lower bound on each segment/box distance (gap between their
     # world-frame bounding boxes): a pair whose bound reaches R'_o has
     # beta = 1 and needs no exact clearance query.
-    segment_center = 0.5 * (start + end)
-    segment_half = 0.5 * np.abs(end - start)
-    box_half = np.einsum("kij,kj->ki", np.abs(boxes.rotations), boxes.half_sizes)
-    gap = np.abs(segment_center[:, None, :] - boxes.centers[None]) - segment_half[:, None, :] - box_half[None]
-    lower_bound = np.linalg.norm(np.maximum(gap, 0.0), axis=-1)
-    near = lower_bound < params.full_weight_obstacle_clearance
+    near = bounding_box_gaps(boxes, start, end) < params.full_weight_obstacle_clearance
     near_pairs = near.any(axis=1)
     if not near_pairs.any():
         return value, grad_start, grad_end

@@ -105,16 +105,22 @@ def _reference(length, arc, closest, tangent, curvature, distance, cruise_speed,
 
 
 def travel_force(
-    positions, velocities, reference: PathReference, position_gain: float, velocity_gain: float, mass: float = 1.0
+    positions, velocities, reference: PathReference, position_gain: float, velocity_gain: float, mass: float = 1.0,
+    max_force: float = np.inf,
 ) -> np.ndarray:
-    """Eq. (3): f_travel (P, 3), N = m [a_gamma + k_v (v_gamma - q') + k_p (q_gamma - q)]."""
+    """Eq. (3): f_travel (P, 3), N = m [a_gamma + k_v (v_gamma - q') + k_p (q_gamma - q)],
+    magnitude capped at ``max_force`` (direction kept)."""
     positions = np.atleast_2d(positions)
     velocities = np.atleast_2d(velocities)
-    return mass * (
+    force = mass * (
         reference.acceleration
         + velocity_gain * (reference.velocity - velocities)
         + position_gain * (reference.point - positions)
     )
+    if np.isfinite(max_force):
+        magnitude = np.linalg.norm(force, axis=1, keepdims=True)
+        force *= np.minimum(1.0, max_force / np.maximum(magnitude, 1e-12))
+    return force
 
 
 def needs_replanning(reference: PathReference, replan_distance: float) -> np.ndarray:
