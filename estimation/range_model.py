@@ -1,6 +1,6 @@
 """Range-only line-of-sight measurement model of seed 000 (Sec. IV, eq. 12).
 
-Pure numpy; never imports MuJoCo. The state stacks the 3D positions of all
+Pure numpy (and a compiled scalar sigma(l)); never imports MuJoCo. The state stacks the 3D positions of all
 M targets: x = [x_1; ...; x_M] in R^{3M}, metres, world frame. Robot sensor
 positions are (R, 3) arrays in the same frame.
 """
@@ -8,23 +8,39 @@ positions are (R, 3) arrays in the same frame.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 SENSING_RANGE_M = 5.0  # seed 000: "limited range of 5m"
 
 
-def range_sigma(distance: np.ndarray) -> np.ndarray:
-    """Standard deviation sigma(l) of a range reading, m, eq. (12).
+@njit(cache=True)
+def range_sigma_scalar(distance: float) -> float:
+    """Standard deviation sigma(l) of a range reading at ``distance`` m, eq. (12).
 
     0.01 m below 1 m, linear 0.045 l - 0.035 between 1 and 3 m, 0.1 m from
     3 m to the 5 m sensing limit (the paper's table prints 0.1 there; its text
-    and Fig. 4 say the curve is flat at 0.1 m).
+    and Fig. 4 say the curve is flat at 0.1 m). Compiled, so the planner's
+    kernels call it per reading.
     """
+    if distance < 1.0:
+        return 0.01
+    if distance < 3.0:
+        return 0.045 * distance - 0.035
+    return 0.1
+
+
+@njit(cache=True)
+def _range_sigma_flat(distance: np.ndarray) -> np.ndarray:
+    out = np.empty_like(distance)
+    for i in range(distance.size):
+        out[i] = range_sigma_scalar(distance[i])
+    return out
+
+
+def range_sigma(distance: np.ndarray) -> np.ndarray:
+    """sigma(l), m, of :func:`range_sigma_scalar` for every distance (any shape)."""
     distance = np.asarray(distance, dtype=float)
-    return np.where(
-        distance < 1.0,
-        0.01,
-        np.where(distance < 3.0, 0.045 * distance - 0.035, 0.1),
-    )
+    return _range_sigma_flat(distance.ravel()).reshape(distance.shape)
 
 
 def target_positions(x: np.ndarray) -> np.ndarray:

@@ -15,8 +15,9 @@ Two interchangeable covariance representations:
   between targets (off-diagonal 3x3 blocks below 1e-12 of the largest entry;
   true for the paper's diagonal C(0), per-target A_a, Q_a = q I and range
   readings, each of which involves one target only), the covariance stays
-  block-diagonal and all candidate edges are propagated at once with batched
-  3x3 algebra: the readings of one step are fused by the same sequential
+  block-diagonal and all candidate edges are propagated by one compiled
+  kernel (:func:`planner_kernels.propagate_blocks`) with 3x3 block algebra:
+  the readings of one step are fused by the same sequential
   rank-one updates as :func:`estimation.range_model.covariance_update`
   (C -= C h h^T C / (h^T C h + sigma^2), robots in order), each touching only
   its target's block; lambda_max(C) is the largest block eigenvalue.
@@ -35,11 +36,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimation.range_model import covariance_predict, covariance_update, range_sigma
+from estimation.range_model import covariance_predict, covariance_update
 from estimation.target_motion import TargetMotion
 from sim.geometry import Boxes
 
 from controllers.intermittent.planner_geometry import lift, segments_blocked
+from controllers.intermittent.planner_kernels import block_max_eigenvalues, propagate_blocks
 
 BLOCK_COUPLING_RTOL = 1e-12  # off-block entries below this share of max |entry| count as 0
 
@@ -132,10 +134,9 @@ class PredictedBelief:
             is_block_diagonal(mat, m) for mat in (self.transition, self.process_noise, covariance)
         )
         if self.blocks:
-            self._a = diagonal_blocks(self.transition)
-            self._a_t = np.swapaxes(self._a, -1, -2).copy()
-            self._q = diagonal_blocks(self.process_noise)
-            self.initial_covariance = diagonal_blocks(covariance)
+            self._a = np.ascontiguousarray(diagonal_blocks(self.transition))
+            self._q = np.ascontiguousarray(diagonal_blocks(self.process_noise))
+            self.initial_covariance = np.ascontiguousarray(diagonal_blocks(covariance))
         else:
             self.initial_covariance = covariance.copy()
         self._means = np.empty((64, 3 * m))
@@ -178,8 +179,9 @@ class PredictedBelief:
 
     def target_uncertainty(self, covariance: np.ndarray) -> np.ndarray:
         """lambda_max of each target's block, (..., M), m^2."""
-        blocks = covariance if self.blocks else diagonal_blocks(covariance)
-        return np.linalg.eigvalsh(blocks)[..., -1]
+        blocks = np.asarray(covariance if self.blocks else diagonal_blocks(covariance), dtype=float)
+        flat = np.ascontiguousarray(blocks.reshape(1, -1, 3, 3))
+        return block_max_eigenvalues(flat).reshape(blocks.shape[:-2])
 
     # -- Algorithm 4 over a batch of edges --------------------------------
     def readings(
@@ -239,37 +241,18 @@ class PredictedBelief:
             positions = expanded.reshape(p_count, n * len(self.sensor_offsets), length, 2)
         if positions.shape[2] < n_steps.max(initial=0):
             raise ValueError("positions shorter than n_steps")
-        visible, directions, ranges, times = self.readings(t0, n_steps, positions)
         if self.blocks:
-            return self._propagate_blocks(covariance, n_steps, visible, directions, ranges)
+            if len(t0):
+                self._ensure(int((t0 + n_steps).max()))
+            boxes = self.boxes
+            cov, cost, unc = propagate_blocks(
+                covariance, self._a, self._q, t0, n_steps, np.ascontiguousarray(positions, dtype=float),
+                self._means, self.belief_time, self.measurement_period, self.sensor_height, self.sensing_range,
+                boxes.centers, boxes.half_sizes, boxes.rotations, boxes.aligned,
+            )
+            return Propagation(cov, cost, unc)
+        visible, _, _, times = self.readings(t0, n_steps, positions)
         return self._propagate_full(covariance, n_steps, positions, visible, times)
-
-    def _propagate_blocks(self, cov, n_steps, visible, directions, ranges) -> Propagation:
-        p_count = len(cov)
-        length = visible.shape[2]
-        cost = np.zeros(p_count)
-        if length:
-            # Reading variance sigma(l)^2 (eq. 12); 1 where there is no reading
-            # (its direction is 0, so the rank-one term below vanishes).
-            variance = np.where(visible, range_sigma(np.where(visible, ranges, 1.0)) ** 2, 1.0)
-            reading = visible.any(axis=3)  # (P, n, L)
-        for step in range(length):
-            active = step < n_steps
-            if not active.any():
-                break
-            post = self._a @ cov @ self._a_t + self._q  # eq. 8b
-            for robot in np.flatnonzero(reading[:, :, step].any(axis=0)):
-                # One scalar reading per (robot, target), fused in robot order
-                # as covariance_update does: C -= C h h^T C / (h^T C h + sigma^2).
-                h = directions[:, robot, step]  # (P, M, 3)
-                ch = np.einsum("pmij,pmj->pmi", post, h)
-                denom = np.einsum("pmi,pmi->pm", h, ch) + variance[:, robot, step]
-                post = post - ch[..., :, None] * (ch / denom[..., None])[..., None, :]
-            post = 0.5 * (post + np.swapaxes(post, -1, -2))
-            unc = np.linalg.eigvalsh(post)[..., -1].max(axis=-1)
-            cov = np.where(active[:, None, None, None], post, cov)
-            cost += np.where(active, unc, 0.0)
-        return Propagation(cov, cost, np.linalg.eigvalsh(cov)[..., -1])
 
     def _propagate_full(self, cov, n_steps, positions, visible, times) -> Propagation:
         p_count = len(cov)

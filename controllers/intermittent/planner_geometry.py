@@ -1,6 +1,6 @@
 """Geometric predicates of the intermittent-connectivity planner (seed 000).
 
-Pure numpy over :class:`sim.geometry.Boxes`; no MuJoCo. Ground robots live in
+Pure numpy (and compiled kernels) over :class:`sim.geometry.Boxes`; no MuJoCo. Ground robots live in
 the plane; their sensors and radios sit at a fixed height ``z`` above the
 floor, so every 2D robot position is lifted to ``(x, y, z)`` before it is
 tested against the 3D obstacle boxes. Distances in metres, world frame.
@@ -24,6 +24,8 @@ from __future__ import annotations
 import numpy as np
 
 from sim.geometry import Boxes, point_clearance, segments_free
+
+from controllers.intermittent.planner_kernels import segments_hit_boxes
 
 
 def lift(points: np.ndarray, z: float) -> np.ndarray:
@@ -77,27 +79,15 @@ def edges_free(boxes: Boxes, a: np.ndarray, b: np.ndarray, z: float, margin: flo
 def segments_blocked(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Boolean (P,): the segment [a_p, b_p] (3D, (P, 3)) meets a (closed) box.
 
-    Slab method in every box frame: the segment parameter interval inside each
-    pair of parallel faces is intersected over the three axes and with [0, 1].
+    Slab method in every box frame (:func:`planner_kernels.segment_hits_box`):
+    the segment parameter interval inside each pair of parallel faces is
+    intersected over the three axes and with [0, 1].
     """
-    a = np.atleast_2d(np.asarray(a, dtype=float))
-    b = np.atleast_2d(np.asarray(b, dtype=float))
-    n = len(a)
-    if len(boxes) == 0 or n == 0:
-        return np.zeros(n, dtype=bool)
-    la = boxes.to_local(a)  # (P, K, 3)
-    d = boxes.to_local(b) - la
-    half = boxes.half_sizes[None]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = (-half - la) / d
-        t2 = (half - la) / d
-    parallel = d == 0.0
-    inside_slab = np.abs(la) <= half
-    lo = np.where(parallel, np.where(inside_slab, -np.inf, np.inf), np.minimum(t1, t2))
-    hi = np.where(parallel, np.where(inside_slab, np.inf, -np.inf), np.maximum(t1, t2))
-    enter = np.maximum(lo.max(axis=2), 0.0)
-    leave = np.minimum(hi.min(axis=2), 1.0)
-    return np.any(enter <= leave, axis=1)
+    a = np.ascontiguousarray(np.atleast_2d(np.asarray(a, dtype=float)))
+    b = np.ascontiguousarray(np.atleast_2d(np.asarray(b, dtype=float)))
+    if len(boxes) == 0 or len(a) == 0:
+        return np.zeros(len(a), dtype=bool)
+    return segments_hit_boxes(a, b, boxes.centers, boxes.half_sizes, boxes.rotations, boxes.aligned)
 
 
 def communication_graph(
