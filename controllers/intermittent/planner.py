@@ -115,6 +115,7 @@ from estimation.target_motion import TargetMotion
 from sim.geometry import Boxes, segments_free
 
 from controllers.intermittent.planner_belief import PredictedBelief
+from controllers.intermittent.planner_kernels import edge_sequences
 from controllers.intermittent.planner_geometry import (
     algebraic_connectivity,
     communication_graph,
@@ -453,13 +454,25 @@ def arrival_times(
     already later (then they keep their time, as in Algorithm 6). Every robot's
     speed stays <= u_max. For Steer's own output this returns Steer's times.
     """
+    times, valid = arrival_times_many(
+        np.asarray(t_parent)[None], np.asarray(q_parent, float)[None], np.asarray(q_child, float)[None], u_max
+    )
+    return times[0] if valid[0] else None
+
+
+def arrival_times_many(
+    t_parent: np.ndarray, q_parent: np.ndarray, q_child: np.ndarray, u_max: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`arrival_times` for P parent/child pairs at once: t_parent (P, n)
+    steps, q_parent and q_child (P, n, 2) m (q_child may be one (n, 2)).
+    Returns times (P, n) int and valid (P,) bool (False where no robot moves;
+    those rows of times are meaningless)."""
     t_parent = np.asarray(t_parent, dtype=int)
-    disp = np.linalg.norm(np.asarray(q_child, float) - np.asarray(q_parent, float), axis=1)
+    disp = np.linalg.norm(q_child - q_parent, axis=-1)
     moving = disp > MOVE_TOL_M
-    if not moving.any():
-        return None
-    t_arrive = int((t_parent + _steps_for(disp, u_max))[moving].max())
-    return np.where(moving | (t_parent < t_arrive), t_arrive, t_parent).astype(int)
+    t_arrive = np.where(moving, t_parent + _steps_for(disp, u_max), np.iinfo(int).min).max(axis=-1)
+    times = np.where(moving | (t_parent < t_arrive[:, None]), t_arrive[:, None], t_parent)
+    return times.astype(int), moving.any(axis=-1)
 
 
 def near_radius(
@@ -623,32 +636,24 @@ class _Planner:
         """Cost, covariance, per-target unc and tail of each child given its parent."""
         start = time.perf_counter()
         tree = self.tree
-        seqs, n_steps = [], []
-        for p, qc, tc in zip(parents, q_children, t_children):
-            tp, qp, tau_p = tree.t[p], tree.q[p], int(tree.tau[p])
-            span = int(tc.max()) - tau_p
-            k_times = tau_p + 1 + np.arange(span)
-            tail = tree.tail[p]
-            tail_pad = np.full((self.n, span, 2), np.nan)
-            tail_pad[:, : tail.shape[1]] = tail
-            frac = (k_times[None, :] - tp[:, None]) / np.maximum(tc - tp, 1)[:, None]
-            interp = qp[:, None, :] + np.clip(frac, 0.0, 1.0)[..., None] * (qc - qp)[:, None, :]
-            seq = np.where(
-                (k_times[None, :] <= tp[:, None])[..., None],
-                tail_pad,
-                np.where((k_times[None, :] <= tc[:, None])[..., None], interp, np.nan),
-            )
-            seqs.append(seq)
-            n_steps.append(int(tc.min()) - tau_p)
-        length = max(n_steps)
-        positions = np.full((len(parents), self.n, length, 2), np.nan)
-        for c, (seq, k) in enumerate(zip(seqs, n_steps)):
-            positions[c, :, :k] = seq[:, :k]
-        tails = [seq[:, k:].copy() for seq, k in zip(seqs, n_steps)]
+        tail_list = [tree.tail[p] for p in parents]
+        depth = max(tail.shape[1] for tail in tail_list)
+        tails = np.full((len(parents), self.n, depth, 2), np.nan)
+        for c, tail in enumerate(tail_list):
+            tails[c, :, : tail.shape[1]] = tail
+        seqs, n_steps, spans = edge_sequences(
+            tree.t[parents], tree.q[parents], tree.tau[parents], tails,
+            np.array([tail.shape[1] for tail in tail_list]),
+            np.ascontiguousarray(np.broadcast_to(np.asarray(q_children, float), (len(parents), self.n, 2))),
+            np.asarray(t_children, dtype=np.int64),
+        )
+        # A child's tail: the steps after it settles, where some robots are already ahead.
+        tails = [seqs[c, :, k:span].copy() for c, (k, span) in enumerate(zip(n_steps, spans))]
+        positions = seqs[:, :, : max(n_steps.max(), 0)]
         prop = self.belief.propagate(
             np.stack([tree.cov[p] for p in parents]),
             tree.tau[parents],
-            np.array(n_steps),
+            n_steps,
             positions,
         )
         costs = tree.cost[parents] + prop.cost
@@ -701,10 +706,7 @@ class _Planner:
             if not kids:
                 return
             parents = [int(tree.parent[c]) for c in kids]
-            times = [
-                arrival_times(tree.t[p], tree.q[p], tree.q[c], self.params.u_max)
-                for p, c in zip(parents, kids)
-            ]
+            times, _ = arrival_times_many(tree.t[parents], tree.q[parents], tree.q[kids], self.params.u_max)
             costs, covs, uncs, tails = self._evaluate(parents, [tree.q[c] for c in kids], times)
             for k, c in enumerate(kids):
                 tree.set_state(c, times[k], costs[k], uncs[k], covs[k], tails[k])
@@ -728,23 +730,21 @@ class _Planner:
             if steered is None:  # line 5
                 continue
             q_new, _ = steered
-            if not self._edges_free([nearest], q_new)[0]:  # line 6
-                continue
             radius = near_radius(size + 1, self.n, self.area, params.step_size, params.gamma_scale)
             dist2 = ((tree.flat[:size] - q_new.ravel()) ** 2).sum(axis=1)
+            others = [int(v) for v in np.flatnonzero(dist2 <= radius**2) if v != nearest]
+            # CollisionFree of every edge into q_new in one call; v_nearest's decides line 6.
+            edge_free = self._edges_free([nearest] + others, q_new)
+            if not edge_free[0]:  # line 6
+                continue
             near = [int(v) for v in np.flatnonzero(dist2 <= radius**2)]  # line 8
-            others = [v for v in near if v != nearest]
-            free = dict(zip(others, self._edges_free(others, q_new)))
+            free = dict(zip(others, edge_free[1:]))
             free[nearest] = True
             # Algorithm 2: Extend.
-            candidates, cand_times = [], []
-            for v in [nearest] + others:
-                if not free[v]:
-                    continue
-                times = arrival_times(tree.t[v], tree.q[v], q_new, params.u_max)
-                if times is not None:
-                    candidates.append(v)
-                    cand_times.append(times)
+            order = [v for v in [nearest] + others if free[v]]
+            times_all, valid = arrival_times_many(tree.t[order], tree.q[order], q_new, params.u_max)
+            candidates = [v for v, ok in zip(order, valid) if ok]
+            cand_times = list(times_all[valid])
             if not candidates:
                 continue
             costs, covs, uncs, tails = self._evaluate(candidates, [q_new] * len(candidates), cand_times)
@@ -761,15 +761,13 @@ class _Planner:
         """Algorithm 3."""
         tree, u_max = self.tree, self.params.u_max
         blocked = tree.ancestors(new)
-        targets, target_times = [], []
-        for v in near:
-            if v in blocked or not free[v] or not tree.synced(v):  # line 2
-                continue
-            times = arrival_times(tree.t[new], tree.q[new], tree.q[v], u_max)
-            if times is None or times.min() != times.max():  # synchronised through v_new
-                continue
-            targets.append(v)
-            target_times.append(times)
+        near = [v for v in near if v not in blocked and free[v] and tree.synced(v)]  # line 2
+        if not near:
+            return
+        times, valid = arrival_times_many(tree.t[new][None], tree.q[new][None], tree.q[near], u_max)
+        keep = valid & (times.min(axis=1) == times.max(axis=1))  # synchronised through v_new
+        targets = [v for v, ok in zip(near, keep) if ok]
+        target_times = list(times[keep])
         if not targets:
             return
         costs, covs, uncs, tails = self._evaluate(  # line 3

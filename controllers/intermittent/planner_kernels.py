@@ -230,3 +230,40 @@ def propagate_blocks(
                 unc = max(unc, max_eigenvalue_sym3(c[m]))
             cost[e] += unc
     return out, cost, block_max_eigenvalues(out)
+
+
+@njit(cache=True)
+def edge_sequences(t_parent, q_parent, tau_parent, tails, tail_lengths, q_child, t_child):
+    """Robot positions at every step of P tree edges, as Algorithm 4 reads them.
+
+    Edge p runs from a parent settled up to step tau_parent[p] (P,), whose
+    robots are at q_parent (P, n, 2) m at steps t_parent (P, n), with
+    tails (P, n, D, 2) m: the positions of its ahead robots at steps
+    tau + 1 .. tau + tail_lengths[p] (NaN after each robot's t_j), to a child
+    at q_child (P, n, 2) m reached at steps t_child (P, n). Returns
+    positions (P, n, S, 2) at steps tau + 1 .. tau + S, S = max span
+    (the parent's tail, then the straight move at constant speed, then NaN
+    after t_child; NaN past each edge's own span), n_steps (P,) = min_j
+    t_child - tau (the steps the child settles) and spans (P,) = max_j t_child - tau.
+    """
+    n_edges, n_robots = q_parent.shape[0], q_parent.shape[1]
+    spans = np.empty(n_edges, dtype=np.int64)
+    n_steps = np.empty(n_edges, dtype=np.int64)
+    for e in range(n_edges):
+        spans[e] = t_child[e].max() - tau_parent[e]
+        n_steps[e] = t_child[e].min() - tau_parent[e]
+    positions = np.full((n_edges, n_robots, max(spans.max(), 0), 2), np.nan)
+    for e in range(n_edges):
+        for j in range(n_robots):
+            duration = max(t_child[e, j] - t_parent[e, j], 1)
+            for k in range(spans[e]):
+                time = tau_parent[e] + 1 + k
+                if time <= t_parent[e, j]:  # still on the parent's tail
+                    if k < tail_lengths[e]:
+                        positions[e, j, k, 0] = tails[e, j, k, 0]
+                        positions[e, j, k, 1] = tails[e, j, k, 1]
+                elif time <= t_child[e, j]:
+                    frac = min(max((time - t_parent[e, j]) / duration, 0.0), 1.0)
+                    for i in range(2):
+                        positions[e, j, k, i] = q_parent[e, j, i] + frac * (q_child[e, j, i] - q_parent[e, j, i])
+    return positions, n_steps, spans
