@@ -85,9 +85,12 @@ Deviations from the paper (where it is silent or continuous-time):
   skipped). The free space keeps the robot radius from boxes and bounds.
 - Cost comparison in Extend and Rewire uses the settled cost, so nodes with
   different settled times are compared by the paper's Cost as is.
-- Line of sight of predicted readings uses an exact slab test instead of
-  ``segments_free(..., margin=0)`` (same predicate, much faster); collision
-  checks and communication links use ``segments_free``.
+- Line of sight of predicted readings and of communication links uses an
+  exact slab test instead of ``segments_free(..., margin=0)`` (the same
+  predicate except for segments passing within segments_free's 1e-9 m contact
+  tolerance of a box; much faster); collision checks use ``segments_free``.
+  Condition (6)(i) is tested by reachability in the graph (lambda_2 > 0 of an
+  unweighted graph); lambda_2 itself is computed only for the returned plan.
 - The covariance recursion uses batched 3x3 blocks when the belief has no
   coupling between targets (:mod:`planner_belief`); it equals the reference
   covariance_predict / covariance_update chain (tested), which is used
@@ -120,6 +123,7 @@ from controllers.intermittent.planner_geometry import (
     algebraic_connectivity,
     communication_graph,
     edges_free,
+    is_connected,
     lift,
     points_free,
 )
@@ -626,10 +630,12 @@ class _Planner:
         b = np.broadcast_to(q_child, (len(parents), self.n, 2)).reshape(-1, 2)
         return edges_free(self.boxes, a, b, self.z, self.margin).reshape(len(parents), self.n).all(1)
 
-    def _connected(self, q: np.ndarray) -> tuple[bool, float]:
-        adjacency = communication_graph(self.boxes, q, self.z, self.params.comm_range)
-        lam2 = algebraic_connectivity(adjacency)
-        return lam2 > CONNECTIVITY_TOL, lam2
+    def _connected(self, q: np.ndarray) -> bool:
+        """Goal condition (6)(i) at configuration q (n, 2)."""
+        return is_connected(communication_graph(self.boxes, q, self.z, self.params.comm_range))
+
+    def _lambda2(self, q: np.ndarray) -> float:
+        return algebraic_connectivity(communication_graph(self.boxes, q, self.z, self.params.comm_range))
 
     # -- cost (Alg. 4) -------------------------------------------------------
     def _evaluate(self, parents: list[int], q_children: list[np.ndarray], t_children: list[np.ndarray]):
@@ -690,7 +696,7 @@ class _Planner:
             belief.initial_covariance[None], np.array([problem.belief_time]), np.array([lead]), positions
         )
         self.cost_time += time.perf_counter() - start
-        connected, _ = self._connected(problem.start_positions)
+        connected = self._connected(problem.start_positions)
         self.tree.add(
             problem.start_positions, t0, -1, 0.0, prop.target_uncertainty[0], prop.covariance[0],
             tail, connected,
@@ -749,7 +755,7 @@ class _Planner:
                 continue
             costs, covs, uncs, tails = self._evaluate(candidates, [q_new] * len(candidates), cand_times)
             best = int(np.argmin(costs))  # first minimum: v_nearest wins ties (Alg. 2, line 1)
-            connected, _ = self._connected(q_new)
+            connected = self._connected(q_new)
             new = tree.add(
                 q_new, cand_times[best], candidates[best], costs[best], uncs[best], covs[best],
                 tails[best], connected,
@@ -818,7 +824,7 @@ class _Planner:
             return "not synchronised"
         if not tree.t[end, 0] > self.problem.start_times.max():
             return "meeting not after every start"
-        if not self._connected(tree.q[end])[0]:
+        if not self._lambda2(tree.q[end]) > CONNECTIVITY_TOL:
             return "not connected"
         if not tree.unc[end, target] <= params.delta:
             return "uncertainty above delta"
@@ -840,7 +846,7 @@ class _Planner:
         t_f = int(tree.t[end, 0])
         estimate = self.belief.mean(t_f)
         covariance = self.belief.full_covariance(tree.cov[end])
-        _, lam2 = self._connected(tree.q[end])
+        lam2 = self._lambda2(tree.q[end])
         meeting = tree.q[end].copy()
         for arr in (meeting, estimate, covariance):
             arr.setflags(write=False)
