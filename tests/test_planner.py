@@ -25,7 +25,13 @@ from controllers.intermittent.planner import (
     steer,
 )
 from controllers.intermittent.planner_belief import PredictedBelief
-from controllers.intermittent.planner_geometry import lift, segments_blocked
+from controllers.intermittent.planner_geometry import (
+    algebraic_connectivity,
+    is_connected,
+    lift,
+    segments_blocked,
+)
+from controllers.intermittent.planner_kernels import max_eigenvalue_sym3
 from estimation.range_model import covariance_predict, covariance_update
 from estimation.target_motion import CircularPath, LinearPath, TargetMotion
 from sim.geometry import Boxes, segments_free
@@ -241,6 +247,29 @@ def test_line_of_sight_matches_segments_free():
     a = np.column_stack([rng.uniform(0, 6, (400, 2)), np.full(400, Z_S)])
     b = np.column_stack([rng.uniform(0, 6, (400, 2)), rng.uniform(0.5, 2.0, 400)])
     assert np.array_equal(segments_blocked(boxes, a, b), ~segments_free(boxes, a, b, 0.0))
+
+
+def test_max_eigenvalue_matches_eigvalsh_including_repeated_eigenvalues():
+    rng = np.random.default_rng(2)
+    for k in range(3000):
+        basis, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        eigenvalues = rng.uniform(0.0, 1.0, 3) * 10.0 ** rng.uniform(-6, 2)
+        if k % 3 == 0:  # the two largest equal: where a closed-form cubic loses half its digits
+            eigenvalues[1] = eigenvalues.max()
+        elif k % 3 == 1:  # isotropic
+            eigenvalues[:] = eigenvalues[0]
+        c = (basis * eigenvalues) @ basis.T
+        c = 0.5 * (c + c.T)
+        assert abs(max_eigenvalue_sym3(c) - np.linalg.eigvalsh(c)[-1]) <= 1e-14 * np.abs(c).max()
+
+
+def test_reachability_agrees_with_algebraic_connectivity():
+    rng = np.random.default_rng(3)
+    for _ in range(300):
+        n = int(rng.integers(1, 7))
+        upper = np.triu(rng.random((n, n)) < 0.4, k=1)
+        adjacency = upper | upper.T
+        assert is_connected(adjacency) == (algebraic_connectivity(adjacency) > 1e-9)
 
 
 def test_block_and_full_covariance_propagation_agree(problem):
