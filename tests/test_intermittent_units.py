@@ -74,6 +74,19 @@ def test_timed_path_reference_position_and_velocity():
     assert np.allclose(timed.remaining(4.5), [[0.1, 0.0], [0.2, 0.0], [0.2, 0.5]])
 
 
+def test_timed_path_reference_is_the_paths_interpolation_bit_for_bit():
+    # reference() interpolates in plain floats; trajectories stay identical only if it equals np.interp exactly.
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        n = int(rng.integers(2, 6))
+        path = RobotPath(np.cumsum(rng.integers(1, 20, n)), rng.uniform(-5.0, 5.0, (n, 2)))
+        timed = TimedPath(path, step_s=0.5, offset_s=float(rng.uniform(0.0, 3.0)))
+        for t in np.concatenate([rng.uniform(0.0, 0.5 * path.end_time + 3.0, 8), 0.5 * path.times + timed.offset_s]):
+            tau = timed.tau(t)
+            if path.start_time < tau < path.end_time:
+                assert np.array_equal(timed.reference(t)[0], path.position_at(tau))
+
+
 def test_segment_arrival_step_ignores_the_padded_wait():
     path = RobotPath(np.array([0, 5, 9]), np.array([[0.0, 0.0], [0.5, 0.0], [0.5, 0.0]]))
     segment = Segment.of(meeting=None, path=path, step_s=1.0)

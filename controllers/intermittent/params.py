@@ -28,7 +28,9 @@ class IntermittentParams:
     # Teams as lists of robot indices (robot order of the scenario, from 0);
     # every robot in exactly two teams, the graph of teams connected.
     teams: tuple[tuple[int, ...], ...] = ()
-    n_sample: int = 300  # samples of Algorithm 1 per plan, -
+    # Samples of Algorithm 1 per plan of a 2-robot team, -; a team of n > 2 robots draws
+    # n_sample * n / 2 (its joint space has 2n dimensions: see team_samples).
+    n_sample: int = 300
     n_uniform: int = 100  # B: the first B samples are uniform (f1), then f2, -
     delta_m2: float = 0.0144  # goal threshold on lambda_max of a target block, m^2 (paper: 0.12^2)
     step_size_m: float = 1.0  # epsilon of Steer (Alg. 6): longest move of one robot per tree edge, m

@@ -37,39 +37,40 @@ MIN_RANGE_M = 1e-9  # floor of a reading's range when normalising its direction,
 @njit(cache=True)
 def segment_hits_box(a, b, centers, half_sizes, rotations, aligned) -> bool:
     """True when the segment [a, b] (3,) meets a closed box (K boxes:
-    centers (K, 3), half_sizes (K, 3), rotations (K, 3, 3) box -> world, m).
+    centers (K, 3), half_sizes (K, 3), rotations (K, 3, 3) box -> world, m;
+    ``aligned``: every rotation is the identity).
 
     Slab method in each box frame: the segment parameter interval inside each
-    pair of parallel faces, intersected over the three axes and with [0, 1].
+    pair of parallel faces, intersected over the three axes and with [0, 1];
+    a box is left as soon as the interval is empty (most boxes fail on the
+    first axis, which is what makes this cheap).
     """
-    local_a = np.empty(3)
-    local_b = np.empty(3)
     for k in range(centers.shape[0]):
-        for i in range(3):
-            if aligned:
-                local_a[i] = a[i] - centers[k, i]
-                local_b[i] = b[i] - centers[k, i]
-            else:
-                sa = 0.0
-                sb = 0.0
-                for j in range(3):
-                    sa += (a[j] - centers[k, j]) * rotations[k, j, i]
-                    sb += (b[j] - centers[k, j]) * rotations[k, j, i]
-                local_a[i] = sa
-                local_b[i] = sb
         enter = 0.0
         leave = 1.0
         for i in range(3):
-            d = local_b[i] - local_a[i]
+            if aligned:
+                start = a[i] - centers[k, i]
+                d = (b[i] - centers[k, i]) - start
+            else:
+                start = 0.0
+                end = 0.0
+                for j in range(3):
+                    start += (a[j] - centers[k, j]) * rotations[k, j, i]
+                    end += (b[j] - centers[k, j]) * rotations[k, j, i]
+                d = end - start
             half = half_sizes[k, i]
             if d == 0.0:
-                if abs(local_a[i]) > half:
+                if abs(start) > half:
                     enter = math.inf  # parallel to this slab and outside it: no hit
+                    break
             else:
-                t1 = (-half - local_a[i]) / d
-                t2 = (half - local_a[i]) / d
+                t1 = (-half - start) / d
+                t2 = (half - start) / d
                 enter = max(enter, min(t1, t2))
                 leave = min(leave, max(t1, t2))
+                if enter > leave:
+                    break
         if enter <= leave:
             return True
     return False

@@ -24,6 +24,7 @@ Units: m, s; plane positions (x, y) in the world frame; discrete steps are
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -118,6 +119,18 @@ def planner_params(params: IntermittentParams, world: WorldInfo, planning: Plann
         raise as_config_error(err) from None
 
 
+def team_samples(n_sample: int, team_size: int) -> int:
+    """Algorithm 1 samples for a team of ``team_size`` robots: ``n_sample``
+    (the strategy's, for 2 robots) times team_size / 2 for larger teams.
+
+    The joint space of a team of n has 2n dimensions and its goal set
+    (connected and synchronised) is a thin slice of it: at a fixed n_sample
+    a 4-robot team found a goal node in about half the plans; n_sample per
+    robot pair keeps 2-robot (and 1-point formation) plans as they were.
+    """
+    return int(n_sample) * max(int(team_size), 2) // 2
+
+
 def prior_state(params: IntermittentParams, n_targets: int) -> FilterState:
     """x^0 and C(0) = prior_variance I (Sec. IV); the paper's x^0 when not given."""
     if params.prior_mean:
@@ -176,6 +189,12 @@ class TimedPath:
     step_s: float
     offset_s: float = 0.0
 
+    def __post_init__(self) -> None:
+        # Plain-float copies of the waypoints: reference() runs for every robot every tick, and
+        # numpy's per-call overhead on (2,) arrays was nearly all of its cost.
+        self._times = [float(t) for t in self.path.times]
+        self._points = [(float(x), float(y)) for x, y in self.path.positions]
+
     def tau(self, t: float) -> float:
         return (t - self.offset_s) / self.step_s
 
@@ -188,17 +207,22 @@ class TimedPath:
 
     def reference(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Plane position (2,) m and velocity (2,) m/s at sim time ``t``."""
-        path = self.path
+        times = self._times
         tau = self.tau(t)
-        if tau <= path.start_time:
-            return path.positions[0].copy(), np.zeros(2)
-        if tau >= path.end_time:
-            return path.positions[-1].copy(), np.zeros(2)
-        k = int(np.searchsorted(path.times, tau, side="right")) - 1
-        k = min(max(k, 0), len(path.times) - 2)
-        dt = (path.times[k + 1] - path.times[k]) * self.step_s
-        velocity = (path.positions[k + 1] - path.positions[k]) / dt
-        return path.position_at(tau), velocity
+        if tau <= times[0]:
+            return np.array(self._points[0]), np.zeros(2)
+        if tau >= times[-1]:
+            return np.array(self._points[-1]), np.zeros(2)
+        k = bisect.bisect_right(times, tau) - 1  # times[k] <= tau < times[k + 1]
+        (x0, y0), (x1, y1) = self._points[k], self._points[k + 1]
+        dt = (times[k + 1] - times[k]) * self.step_s
+        velocity = np.array(((x1 - x0) / dt, (y1 - y0) / dt))
+        if tau == times[k]:
+            return np.array((x0, y0)), velocity
+        # The arithmetic of np.interp (RobotPath.position_at), so positions are bit-identical.
+        span = times[k + 1] - times[k]
+        offset = tau - times[k]
+        return np.array(((x1 - x0) / span * offset + x0, (y1 - y0) / span * offset + y0)), velocity
 
     def remaining(self, t: float) -> np.ndarray:
         """(K, 2) the reference now and every waypoint still ahead."""

@@ -46,6 +46,7 @@ of this and only designs the segments differently.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from abc import ABC, abstractmethod
@@ -70,6 +71,7 @@ from controllers.intermittent.runtime import (
     planner_params,
     LAG_HOLD_M,
     prior_state,
+    team_samples,
     separated_references,
     shifted,
     team_color,
@@ -233,6 +235,7 @@ class MeetingStrategy(ABC):
         self._time_s = 0.0
         self.held_ticks = 0  # robot-ticks a path clock waited for its lagging body
         self.closest_m = math.inf  # closest approach of two robot bodies over the run, m
+        self._pairs: tuple[np.ndarray, np.ndarray] | None = None  # robot index pairs i < j
         # Footnote 4: the paths to the first meeting of every team, a priori.
         for epoch in range(1, self.schedule.period + 1):
             for team in self.schedule.teams_meeting_at(epoch):
@@ -415,8 +418,10 @@ class MeetingStrategy(ABC):
 
     def _track_closest(self, xy: np.ndarray) -> None:
         if len(xy) > 1:
-            d = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
-            self.closest_m = min(self.closest_m, float(d[np.triu_indices(len(xy), 1)].min()))
+            if self._pairs is None:  # robot pairs i < j, once
+                self._pairs = np.triu_indices(len(xy), 1)
+            i, j = self._pairs
+            self.closest_m = min(self.closest_m, float(np.linalg.norm(xy[i] - xy[j], axis=-1).min()))
 
     # ---------------------------------------------------------------- outputs
     def _refresh_visual(self) -> None:
@@ -514,8 +519,9 @@ class IntermittentStrategy(MeetingStrategy):
         )
         wall = cost = 0.0
         failures = 0
+        planner = dataclasses.replace(self.planner, n_sample=team_samples(self.planner.n_sample, len(members)))
         for _ in range(1 + self.params.max_replans):
-            result = plan_meeting(problem, self.planner, self.rng)
+            result = plan_meeting(problem, planner, self.rng)
             wall += result.wall_time_s
             cost += result.cost_time_s
             if result.success:
