@@ -7,6 +7,8 @@ value), each drawn in its own panel, and ``commands.info['robot_scalars']``
 one panel (e.g. seed 001's Fig. 14d: each robot's role), so a user can look
 instead of reading JSON. Sampled every ``period_s`` of sim time; pages of
 ``PANELS_PER_FIGURE`` panels: ``timeseries.png``, ``timeseries_2.png``, ...
+Drawn by a :class:`Painter` process that imports matplotlib while the run
+goes on, so a run's end waits for the drawing only.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ class PlotRecorder:
         self.robot_series: dict[str, list[tuple[float, np.ndarray]]] = defaultdict(list)
         self._next_time = 0.0
         self.files: list[str] = []
+        self._painter = Painter()
 
     def on_tick(self, frame: Frame) -> None:
         t = frame.observation.time_s
@@ -53,39 +56,106 @@ class PlotRecorder:
         return list(self.series) + [name + PER_ROBOT_SUFFIX for name in self.robot_series]
 
     def close(self, status: str) -> None:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        self.folder.mkdir(parents=True, exist_ok=True)
+        pages = []
         names = self.panels()
         for page, start in enumerate(range(0, len(names), PANELS_PER_FIGURE)):
-            chunk = names[start : start + PANELS_PER_FIGURE]
-            fig, axes = plt.subplots(len(chunk), 1, figsize=(8, 1.9 * len(chunk) + 0.6), sharex=True, squeeze=False)
-            legend = True  # on the first per-robot panel of a page
-            for ax, name in zip(axes[:, 0], chunk):
+            panels = []
+            for name in names[start : start + PANELS_PER_FIGURE]:
                 if name in self.series:
-                    data = np.array(self.series[name])
-                    ax.plot(data[:, 0], data[:, 1], lw=1.2)
+                    panels.append((name, np.array(self.series[name]), None))
                 else:
-                    self._draw_per_robot(ax, self.robot_series[name[: -len(PER_ROBOT_SUFFIX)]], legend)
-                    legend = False
-                ax.set_ylabel(name, fontsize=8)
-                ax.grid(alpha=0.3)
-            axes[-1, 0].set_xlabel("sim time (s)")
-            fig.suptitle(f"run {status}", fontsize=9)
-            fig.tight_layout()
+                    samples = self.robot_series[name[: -len(PER_ROBOT_SUFFIX)]]
+                    panels.append((name, np.array([t for t, _ in samples]), np.array([v for _, v in samples])))
             path = self.folder / ("timeseries.png" if page == 0 else f"timeseries_{page + 1}.png")
-            fig.savefig(path, dpi=110)
-            plt.close(fig)
-            self.files.append(str(path))
+            pages.append((str(path), panels))
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.files += self._painter.draw(pages, f"run {status}", self.robot_names)
 
-    def _draw_per_robot(self, ax, samples: list[tuple[float, np.ndarray]], legend: bool) -> None:
-        times = np.array([t for t, _ in samples])
-        values = np.array([v for _, v in samples])  # (samples, N)
-        for robot in range(values.shape[1]):
-            label = self.robot_names[robot] if self.robot_names is not None else f"robot {robot}"
-            ax.plot(times, values[:, robot], lw=1.0, label=label)
-        if legend and self.robot_names is not None and values.shape[1] <= LEGEND_MAX_ROBOTS:
-            ax.legend(fontsize=6, ncol=min(values.shape[1], 6), loc="upper right")
+
+class Painter:
+    """Draws plot pages in a process of its own, started when the run starts.
+
+    Importing matplotlib costs about a second of CPU, more than drawing a
+    run's pages: the child pays it while the simulation runs, so the end of a
+    run only waits for the drawing. Where no child process can be started
+    (a daemonic pool worker, say) the pages are drawn in this process.
+    """
+
+    def __init__(self):
+        import multiprocessing
+
+        self._conn = self._process = None
+        try:
+            context = multiprocessing.get_context("spawn")
+            self._conn, child = context.Pipe()
+            self._process = context.Process(target=_paint_worker, args=(child,), daemon=True, name="plot-painter")
+            self._process.start()
+            child.close()
+        except (AssertionError, OSError, RuntimeError):  # no child processes here
+            self._conn = self._process = None
+
+    def draw(self, pages, title: str, robot_names) -> list[str]:
+        """Draw ``pages`` [(png path, [(panel title, times or (T, 2) series, None or (T, N) values)])]."""
+        if self._process is not None:
+            try:
+                self._conn.send((pages, title, robot_names))
+                files = self._conn.recv()
+                self._process.join()
+                return files
+            except (EOFError, OSError, BrokenPipeError):  # the child died: draw here instead
+                self._process = None
+        return draw_pages(pages, title, robot_names)
+
+
+def _paint_worker(conn) -> None:
+    _matplotlib()  # the expensive import, while the run goes on
+    try:
+        pages, title, robot_names = conn.recv()
+    except EOFError:  # the run ended without plots
+        return
+    conn.send(draw_pages(pages, title, robot_names))
+
+
+def _matplotlib():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    return Figure
+
+
+def draw_pages(pages, title: str, robot_names) -> list[str]:
+    """Write one PNG per page; returns the paths. A panel is (title, data,
+    values): data (T, 2) [time, value] for a series, or times (T,) with
+    values (T, N) for a per-robot series."""
+    figure_class = _matplotlib()
+    files = []
+    for path, panels in pages:
+        height = 1.9 * len(panels) + 0.6
+        # The Figure API (no pyplot state) and fixed margins: tight_layout took a fifth of the drawing.
+        fig = figure_class(figsize=(8, height))
+        axes = fig.subplots(len(panels), 1, sharex=True, squeeze=False)
+        fig.subplots_adjust(left=0.11, right=0.98, top=1.0 - 0.35 / height, bottom=0.45 / height, hspace=0.12)
+        legend = True  # on the first per-robot panel of a page
+        for ax, (name, data, values) in zip(axes[:, 0], panels):
+            if values is None:
+                ax.plot(data[:, 0], data[:, 1], lw=1.2)
+            else:
+                _draw_per_robot(ax, data, values, robot_names, legend)
+                legend = False
+            ax.set_ylabel(name, fontsize=8)
+            ax.grid(alpha=0.3)
+        axes[-1, 0].set_xlabel("sim time (s)")
+        fig.suptitle(title, fontsize=9)
+        fig.savefig(path, dpi=110, pil_kwargs={"compress_level": 1})  # zlib level 6 took an eighth of the drawing
+        files.append(path)
+    return files
+
+
+def _draw_per_robot(ax, times: np.ndarray, values: np.ndarray, robot_names, legend: bool) -> None:
+    for robot in range(values.shape[1]):
+        label = robot_names[robot] if robot_names is not None else f"robot {robot}"
+        ax.plot(times, values[:, robot], lw=1.0, label=label)
+    if legend and robot_names is not None and values.shape[1] <= LEGEND_MAX_ROBOTS:
+        ax.legend(fontsize=6, ncol=min(values.shape[1], 6), loc="upper right")
