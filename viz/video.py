@@ -1,8 +1,10 @@
 """Offscreen video through MuJoCo's renderer (EGL), streamed to ffmpeg.
 
 An observer: it reads ``MjData`` and the tick's frame, never writes to the
-simulation. Frames are taken at the video fps in sim time and written one by
-one to the encoder (an ffmpeg process fed through a pipe), so memory does not
+simulation. Frames are taken at the video fps in sim time; a renderer
+process draws them and writes them one by one to the encoder (an ffmpeg
+process fed through a pipe), so the simulation does not wait for rendering
+or encoding (beyond a bounded queue's back-pressure) and memory does not
 grow with the video's length.
 Communication links are drawn as capsules between robots; robot references
 (virtual points) as small spheres. :class:`FrameRenderer` draws one frame
@@ -16,6 +18,10 @@ any other camera the scene names; ``free``; ``auto`` is ``top``.
 """
 
 from __future__ import annotations
+
+import pickle
+import queue
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
@@ -193,37 +199,153 @@ class FrameRenderer:
         self.renderer.close()
 
 
+@dataclass(frozen=True)
+class _LinksView:
+    edges: list  # (i, j) robot index pairs with a link
+
+
+@dataclass(frozen=True)
+class _ObservationView:
+    position: np.ndarray  # (N, 3) robot positions, m, world frame
+    time_s: float  # sim time, s
+    links: _LinksView
+
+
+@dataclass(frozen=True)
+class _CommandsView:
+    position: np.ndarray  # (N, 3) references (virtual points), m
+    info: dict  # the strategy's decorations (paths, meeting points, overlay, ...)
+
+
+@dataclass(frozen=True)
+class FrameView:
+    """What :meth:`FrameRenderer.render` reads of a tick's Frame, picklable."""
+
+    observation: _ObservationView
+    commands: _CommandsView
+
+    @staticmethod
+    def of(frame: Frame) -> "FrameView":
+        obs, cmd = frame.observation, frame.commands
+        return FrameView(
+            _ObservationView(np.array(obs.position), float(obs.time_s), _LinksView(list(obs.links.edges))),
+            _CommandsView(np.array(cmd.position), dict(cmd.info)),
+        )
+
+
+VIDEO_QUEUE_FRAMES = 32  # states waiting for the renderer process before the simulation waits, -
+WORKER_POLL_S = 1.0  # how often a blocked simulation checks that the renderer is still alive, s
+
+
 class VideoRecorder:
     """Observer writing ``video.mp4`` at ``config.fps`` frames per second of
     sim time: frame k shows the state of the tick at or just before k / fps
     (a tick's image is repeated when the fps exceeds the control rate), so a
     run of T s gives ceil(T * fps) frames and the video lasts as long as the
-    run at any fps. Each image goes to the encoder as soon as it is rendered."""
+    run at any fps.
+
+    Rendering (software EGL, ~30 ms a 640x480 frame) and encoding run in a
+    renderer process of their own (start method 'spawn': a fresh process
+    owns its GL context). The simulation only copies the state of a tick
+    whose frame is due (qpos, qvel, act, mocap poses) and what the frame's
+    decorations read (:class:`FrameView`) into a bounded queue of
+    ``VIDEO_QUEUE_FRAMES`` states; the renderer recomputes the kinematics
+    (``mj_forward``) and draws. Every frame is written: when rendering is
+    slower than the simulation, the queue fills and the simulation waits for
+    a free slot (back-pressure; memory stays bounded), so a run then goes at
+    the renderer's pace, with the simulation's own work done in parallel.
+    ``close`` waits until the last frame is encoded.
+    """
 
     def __init__(self, world: World, config: VideoConfig, path: str, control_period_s: float):
-        import imageio.v2 as imageio
+        import multiprocessing
 
+        resolve_camera(world.model, config.camera)  # refuse an unknown camera here, not in the renderer
         self.world = world
         self.config = config
         self.path = path
         self.control_period_s = control_period_s
-        self.view = FrameRenderer(world, config)
-        self.writer = imageio.get_writer(
-            path, fps=config.fps, codec="libx264", quality=7, macro_block_size=1,
-            ffmpeg_log_level="error", output_params=["-pix_fmt", "yuv420p"],
+        self.frames_written = 0  # frames handed to the renderer (all of them are written by close)
+        context = multiprocessing.get_context("spawn")
+        self._queue = context.Queue(maxsize=VIDEO_QUEUE_FRAMES)
+        self._result, child = context.Pipe(duplex=False)
+        self._process = context.Process(
+            target=_render_worker, args=(pickle.dumps(world), config, path, self._queue, child),
+            daemon=True, name="video-renderer",
         )
-        self.frames_written = 0
+        self._process.start()
+        child.close()
 
     def on_tick(self, frame: Frame) -> None:
         # This tick's state stands for [t, t + control period): the frames due in that interval.
         until = frame.observation.time_s + self.control_period_s - 1e-9
-        image = None
-        while self.frames_written / self.config.fps < until:
-            if image is None:
-                image = self.view.render(frame)
-            self.writer.append_data(image)
-            self.frames_written += 1
+        repeats = 0
+        while (self.frames_written + repeats) / self.config.fps < until:
+            repeats += 1
+        if repeats:
+            data = self.world.data
+            state = (data.qpos, data.qvel, data.act, data.mocap_pos, data.mocap_quat)
+            # Pickled now, not by the queue's feeder thread later: the strategy may reuse its arrays.
+            self._put(pickle.dumps((state, FrameView.of(frame), repeats), protocol=pickle.HIGHEST_PROTOCOL))
+            self.frames_written += repeats
+
+    def _put(self, item) -> None:
+        while True:
+            try:
+                self._queue.put(item, timeout=WORKER_POLL_S)
+                return
+            except queue.Full:  # back-pressure: the renderer is behind
+                if not self._process.is_alive():
+                    raise RuntimeError(f"video renderer stopped: {self._worker_result()}") from None
+
+    def _worker_result(self):
+        """The renderer's report: frames written (int) or an error's text; blocks until it comes."""
+        try:
+            return self._result.recv()
+        except EOFError:
+            self._process.join()
+            return f"no report (exit code {self._process.exitcode})"
 
     def close(self, status: str) -> None:
-        self.writer.close()
-        self.view.close()
+        if self._process.is_alive():
+            self._put(None)  # end of the video
+        result = self._worker_result()  # after the last frame is encoded
+        self._process.join()
+        if not isinstance(result, int):
+            raise RuntimeError(f"video renderer failed: {result}")
+        if result != self.frames_written:
+            raise RuntimeError(f"video renderer wrote {result} frames of {self.frames_written}")
+
+
+def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, result) -> None:
+    """The renderer process: draw and encode every state from ``states`` until
+    None; send the number of frames written (or the error's text) on ``result``."""
+    import traceback
+
+    written = 0
+    try:
+        import imageio.v2 as imageio
+
+        world = pickle.loads(world_pickle)
+        model, data = world.model, world.data
+        view = FrameRenderer(world, config)
+        writer = imageio.get_writer(
+            path, fps=config.fps, codec="libx264", quality=7, macro_block_size=1,
+            ffmpeg_log_level="error", output_params=["-pix_fmt", "yuv420p"],
+        )
+        try:
+            while (item := states.get()) is not None:
+                (qpos, qvel, act, mocap_pos, mocap_quat), frame, repeats = pickle.loads(item)
+                data.qpos[:], data.qvel[:], data.act[:] = qpos, qvel, act
+                data.mocap_pos[:], data.mocap_quat[:] = mocap_pos, mocap_quat
+                mujoco.mj_forward(model, data)
+                image = view.render(frame)
+                for _ in range(repeats):
+                    writer.append_data(image)
+                    written += 1
+        finally:
+            writer.close()
+            view.close()
+        result.send(written)
+    except BaseException:  # noqa: BLE001 - the parent raises it with this text
+        result.send(traceback.format_exc())
