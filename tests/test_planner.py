@@ -27,6 +27,7 @@ from controllers.intermittent.planner import (
 from controllers.intermittent.planner_belief import PredictedBelief
 from controllers.intermittent.planner_geometry import (
     algebraic_connectivity,
+    edges_free,
     is_connected,
     lift,
     segments_blocked,
@@ -247,6 +248,16 @@ def test_line_of_sight_matches_segments_free():
     a = np.column_stack([rng.uniform(0, 6, (400, 2)), np.full(400, Z_S)])
     b = np.column_stack([rng.uniform(0, 6, (400, 2)), rng.uniform(0.5, 2.0, 400)])
     assert np.array_equal(segments_blocked(boxes, a, b), ~segments_free(boxes, a, b, 0.0))
+
+
+def test_collision_free_certificate_gives_the_exact_answer():
+    rng = np.random.default_rng(5)
+    boxes = boxes_of(ROOM_WALLS + CELL_WALLS)
+    a = rng.uniform(0, 6, (600, 2))
+    b = a + rng.uniform(-1.0, 1.0, (600, 2))
+    exact = segments_free(boxes, lift(a, Z_S), lift(b, Z_S), RADIUS)
+    assert 0 < exact.sum() < len(exact)
+    assert np.array_equal(edges_free(boxes, a, b, Z_S, RADIUS), exact)
 
 
 def test_max_eigenvalue_matches_eigvalsh_including_repeated_eigenvalues():

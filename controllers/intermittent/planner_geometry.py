@@ -9,8 +9,9 @@ tested against the 3D obstacle boxes. Distances in metres, world frame.
 - :func:`points_free` - sample validity: inside the workspace bounds shrunk by
   the robot radius and farther than the radius from every box.
 - :func:`edges_free` - CollisionFree of Algorithm 1 for straight robot moves:
-  a bounding-sphere certificate first, the exact
-  :func:`sim.geometry.segments_free` for the rest (same answer, fewer calls).
+  a certificate from the clearances of the endpoints and the midpoint first,
+  the exact :func:`sim.geometry.segments_free` for the rest (same answer,
+  fewer calls).
 - :func:`segments_blocked` - exact line-of-sight test (slab method) used for
   the many predicted range readings; equal to ``~segments_free(..., 0)`` up to
   segments that graze a box face, which both treat as blocked.
@@ -60,10 +61,13 @@ def edges_free(boxes: Boxes, a: np.ndarray, b: np.ndarray, z: float, margin: flo
     """Boolean (P,): the straight moves a_p -> b_p (plane, (P, 2)) keep more
     than ``margin`` from every box.
 
-    Every point of a segment lies within half its length of the midpoint, so a
-    midpoint clearance above ``margin + half length`` certifies the segment;
-    the others go to the exact :func:`sim.geometry.segments_free`. Workspace
-    bounds are not checked here: they are convex, so endpoints inside suffice.
+    A point closer than c - margin to a point of clearance c keeps more than
+    ``margin``: the balls of radius c - margin around the two endpoints and
+    the midpoint certify the segment when they cover it (each half covered
+    when its two radii sum to more than half the length); the others go to
+    the exact :func:`sim.geometry.segments_free` (same answer, fewer calls).
+    Workspace bounds are not checked here: they are convex, so endpoints
+    inside suffice.
     """
     a3 = lift(np.atleast_2d(a), z)
     b3 = lift(np.atleast_2d(b), z)
@@ -72,7 +76,10 @@ def edges_free(boxes: Boxes, a: np.ndarray, b: np.ndarray, z: float, margin: flo
         return np.ones(n, dtype=bool)
     mid = 0.5 * (a3 + b3)
     half = 0.5 * np.linalg.norm(b3 - a3, axis=1)
-    free = point_clearance(boxes, mid) > margin + half
+    radius = point_clearance(boxes, np.concatenate([a3, mid, b3])).reshape(3, n) - margin
+    r_a, r_mid, r_b = radius
+    free = (r_mid > half) | ((np.minimum(r_a, r_mid) > 0) & (np.minimum(r_b, r_mid) > 0)
+                            & (r_a + r_mid > half) & (r_b + r_mid > half))
     rest = ~free
     if rest.any():
         free[rest] = segments_free(boxes, a3[rest], b3[rest], margin)
