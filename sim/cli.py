@@ -59,7 +59,7 @@ def _parser() -> argparse.ArgumentParser:
                                        "finished trial is stored at once in DIR/trials/ (see docs/sweeps.md). "
                                        "Rerun the same command to resume.")
     sweep.add_argument("sweep", help="built-in sweep name (see 'tether sweeps') or a TOML file")
-    sweep.add_argument("--out", required=True, metavar="DIR", help="results folder (one sweep per folder)")
+    sweep.add_argument("--out", default=None, metavar="DIR", help="results folder (one sweep per folder; required)")
     sweep.add_argument("--workers", default=None, metavar="N",
                        help="processes of the local pool (default: the machine's cores)")
     sweep.add_argument("--ray", default=None, metavar="auto|ADDRESS",
@@ -253,6 +253,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
                 swept = ", ".join(f"{k}={v}" for k, v in trial.swept)
                 print(f"{trial.index:5d}  {trial.trial_id}  seed {trial.seed}  {swept}")
             return 0
+        if args.out is None:
+            raise ConfigError("--out", "is required: the folder the results go to")
         if args.ray is not None and args.workers is not None:
             raise ConfigError("--workers", "sizes the local pool; with --ray the cluster decides")
         workers = int(_number(args.workers, "--workers", int, minimum=1)) if args.workers else os.cpu_count() or 1

@@ -311,8 +311,12 @@ def run_trial(trial: Trial, recordings: str | None = None) -> dict:
     row["wall_time_s"] = time.perf_counter() - start
     row["host"] = socket.gethostname()
     row["finished_at"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    # The run's own wall time (world build + loop) beside the trial's (also loading and imports);
+    # the other metrics that repeat a row key (scenario name, seed, status, message) are left out.
+    if "wall_time_s" in metrics:
+        row["run_wall_time_s"] = metrics["wall_time_s"]
     for key, value in metrics.items():
-        if key not in row and key not in ("message",):
+        if key not in row and key != "message":
             row[key] = _column_value(value)
     return row
 

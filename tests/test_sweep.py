@@ -22,7 +22,7 @@ from sim.cli import main
 from sim.sweep import ResultsFolder, load_sweep, read_results
 
 # Columns that differ between two runs of the same trial: when and where it ran, how long it took.
-WALL_CLOCK_COLUMNS = {"wall_time_s", "host", "finished_at", "real_time_factor", "timing"}
+WALL_CLOCK_COLUMNS = {"wall_time_s", "run_wall_time_s", "host", "finished_at", "real_time_factor", "timing"}
 
 # A robot start outside the scene passes the scenario loader (and so the
 # sweep's validation) but makes the world build raise: a trial that raises.
