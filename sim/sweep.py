@@ -40,10 +40,13 @@ import hashlib
 import json
 import math
 import os
+import signal
 import socket
+import subprocess
 import sys
 import time
 import tomllib
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from itertools import product
@@ -209,6 +212,9 @@ def load_sweep(name_or_path: str, video: Iterable[str] = (), rrd: Iterable[str] 
     if twice:
         raise ConfigError(twice[0], "is swept twice (in [grid] and a [[zip]], or in two groups)")
 
+    record = table.get("record", {})
+    if not isinstance(record, dict):
+        raise ConfigError("record", "must be a table: video = [trials], rrd = [trials]")
     chosen = {"video": {str(v) for v in (*table.get("record", {}).get("video", []), *video)},
               "rrd": {str(v) for v in (*table.get("record", {}).get("rrd", []), *rrd)}}
     unknown = sorted(set(table.get("record", {})) - {"video", "rrd"})
@@ -590,6 +596,47 @@ def _probe_ray_address(address: str) -> None:
         socket.create_connection((host, int(port)), timeout=3).close()
     except OSError as err:
         raise ConfigError("--ray", f"cannot reach Ray at {host}:{port}: {err.strerror or err}") from None
+
+
+@contextmanager
+def local_ray_cluster(num_cpus: int, temp_dir: str | Path | None = None, timeout_s: float = 120.0):
+    """A throwaway single-node Ray cluster (tests, benchmarks): yields its
+    address. ``ray start --block`` in its own process group, so stopping it
+    ends this cluster's processes only (``ray stop`` would end every Ray
+    process of the user on the machine)."""
+    ray_bin = Path(sys.executable).parent / "ray"
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    command = [str(ray_bin), "start", "--head", "--block", f"--port={port}", f"--num-cpus={num_cpus}",
+               "--include-dashboard=false", "--disable-usage-stats"]
+    if temp_dir is not None:
+        command.append(f"--temp-dir={temp_dir}")
+    head = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            if head.poll() is not None:
+                raise RuntimeError(f"ray start exited with {head.returncode}")
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"Ray did not listen on port {port} within {timeout_s:.0f} s") from None
+                time.sleep(0.2)
+        yield f"127.0.0.1:{port}"
+    finally:
+        for sig, wait_s in ((signal.SIGTERM, 30), (signal.SIGKILL, 10)):
+            try:
+                os.killpg(head.pid, sig)
+            except ProcessLookupError:
+                break
+            try:
+                head.wait(timeout=wait_s)
+                break
+            except subprocess.TimeoutExpired:
+                continue
 
 
 # ---------------------------------------------------------------- the driver

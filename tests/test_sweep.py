@@ -19,7 +19,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from sim.cli import main
-from sim.sweep import ResultsFolder, load_sweep, read_results
+from sim.sweep import ResultsFolder, load_sweep, local_ray_cluster, read_results
 
 # Columns that differ between two runs of the same trial: when and where it ran, how long it took.
 WALL_CLOCK_COLUMNS = {"wall_time_s", "run_wall_time_s", "host", "finished_at", "real_time_factor", "timing"}
@@ -53,7 +53,7 @@ def folder_state(folder: Path) -> dict[str, bytes]:
 
 def test_pool_sweep_runs_to_the_end_and_a_rerun_skips_every_trial(tiny, tmp_path, capsys):
     out = tmp_path / "out"
-    assert main(["sweep", str(tiny), "--out", str(out), "--workers", "2"]) == 0
+    assert main(["sweep", str(tiny), "--out", str(out), "--workers", "2", "--rrd", "1"]) == 0
     summary = capsys.readouterr().out
     assert "4 completed, 0 failed, 0 not run of 4" in summary and str(out / "results.parquet") in summary
 
@@ -66,6 +66,10 @@ def test_pool_sweep_runs_to_the_end_and_a_rerun_skips_every_trial(tiny, tmp_path
         assert row["scenario"] == "hover" and row["error"] == "" and row["attempt"] == 1
         assert row["sim_time_s"] == pytest.approx(0.3) and row["wall_time_s"] > 0 and row["host"]
         assert "tracking_error_max_m" in row
+    # Only the chosen trial was recorded; the others ran headless.
+    recorded = rows[1]["trial_id"]
+    assert [p.name for p in (out / "recordings").iterdir()] == [recorded]
+    assert (out / "recordings" / recorded / "run.rrd").stat().st_size > 0
     # The per-trial files are one Parquet dataset too.
     assert pq.ParquetDataset(out / "trials").read().num_rows == 4
 
@@ -138,16 +142,8 @@ def _free_port() -> int:
 def ray_address(tmp_path_factory):
     """One local single-node Ray instance for the module (starting one takes seconds)."""
     pytest.importorskip("ray")
-    ray_bin = Path(sys.executable).parent / "ray"
-    port = _free_port()
-    temp = tmp_path_factory.mktemp("ray")
-    start = subprocess.run([str(ray_bin), "start", "--head", f"--port={port}", "--num-cpus=2",
-                            "--include-dashboard=false", "--disable-usage-stats", f"--temp-dir={temp}"],
-                           capture_output=True, text=True, timeout=180)
-    assert start.returncode == 0, start.stderr[-2000:]
-    yield f"127.0.0.1:{port}"
-    subprocess.run([str(ray_bin), "stop", "--force"], capture_output=True, timeout=120,
-                   env={**os.environ, "RAY_ADDRESS": f"127.0.0.1:{port}"})
+    with local_ray_cluster(num_cpus=2, temp_dir=tmp_path_factory.mktemp("ray")) as address:
+        yield address
 
 
 def test_ray_sweep_gives_the_pool_table(tiny, tmp_path, ray_address):
