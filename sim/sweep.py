@@ -86,8 +86,10 @@ class Trial:
     @property
     def trial_id(self) -> str:
         """Hash of what decides the result (not the index, not what is recorded)."""
+        # Sorted: no two overrides set the same key (load_sweep refuses it), so their order
+        # does not change the result, and a sweep file with its keys reordered keeps its ids.
         identity = {"scenario": self.scenario, "seed": self.seed, "duration_s": self.duration_s,
-                    "overrides": list(self.overrides)}
+                    "overrides": sorted(self.overrides)}
         return hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -215,23 +217,38 @@ def load_sweep(name_or_path: str, video: Iterable[str] = (), rrd: Iterable[str] 
     record = table.get("record", {})
     if not isinstance(record, dict):
         raise ConfigError("record", "must be a table: video = [trials], rrd = [trials]")
-    chosen = {"video": {str(v) for v in (*table.get("record", {}).get("video", []), *video)},
-              "rrd": {str(v) for v in (*table.get("record", {}).get("rrd", []), *rrd)}}
-    unknown = sorted(set(table.get("record", {})) - {"video", "rrd"})
+    unknown = sorted(set(record) - {"video", "rrd"})
     if unknown:
         raise ConfigError(f"record.{unknown[0]}", "unknown key (known: video, rrd)")
+    for kind in record:
+        if not isinstance(record[kind], list):
+            raise ConfigError(f"record.{kind}", f"must be a list of trial indices or ids, got {record[kind]!r}")
+    chosen = {"video": {str(v) for v in (*record.get("video", []), *video)},
+              "rrd": {str(v) for v in (*record.get("rrd", []), *rrd)}}
+    fixed_keys = [assignment.partition("=")[0].strip() for assignment in fixed]
+    both = sorted(set(fixed_keys) & set(keys)) or sorted({k for k in fixed_keys if fixed_keys.count(k) > 1})
+    if both:
+        raise ConfigError(both[0], "is set twice (in set = [...] and swept, or twice in set)")
+    if "seed" in keys:
+        raise ConfigError("seed", "is swept by the top-level seeds = [...], not in [grid] or [[zip]]")
+    if "duration_s" in keys and duration is not None:
+        raise ConfigError("duration_s", "is both swept and set at the top level")
 
     trials = []
     for seed, *choices in product(seeds, *groups):
         swept = tuple(pair for choice in choices for pair in choice)
-        scenario = base
+        scenario, trial_duration = base, duration
         overrides = list(fixed)
         for key, value in swept:
             if key == "scenario":
                 scenario = _base_scenario(value, path, "grid.scenario")
+            elif key == "duration_s":
+                if isinstance(value, bool) or not isinstance(value, (int, float)):
+                    raise ConfigError("grid.duration_s", f"must be numbers of seconds, got {value!r}")
+                trial_duration = value
             else:
                 overrides.append(f"{key}={toml_value(value)}")
-        trials.append(Trial(len(trials), scenario, seed, None if duration is None else float(duration),
+        trials.append(Trial(len(trials), scenario, seed, None if trial_duration is None else float(trial_duration),
                             tuple(overrides), swept))
     if not trials:
         raise ConfigError("grid", "expands to no trials")
@@ -244,9 +261,9 @@ def load_sweep(name_or_path: str, video: Iterable[str] = (), rrd: Iterable[str] 
         seen[trial.trial_id] = trial
         # The seed cannot make a scenario invalid (checked non-negative above), so trials that
         # differ only by seed are validated once: 18 loads instead of 1,800 for fig9.
-        if (trial.scenario, trial.overrides) in validated:
+        if (trial.scenario, trial.overrides, trial.duration_s) in validated:
             continue
-        validated.add((trial.scenario, trial.overrides))
+        validated.add((trial.scenario, trial.overrides, trial.duration_s))
         try:
             load(trial.scenario, list(trial.overrides), seed=trial.seed, duration_s=trial.duration_s)
         except ConfigError as err:

@@ -51,6 +51,21 @@ def folder_state(folder: Path) -> dict[str, bytes]:
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
+def test_grid_and_zip_expand_into_trials_with_stable_ids(tmp_path):
+    sweep = write_sweep(tmp_path, "expand", 'duration_s = 0.3\nseeds = [4, 7]\n[grid]\n"sensing.comm_range_m" = [2.0, 3.0]\n'
+                                            '[[zip]]\n"strategy.speed_mps" = [0.3, 0.5]\n"strategy.dwell_s" = [0.5, 1.0]\n')
+    trials = load_sweep(str(sweep)).trials
+    assert len(trials) == 2 * 2 * 2
+    pairs = {(dict(t.swept)["strategy.speed_mps"], dict(t.swept)["strategy.dwell_s"]) for t in trials}
+    assert pairs == {(0.3, 0.5), (0.5, 1.0)}  # tied keys vary together
+    assert {t.seed for t in trials} == {4, 7} and len({t.trial_id for t in trials}) == 8
+    # An id depends on what decides the result, not on the file or the trial's place in it.
+    reordered = write_sweep(tmp_path, "reordered", 'duration_s = 0.3\nseeds = [7]\n[grid]\n"strategy.dwell_s" = [1.0]\n'
+                                                  '"strategy.speed_mps" = [0.5]\n"sensing.comm_range_m" = [3.0]\n')
+    (only,) = load_sweep(str(reordered)).trials
+    assert only.trial_id in {t.trial_id for t in trials}
+
+
 def test_pool_sweep_runs_to_the_end_and_a_rerun_skips_every_trial(tiny, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["sweep", str(tiny), "--out", str(out), "--workers", "2", "--rrd", "1"]) == 0
