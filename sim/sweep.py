@@ -644,16 +644,18 @@ def local_ray_cluster(num_cpus: int, temp_dir: str | Path | None = None, timeout
                 time.sleep(0.2)
         yield f"127.0.0.1:{port}"
     finally:
-        for sig, wait_s in ((signal.SIGTERM, 30), (signal.SIGKILL, 10)):
-            try:
-                os.killpg(head.pid, sig)
-            except ProcessLookupError:
-                break
-            try:
-                head.wait(timeout=wait_s)
-                break
-            except subprocess.TimeoutExpired:
-                continue
+        # SIGTERM lets `ray start --block` end its processes; whatever is left after a
+        # short grace goes with SIGKILL to the group.
+        try:
+            os.killpg(head.pid, signal.SIGTERM)
+            head.wait(timeout=5)
+        except (ProcessLookupError, subprocess.TimeoutExpired):
+            pass
+        try:
+            os.killpg(head.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        head.wait()
 
 
 # ---------------------------------------------------------------- the driver
