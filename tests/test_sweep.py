@@ -51,6 +51,20 @@ def folder_state(folder: Path) -> dict[str, bytes]:
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
+def test_builtin_sweeps_are_listed_and_expand_to_their_trial_counts(capsys):
+    assert main(["sweeps"]) == 0
+    listed = [line.split()[0] for line in capsys.readouterr().out.splitlines()]
+    expected = {"fig9-small": 180, "fig9": 1800, "table1": 60, "teams": 20}
+    assert sorted(listed) == sorted(expected)
+    for name, count in expected.items():
+        sweep = load_sweep(name)  # validates every trial
+        assert len(sweep.trials) == count
+    fig9_small = load_sweep("fig9-small").trials
+    assert {t.scenario for t in fig9_small} == {"connected-office", "connected-empty", "connected-town"}
+    assert sorted({dict(t.swept)["robots.0.count"] for t in fig9_small}) == [10, 15, 20, 25, 30, 35]
+    assert len({t.seed for t in fig9_small}) == 10
+
+
 def test_grid_and_zip_expand_into_trials_with_stable_ids(tmp_path):
     sweep = write_sweep(tmp_path, "expand", 'duration_s = 0.3\nseeds = [4, 7]\n[grid]\n"sensing.comm_range_m" = [2.0, 3.0]\n'
                                             '[[zip]]\n"strategy.speed_mps" = [0.3, 0.5]\n"strategy.dwell_s" = [0.5, 1.0]\n')
