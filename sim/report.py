@@ -361,11 +361,6 @@ def teams_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
 
 def generic_section(rows: list[dict], out: Path, x: str, y: str, hue: str | None) -> tuple[list[str], list[Path]]:
     """Any metric against any column: median and 25-75 % band per x, one line per hue value."""
-    columns = set().union(*(r.keys() for r in rows)) if rows else set()
-    for flag, key in (("--x", x), ("--y", y), ("--hue", hue)):
-        if key is not None and key not in columns:
-            known = ", ".join(sorted(c for c in columns if not c.startswith("_")))
-            raise ConfigError(flag, f"no column {key!r} in the table (columns: {known})")
     done = [r for r in rows if r.get("status") == "completed" and _number(r.get(y)) is not None]
     groups: dict = defaultdict(lambda: defaultdict(list))
     for r in done:
@@ -419,6 +414,9 @@ def write_report(results: str | Path, out: str | Path | None = None, x: str | No
     if table is None:
         raise ConfigError("DIR", f"{source}: no results (no trials/*.parquet or results.parquet)")
     rows = table.to_pylist()
+    for flag, key in (("--x", x), ("--y", y), ("--hue", hue)):  # before anything is written
+        if key is not None and key not in table.column_names:
+            raise ConfigError(flag, f"no column {key!r} in the table (columns: {', '.join(sorted(table.column_names))})")
     manifest = None
     if (source / MANIFEST_FILE).is_file():
         try:
