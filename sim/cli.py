@@ -29,7 +29,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--rrd", action="store_true", help="write run.rrd (Rerun recording)")
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override a scenario value, e.g. --set strategy.speed_mps=0.3 (repeatable)")
-    run.add_argument("--quiet", action="store_true", help="print only the summary line")
+    run.add_argument("--quiet", action="store_true", help="print only the summary line (no progress, no file list)")
     _video_arguments(run, implies_video=True)
     run.add_argument("--rerun-live", action="store_true",
                      help="also stream to Rerun viewers while running (gRPC server and web viewer on 127.0.0.1; "
@@ -125,10 +125,6 @@ def _fail(message: str) -> int:
     return 2
 
 
-def _progress(fraction: float) -> None:
-    print(f"\r  {100 * fraction:5.1f} %", end="", file=sys.stderr, flush=True)
-
-
 def cmd_run(args: argparse.Namespace) -> int:
     from sim.scenario import load
 
@@ -156,23 +152,28 @@ def cmd_run(args: argparse.Namespace) -> int:
         live = LiveViewer(grpc_port=grpc_port, web_port=web_port)
         print(f"live Rerun web viewer: {live.web_url}", flush=True)
         print(f"live Rerun gRPC stream: {live.grpc_url}  (native viewer: rerun {live.grpc_url})", flush=True)
+    from sim.progress import RunProgress
+
+    progress = None if args.quiet else RunProgress(scenario.duration_s)
     try:
         result = run(scenario, out, video=args.video or bool(video_overrides), rrd=args.rrd or args.rerun_live,
-                     live=live.stream if live else None, progress=None if args.quiet else _progress)
+                     live=live.stream if live else None, progress=progress)
     except ConfigError as err:
+        if progress:
+            progress.close()
         if live:
             live.close()
         return _fail(str(err))
-    if not args.quiet:
-        print(file=sys.stderr)
+    if progress:
+        progress.close(result.metrics)
     m = result.metrics
     print(f"{m['status']}: {m['scenario']} ({m['strategy']}), seed {m['seed']}, "
           f"{m['sim_time_s']:.1f} s simulated in {m['wall_time_s']:.1f} s (x{m['real_time_factor']:.2f} real time)")
     if m.get("message"):
         print(f"  {m['message']}")
-    for name, path in result.files.items():
+    for name, path in ({} if args.quiet else result.files).items():
         print(f"  {name:10s} {path}")
-    if "recording" in result.files:
+    if "recording" in result.files and not args.quiet:
         viewer = Path(sys.executable).parent / "rerun"
         command = str(viewer) if viewer.exists() else "rerun"
         print(f"  open the recording with: {command} {result.files['recording']}")
