@@ -4,8 +4,10 @@ Every run plots the foundation's series (tracking error, communication-graph
 edges); strategies add theirs through ``commands.info['scalars']`` (name ->
 value), each drawn in its own panel, and ``commands.info['robot_scalars']``
 (name -> (N,) values, NaN where undefined), drawn as one line per robot in
-one panel (e.g. seed 001's Fig. 14d: each robot's role), so a user can look
-instead of reading JSON. Sampled every ``period_s`` of sim time; pages of
+one panel (e.g. seed 001's Fig. 14d: each robot's role; codes named on the
+axis from ``commands.info['robot_scalar_levels']``), so a user can look
+instead of reading JSON. NaN (undefined, e.g. t*(t) before the first
+agreement) is a gap, never a value. Sampled every ``period_s`` of sim time; pages of
 ``PANELS_PER_FIGURE`` panels: ``timeseries.png``, ``timeseries_2.png``, ...
 """
 
@@ -34,6 +36,7 @@ class PlotRecorder:
         self.robot_series: dict[str, list[tuple[float, np.ndarray]]] = defaultdict(list)
         self._next_time = 0.0
         self.files: list[str] = []
+        self.levels: dict[str, dict[float, str]] = {}  # coded per-robot series: value -> label
 
     def on_tick(self, frame: Frame) -> None:
         t = frame.observation.time_s
@@ -47,6 +50,8 @@ class PlotRecorder:
             self.series[name].append((t, float(value)))
         for name, values in frame.commands.info.get("robot_scalars", {}).items():
             self.robot_series[name].append((t, np.array(values, dtype=float)))
+        for name, levels in frame.commands.info.get("robot_scalar_levels", {}).items():
+            self.levels[name] = levels
 
     def panels(self) -> list[str]:
         """Panel titles in drawing order: the series, then the per-robot series."""
@@ -69,8 +74,13 @@ class PlotRecorder:
                     data = np.array(self.series[name])
                     ax.plot(data[:, 0], data[:, 1], lw=1.2)
                 else:
-                    self._draw_per_robot(ax, self.robot_series[name[: -len(PER_ROBOT_SUFFIX)]], legend)
+                    series = name[: -len(PER_ROBOT_SUFFIX)]
+                    self._draw_per_robot(ax, self.robot_series[series], legend)
                     legend = False
+                    if series in self.levels:  # codes (e.g. roles): name each level on the axis
+                        levels = sorted(self.levels[series].items())
+                        ax.set_yticks([v for v, _ in levels], [label for _, label in levels], fontsize=7)
+                        ax.set_ylim(levels[0][0] - 0.5, levels[-1][0] + 0.5)
                 ax.set_ylabel(name, fontsize=8)
                 ax.grid(alpha=0.3)
             axes[-1, 0].set_xlabel("sim time (s)")
