@@ -52,6 +52,15 @@ def _parser() -> argparse.ArgumentParser:
                       help="where 'save as scenario TOML' writes (default runs/tune/SCENARIO_tuned.toml)")
     _video_arguments(tune, implies_video=False)
 
+    view = sub.add_parser("view", help="watch a scenario run in MuJoCo's interactive viewer (needs a display)")
+    view.add_argument("scenario", help="built-in scenario name or a TOML file")
+    view.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    view.add_argument("--duration", type=float, default=None, metavar="S", help="simulated seconds")
+    view.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                      help="override a scenario value (repeatable)")
+    view.add_argument("--speed", default="1", metavar="X",
+                      help="sim speed as a multiple of real time (default 1; 0: as fast as possible)")
+
     sub.add_parser("scenarios", help="list built-in scenarios")
 
     compare = sub.add_parser("compare", help="seed 000's Table I: intermittent vs its two baselines over seeds "
@@ -220,6 +229,32 @@ def cmd_tune(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_view(args: argparse.Namespace) -> int:
+    from sim.scenario import load
+
+    if args.duration is not None and args.duration <= 0:
+        return _fail(f"--duration: must be positive, got {args.duration}")
+    try:
+        scenario = load(args.scenario, args.overrides, seed=args.seed, duration_s=args.duration)
+        speed = _number(args.speed, "--speed")
+    except ConfigError as err:
+        return _fail(str(err))
+    from viz.viewer import needs_display, view
+
+    problem = needs_display()
+    if problem:
+        return _fail(problem)
+    print(f"MuJoCo viewer: {scenario.name} ({scenario.strategy.kind}); Space pauses, Right arrow steps a tick, "
+          "close the window to quit", flush=True)
+    try:
+        status = view(scenario, speed=speed)
+    except ConfigError as err:
+        return _fail(str(err))
+    except KeyboardInterrupt:
+        return 0
+    return 1 if status == "diverged" else 0
+
+
 def cmd_scenarios(args: argparse.Namespace) -> int:
     from sim.scenario import builtin_scenarios
 
@@ -238,7 +273,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    handlers = {"run": cmd_run, "tune": cmd_tune, "scenarios": cmd_scenarios, "compare": cmd_compare}
+    handlers = {"run": cmd_run, "tune": cmd_tune, "view": cmd_view, "scenarios": cmd_scenarios,
+                "compare": cmd_compare}
     return handlers[args.command](args)
 
 

@@ -155,6 +155,51 @@ def _burn_legend(draw, legend: Sequence[tuple[str, Any]], font, width: int, heig
             draw.text((x + swatch + pad, y), label, fill=(235, 235, 235), font=font)
 
 
+def add_capsule(scene: mujoco.MjvScene, a: np.ndarray, b: np.ndarray, width: float, rgba: np.ndarray) -> None:
+    """One capsule from ``a`` to ``b`` appended to ``scene`` (nothing when it is full)."""
+    if scene.ngeom >= scene.maxgeom:
+        return
+    geom = scene.geoms[scene.ngeom]
+    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, np.zeros(3), np.zeros(3), np.zeros(9), rgba)
+    mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, width, a, b)
+    scene.ngeom += 1
+
+
+def add_sphere(scene: mujoco.MjvScene, p: np.ndarray, radius: float, rgba: np.ndarray) -> None:
+    """One sphere appended to ``scene`` (nothing when it is full)."""
+    if scene.ngeom >= scene.maxgeom:
+        return
+    geom = scene.geoms[scene.ngeom]
+    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_SPHERE, np.full(3, radius), p, np.eye(3).ravel(), rgba)
+    scene.ngeom += 1
+
+
+def draw_decorations(canvas, frame: Frame) -> None:
+    """Links coloured by weight, references, robot halos (role / team
+    colours) and the strategy's decorations (paths, meeting points, target
+    estimates, markers) into ``canvas``: a :class:`FrameRenderer`, or
+    anything with its ``world``, ``metres_per_px``, ``at_least``,
+    ``_add_capsule`` and ``_add_sphere`` (MuJoCo's viewer, viz.viewer)."""
+    positions = frame.observation.position
+    weights = frame.commands.info.get("link_weights")
+    link_width = canvas.at_least(LINK_WIDTH_M, LINK_MIN_PX)
+    for i, j in frame.observation.links.edges:
+        rgba = LINK_RGBA if weights is None else link_color(weights[i, j])
+        canvas._add_capsule(positions[i], positions[j], link_width, rgba)
+    for p in frame.commands.position:
+        canvas._add_sphere(p, canvas.at_least(REFERENCE_RADIUS_M, REFERENCE_MIN_PX), REFERENCE_RGBA)
+    # Ground robots are 7 cm across: a translucent halo keeps them visible; quadrotors get one too
+    # once the scene is so large that their bodies shrink below a few pixels.
+    world = canvas.world
+    halo = canvas.at_least(GROUND_HALO_RADIUS_M, ROBOT_MIN_PX)
+    for i in world.kind_index["ground"]:
+        canvas._add_sphere(positions[i], halo, halo_color(frame.commands.info, i, GROUND_HALO_RGBA))
+    if QUAD_HALO_FROM_PX * canvas.metres_per_px > QUADROTOR_SPAN_M:
+        for i in world.kind_index["quadrotor"]:
+            canvas._add_sphere(positions[i], halo, halo_color(frame.commands.info, i, GROUND_HALO_RGBA))
+    draw_video_decorations(canvas, frame)  # optional info keys: paths, meeting points, target estimates
+
+
 class FrameRenderer:
     """Renders one tick's frame to an (H, W, 3) uint8 image: the scene from
     the configured camera, links, references, ground-robot halos and the
@@ -245,42 +290,15 @@ class FrameRenderer:
         return cam
 
     def _add_capsule(self, a: np.ndarray, b: np.ndarray, width: float, rgba: np.ndarray) -> None:
-        scene = self.renderer.scene
-        if scene.ngeom >= scene.maxgeom:
-            return
-        geom = scene.geoms[scene.ngeom]
-        mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, np.zeros(3), np.zeros(3), np.zeros(9), rgba)
-        mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, width, a, b)
-        scene.ngeom += 1
+        add_capsule(self.renderer.scene, a, b, width, rgba)
 
     def _add_sphere(self, p: np.ndarray, radius: float, rgba: np.ndarray) -> None:
-        scene = self.renderer.scene
-        if scene.ngeom >= scene.maxgeom:
-            return
-        geom = scene.geoms[scene.ngeom]
-        mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_SPHERE, np.full(3, radius), p, np.eye(3).ravel(), rgba)
-        scene.ngeom += 1
+        add_sphere(self.renderer.scene, p, radius, rgba)
 
     def render(self, frame: Frame) -> np.ndarray:
         """The current state of ``world.data`` with ``frame``'s decorations."""
         self._update_scene()
-        positions = frame.observation.position
-        weights = frame.commands.info.get("link_weights")
-        link_width = self.at_least(LINK_WIDTH_M, LINK_MIN_PX)
-        for i, j in frame.observation.links.edges:
-            rgba = LINK_RGBA if weights is None else link_color(weights[i, j])
-            self._add_capsule(positions[i], positions[j], link_width, rgba)
-        for p in frame.commands.position:
-            self._add_sphere(p, self.at_least(REFERENCE_RADIUS_M, REFERENCE_MIN_PX), REFERENCE_RGBA)
-        # Ground robots are 7 cm across: a translucent halo keeps them visible; quadrotors get one too
-        # once the scene is so large that their bodies shrink below a few pixels.
-        halo = self.at_least(GROUND_HALO_RADIUS_M, ROBOT_MIN_PX)
-        for i in self.world.kind_index["ground"]:
-            self._add_sphere(positions[i], halo, halo_color(frame.commands.info, i, GROUND_HALO_RGBA))
-        if QUAD_HALO_FROM_PX * self.metres_per_px > QUADROTOR_SPAN_M:
-            for i in self.world.kind_index["quadrotor"]:
-                self._add_sphere(positions[i], halo, halo_color(frame.commands.info, i, GROUND_HALO_RGBA))
-        draw_video_decorations(self, frame)  # optional info keys: paths, meeting points, target estimates
+        draw_decorations(self, frame)
         image = self.renderer.render()
         return burn_overlay(image, overlay_text(frame), frame.commands.info.get("legend", ()))
 
