@@ -118,8 +118,10 @@ def test_the_strategy_legend_reaches_the_page_status():
     frame, _ = session.sim.tick()
     frame.commands.info["legend"] = [("anchor", (1.0, 0.6, 0.1, 1.0)), ("team 0", np.array([0.2, 0.4, 1.0, 1.0]))]
     session._sample(frame)
+    # The strategy's entries, then the true targets (hover has 8) in their model colour.
     assert session.status()["legend"] == [{"label": "anchor", "color": "#ff991a"},
-                                          {"label": "team 0", "color": "#3366ff"}]
+                                          {"label": "team 0", "color": "#3366ff"},
+                                          {"label": "target (true)", "color": "#f2bf1a"}]
 
 
 # --------------------------------------------------------------------------- in a real browser

@@ -44,6 +44,22 @@ QUAD_MARK_HEIGHT_M = 0.12  # ... and its height above the body origin, m
 ELLIPSOID_SIGMAS = 2.0  # recording: covariance ellipsoid half-axes in standard deviations
 
 
+TARGET_RGBA = np.array([0.95, 0.75, 0.1, 1.0], dtype=np.float32)  # models/robots/target.xml's marker
+
+
+def frame_legend(frame) -> list[tuple[str, np.ndarray]]:
+    """What the colours of ``frame``'s picture mean: the strategy's
+    ``legend``, then the true targets and their estimates when shown."""
+    info = frame.commands.info
+    legend = list(info.get("legend", ()))
+    if len(frame.target_positions):
+        legend.append(("target (true)", TARGET_RGBA))
+    estimates = info.get("target_estimates")
+    if estimates is not None and len(estimates):
+        legend.append(("target estimate", ESTIMATE_RGBA))
+    return legend
+
+
 def halo_color(info: dict, robot: int, default: np.ndarray) -> np.ndarray:
     """The video halo colour of ``robot``: its ``robot_colors`` entry, translucent."""
     colors = info.get("robot_colors")

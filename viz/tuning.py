@@ -379,9 +379,9 @@ class TuningSession:
         values = {"tracking_error_mean_m": float(error.mean()), "links": float(len(obs.links.edges))}
         for name, value in commands.info.get("scalars", {}).items():
             values[str(name)] = float(value)
-        legend = commands.info.get("legend")
-        if legend is not None:
-            self.legend = [{"label": str(label), "color": _css_color(rgba)} for label, rgba in legend]
+        from viz.decorations import frame_legend
+
+        self.legend = [{"label": str(label), "color": _css_color(rgba)} for label, rgba in frame_legend(frame)]
         self._seq += 1
         self._series.append((self._seq, t, values))
         self.figures = values

@@ -27,7 +27,7 @@ from sim.config import ConfigError
 from sim.observers import Frame
 from sim.scenario import VideoConfig
 from sim.world import World
-from viz.decorations import draw_video_decorations, halo_color
+from viz.decorations import draw_video_decorations, frame_legend, halo_color
 
 LINK_RGBA = np.array([0.1, 0.75, 0.2, 0.9], dtype=np.float32)
 REFERENCE_RGBA = np.array([0.2, 0.4, 1.0, 0.6], dtype=np.float32)
@@ -300,7 +300,7 @@ class FrameRenderer:
         self._update_scene()
         draw_decorations(self, frame)
         image = self.renderer.render()
-        return burn_overlay(image, overlay_text(frame), frame.commands.info.get("legend", ()))
+        return burn_overlay(image, overlay_text(frame), frame_legend(frame))
 
     def close(self) -> None:
         self.renderer.close()

@@ -37,6 +37,7 @@ import numpy as np
 from sim.loop import Simulation
 from sim.observers import Frame
 from sim.scenario import Scenario
+from viz.decorations import frame_legend
 from viz.video import TOP_MARGIN, add_capsule, add_sphere, draw_decorations, overlay_text
 
 KEY_SPACE = 32  # GLFW key codes, as MuJoCo's viewer hands them to key_callback
@@ -95,7 +96,7 @@ class UserScene:
 
 
 def _legend_text(frame: Frame) -> str:
-    items = frame.commands.info.get("legend", ())
+    items = frame_legend(frame)
     return "\n".join(f"{label}: {_colour_name(rgba)}" for label, rgba in items)
 
 
