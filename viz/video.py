@@ -11,8 +11,14 @@ both use it.
 
 Cameras (``video.camera``): ``top`` (top-down) and ``overview`` (perspective)
 use the scene's cameras of those names when it has them, else views computed
-from the scene bounds; ``follow:ROBOT`` tracks one robot (``follow:quad0``);
-any other camera the scene names; ``free``; ``auto`` is ``top``.
+from the scene bounds (``top``: orthographic, straight down, so walls hide
+no floor); ``follow:ROBOT`` tracks one robot (``follow:quad0``); any other
+camera the scene names; ``free``; ``auto`` is ``top``.
+
+Markers, links and paths have a minimum size in pixels of a view of the
+whole floor (:meth:`FrameRenderer.at_least`), so robots stay visible in a
+70 m scene. The overlay's glyphs scale with the frame height; the legend
+band at the bottom says what the colours mean (``info['legend']``).
 """
 
 from __future__ import annotations
