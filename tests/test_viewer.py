@@ -97,3 +97,16 @@ def test_tether_view_draws_the_running_simulation_with_its_links(display, tmp_pa
     assert green.sum() > 30
     # ... and the scene itself: the office's walls and floor fill much of the window.
     assert (image.sum(axis=2) > 60).mean() > 0.15
+
+
+def test_bad_input_and_no_display_exit_2_with_one_line(monkeypatch, capsys):
+    from sim.cli import main
+
+    monkeypatch.setenv("DISPLAY", ":0")
+    assert main(["view", "hover", "--set", "strategy.speed_mps=99"]) == 2
+    assert capsys.readouterr().err.strip().startswith("tether: error: strategy.speed_mps: must be in")
+    monkeypatch.delenv("DISPLAY")
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert main(["view", "hover"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs a display" in err[0] and "tether run --video" in err[0]
