@@ -109,23 +109,28 @@ def _field_comments(cls: type) -> dict[str, str]:
 def _field_groups(cls: type) -> dict[str, str]:
     """Field name -> its group: the latest ``# -- group, ...`` comment line
     above it in the class source (``GENERAL_GROUP`` before any)."""
+    import ast
     import inspect
+    import textwrap
 
     try:
-        lines = inspect.getsource(cls).splitlines()
-    except (OSError, TypeError):
+        source = textwrap.dedent(inspect.getsource(cls))
+        tree = ast.parse(source)
+    except (OSError, TypeError, SyntaxError):
         return {}
-    names = {f.name for f in dataclasses.fields(cls)}
-    group, out = GENERAL_GROUP, {}
-    for line in lines:
-        text = line.strip()
-        if text.startswith("#") and text.lstrip("#").strip().startswith(GROUP_MARK):
-            title = text.lstrip("#").strip()[len(GROUP_MARK):].strip()
-            group = title.split(",")[0].split("(")[0].strip() or GENERAL_GROUP
-            continue
-        name = text.split(":", 1)[0].strip()
-        if name in names and name not in out and ":" in text:
-            out[name] = group
+    lines = source.splitlines()
+    headers = []  # (line number, group)
+    for number, line in enumerate(lines, start=1):
+        text = line.strip().lstrip("#").strip()
+        if line.strip().startswith("#") and text.startswith(GROUP_MARK):
+            title = text[len(GROUP_MARK):].strip()
+            headers.append((number, title.split(",")[0].split("(")[0].strip() or GENERAL_GROUP))
+    out: dict[str, str] = {}
+    body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+    for node in body:
+        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            above = [group for number, group in headers if number < node.lineno]
+            out[node.target.id] = above[-1] if above else GENERAL_GROUP
     return out
 
 
