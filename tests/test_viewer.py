@@ -59,7 +59,6 @@ def display():
     server.wait(timeout=10)
 
 
-@pytest.mark.slow  # ~30 s on two shared cores: software GL renders the viewer's window
 def test_tether_view_draws_the_running_simulation_with_its_links(display, tmp_path):
     from PIL import ImageGrab
 
@@ -110,3 +109,14 @@ def test_bad_input_and_no_display_exit_2_with_one_line(monkeypatch, capsys):
     assert main(["view", "hover"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "needs a display" in err[0] and "tether run --video" in err[0]
+
+
+def test_the_viewer_legend_names_every_role_and_team_colour_distinctly():
+    from controllers.connectivity.strategy import LEGEND
+    from controllers.intermittent.runtime import TEAM_COLORS
+    from viz.viewer import colour_name
+
+    roles = [colour_name(rgba) for _, rgba in LEGEND[:4]]
+    assert roles == ["turquoise", "blue", "orange", "grey"]
+    teams = [colour_name(rgba) for rgba in TEAM_COLORS]
+    assert len(set(teams)) == len(teams)
