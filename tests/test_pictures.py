@@ -130,3 +130,32 @@ def test_robots_stay_visible_in_a_large_scene():
         patch = image[row - 2 : row + 3, col - 2 : col + 3]
         # The robot's own colour (its role) shows around it, shaded by the light.
         assert np.abs(patch - rgb).max(axis=2).min() < 70, (p, rgb, patch[2, 2])
+
+
+class _Line:
+    """A straight planned path from (0, 0, 1) to (10, 0, 1) (duck-types SplinePath.sample)."""
+
+    def sample(self, spacing: float) -> np.ndarray:
+        xs = np.arange(0.0, 10.0 + 1e-9, spacing)
+        return np.stack([xs, np.zeros_like(xs), np.ones_like(xs)], axis=1)
+
+
+def test_drawn_paths_start_at_their_robot_and_never_serve_a_stale_path():
+    from types import SimpleNamespace
+
+    from controllers.connectivity.strategy import ConnectedStrategy
+
+    strategy = SimpleNamespace(_drawn_paths={}, params=SimpleNamespace(
+        exploration=SimpleNamespace(grid_resolution=0.25)))
+    draw = lambda path, q: ConnectedStrategy._path_points(strategy, path, np.asarray(q, float))  # noqa: E731
+    path = _Line()
+    points = draw(path, (3.1, 0.2, 1.0))
+    # Only what lies ahead: from the robot's point to the end, nothing behind it.
+    np.testing.assert_allclose(points[0], (3.1, 0.2, 1.0))
+    assert points[1:, 0].min() > 3.0 and points[-1, 0] == pytest.approx(10.0)
+    # Never backwards along the path (a robot pushed back does not regrow its trail).
+    assert draw(path, (1.0, 0.0, 1.0))[1:, 0].min() > 3.0
+    # A new path whose id equals a dropped one's gets its own samples, not the old polyline.
+    other = _Line()
+    strategy._drawn_paths[id(other)] = [object(), np.zeros((2, 3)), 0]
+    assert draw(other, (0.0, 0.0, 1.0))[-1, 0] == pytest.approx(10.0)
