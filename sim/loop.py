@@ -189,8 +189,8 @@ def run(
 
     ``extra_observers`` see every tick after the built-in ones and are closed
     with them. ``progress`` is called with the :class:`Simulation` every 100
-    ticks (e.g. :class:`sim.progress.RunProgress`). Validation errors (ConfigError) are raised before anything is
-    written.
+    ticks (e.g. :class:`sim.progress.RunProgress`). Validation errors
+    (ConfigError) are raised before anything is written.
     """
     wall_start = time.perf_counter()
     _mujoco_warnings.clear()

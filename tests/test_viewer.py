@@ -76,8 +76,8 @@ def test_tether_view_draws_the_running_simulation_with_its_links(display, tmp_pa
             lines.append(line)
             if line.startswith("completed"):
                 break
-        assert any(line.startswith("completed: hover, t = 0.05 s") for line in lines), (lines, proc.stderr.read()
-                                                                                      if proc.poll() is not None else "")
+        stderr = proc.stderr.read() if proc.poll() is not None else ""
+        assert any(line.startswith("completed: hover, t = 0.05 s") for line in lines), (lines, stderr)
         time.sleep(1.0)  # a few more frames of the viewer's render loop
         image = np.asarray(ImageGrab.grab(xdisplay=display).convert("RGB"), dtype=int)
         ImageGrab.grab(xdisplay=display).save(tmp_path / "viewer.png")

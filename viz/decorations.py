@@ -89,7 +89,8 @@ def draw_video_decorations(renderer, frame) -> None:
     if estimates is not None:
         for p in np.asarray(estimates, dtype=float):
             renderer._add_sphere(p, renderer.at_least(ESTIMATE_RADIUS_M, MARKER_MIN_PX), ESTIMATE_RGBA)
-    _draw_spheres(renderer, info.get("markers"), info.get("marker_colors"), renderer.at_least(MARKER_RADIUS_M, MARKER_MIN_PX),
+    _draw_spheres(renderer, info.get("markers"), info.get("marker_colors"),
+                  renderer.at_least(MARKER_RADIUS_M, MARKER_MIN_PX),
                   np.array([1, 1, 1, 0.8], np.float32))
     robot_colors = info.get("robot_colors")
     if robot_colors is not None:

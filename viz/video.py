@@ -286,7 +286,8 @@ class FrameRenderer:
             cam.lookat[2] = lo[2]
             cam.distance = 2.0 * (span + hi[2] - lo[2])  # above everything in the scene
             cam.elevation = -90.0
-            self._ortho_height_m = TOP_MARGIN * max(hi[1] - lo[1], (hi[0] - lo[0]) * self.config.height / self.config.width)
+            aspect = self.config.height / self.config.width
+            self._ortho_height_m = TOP_MARGIN * max(hi[1] - lo[1], (hi[0] - lo[0]) * aspect)
         elif name == "overview":  # perspective from the -y side
             cam.distance = 1.1 * span
             cam.elevation = -45

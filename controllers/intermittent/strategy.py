@@ -436,7 +436,8 @@ class MeetingStrategy(ABC):
                 points.append(lifted(p))
                 point_colors.append(rgba)
         self._visual = {
-            "legend": [*((f"team {k}", team_color(k)) for k in range(len(self.teams.members))), ("no meeting planned", IDLE_COLOR)],
+            "legend": [*((f"team {k}", team_color(k)) for k in range(len(self.teams.members))),
+                       ("no meeting planned", IDLE_COLOR)],
             "robot_colors": np.array(colors),
             "paths": paths,
             "meeting_points": np.array(points).reshape(-1, 3),
