@@ -99,6 +99,7 @@ def overlay_text(frame: Frame) -> str:
 
 OVERLAY_TEXT_SHARE = 1 / 36  # overlay glyph size (font size, px) as a share of the frame height: 20 px at 720
 OVERLAY_MIN_FONT_PX = 9  # never smaller than this, even when shrunk to fit the width
+LEGEND_TEXT_RATIO = 0.8  # the legend band's glyphs against the top band's
 
 
 @functools.lru_cache(maxsize=16)
@@ -132,7 +133,8 @@ def burn_overlay(image: np.ndarray, text: str, legend: Sequence[tuple[str, Any]]
     draw.rectangle((0, 0, right + pad, bottom + pad), fill=(20, 20, 28))
     draw.text((pad, pad), text, fill=(235, 235, 235), font=font)
     if legend:
-        _burn_legend(draw, legend, _font(overlay_font_px(height)), width, height)
+        legend_px = max(OVERLAY_MIN_FONT_PX, round(LEGEND_TEXT_RATIO * overlay_font_px(height)))
+        _burn_legend(draw, legend, _font(legend_px), width, height)
     return np.asarray(canvas)
 
 
