@@ -8,7 +8,8 @@ export PYOPENGL_PLATFORM ?= egl
 
 # Debian packages: Mesa's EGL for offscreen rendering without a GPU; chromium
 # (/usr/bin/chromium) for the tuning page's browser tests, driven by the
-# playwright Python package (never `playwright install`).
+# playwright Python package (never `playwright install`); xvfb (/usr/bin/Xvfb), an
+# X server without a screen, for the test of `tether view` (MuJoCo's GLFW viewer).
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libgles2
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
@@ -18,6 +19,10 @@ system-deps:
 	@if ! ldconfig -p | grep -q 'libEGL_mesa.so.0'; then \
 	  echo "installing EGL/Mesa ($(APT_PACKAGES))"; \
 	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq $(APT_PACKAGES) >/dev/null; \
+	fi
+	@if [ ! -x /usr/bin/Xvfb ]; then \
+	  echo "installing xvfb (Debian package) for the MuJoCo viewer's test (tether view)"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq xvfb >/dev/null; \
 	fi
 	@if [ ! -x /usr/bin/chromium ]; then \
 	  echo "installing chromium (Debian package) for the tuning page's browser tests"; \

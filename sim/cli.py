@@ -29,7 +29,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--rrd", action="store_true", help="write run.rrd (Rerun recording)")
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override a scenario value, e.g. --set strategy.speed_mps=0.3 (repeatable)")
-    run.add_argument("--quiet", action="store_true", help="print only the summary line")
+    run.add_argument("--quiet", action="store_true", help="print only the summary line (no progress, no file list)")
     _video_arguments(run, implies_video=True)
     run.add_argument("--rerun-live", action="store_true",
                      help="also stream to Rerun viewers while running (gRPC server and web viewer on 127.0.0.1; "
@@ -51,6 +51,15 @@ def _parser() -> argparse.ArgumentParser:
     tune.add_argument("--save", default=None, metavar="FILE",
                       help="where 'save as scenario TOML' writes (default runs/tune/SCENARIO_tuned.toml)")
     _video_arguments(tune, implies_video=False)
+
+    view = sub.add_parser("view", help="watch a scenario run in MuJoCo's interactive viewer (needs a display)")
+    view.add_argument("scenario", help="built-in scenario name or a TOML file")
+    view.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    view.add_argument("--duration", type=float, default=None, metavar="S", help="simulated seconds")
+    view.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                      help="override a scenario value (repeatable)")
+    view.add_argument("--speed", default="1", metavar="X",
+                      help="sim speed as a multiple of real time (default 1; 0: as fast as possible)")
 
     sub.add_parser("scenarios", help="list built-in scenarios")
 
@@ -136,10 +145,6 @@ def _fail(message: str) -> int:
     return 2
 
 
-def _progress(fraction: float) -> None:
-    print(f"\r  {100 * fraction:5.1f} %", end="", file=sys.stderr, flush=True)
-
-
 def cmd_run(args: argparse.Namespace) -> int:
     from sim.scenario import load
 
@@ -167,23 +172,28 @@ def cmd_run(args: argparse.Namespace) -> int:
         live = LiveViewer(grpc_port=grpc_port, web_port=web_port)
         print(f"live Rerun web viewer: {live.web_url}", flush=True)
         print(f"live Rerun gRPC stream: {live.grpc_url}  (native viewer: rerun {live.grpc_url})", flush=True)
+    from sim.progress import RunProgress
+
+    progress = None if args.quiet else RunProgress(scenario.duration_s)
     try:
         result = run(scenario, out, video=args.video or bool(video_overrides), rrd=args.rrd or args.rerun_live,
-                     live=live.stream if live else None, progress=None if args.quiet else _progress)
+                     live=live.stream if live else None, progress=progress)
     except ConfigError as err:
+        if progress:
+            progress.close()
         if live:
             live.close()
         return _fail(str(err))
-    if not args.quiet:
-        print(file=sys.stderr)
+    if progress:
+        progress.close(result.metrics)
     m = result.metrics
     print(f"{m['status']}: {m['scenario']} ({m['strategy']}), seed {m['seed']}, "
           f"{m['sim_time_s']:.1f} s simulated in {m['wall_time_s']:.1f} s (x{m['real_time_factor']:.2f} real time)")
     if m.get("message"):
         print(f"  {m['message']}")
-    for name, path in result.files.items():
+    for name, path in ({} if args.quiet else result.files).items():
         print(f"  {name:10s} {path}")
-    if "recording" in result.files:
+    if "recording" in result.files and not args.quiet:
         viewer = Path(sys.executable).parent / "rerun"
         command = str(viewer) if viewer.exists() else "rerun"
         print(f"  open the recording with: {command} {result.files['recording']}")
@@ -228,6 +238,32 @@ def cmd_tune(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         pass
     return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from sim.scenario import load
+
+    if args.duration is not None and args.duration <= 0:
+        return _fail(f"--duration: must be positive, got {args.duration}")
+    try:
+        scenario = load(args.scenario, args.overrides, seed=args.seed, duration_s=args.duration)
+        speed = _number(args.speed, "--speed")
+    except ConfigError as err:
+        return _fail(str(err))
+    from viz.viewer import needs_display, view
+
+    problem = needs_display()
+    if problem:
+        return _fail(problem)
+    print(f"MuJoCo viewer: {scenario.name} ({scenario.strategy.kind}); Space pauses, Right arrow steps a tick, "
+          "close the window to quit", flush=True)
+    try:
+        status = view(scenario, speed=speed)
+    except ConfigError as err:
+        return _fail(str(err))
+    except KeyboardInterrupt:
+        return 0
+    return 1 if status == "diverged" else 0
 
 
 def cmd_scenarios(args: argparse.Namespace) -> int:
@@ -309,8 +345,8 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    handlers = {"run": cmd_run, "tune": cmd_tune, "scenarios": cmd_scenarios, "sweep": cmd_sweep,
-                "sweeps": cmd_sweeps, "report": cmd_report}
+    handlers = {"run": cmd_run, "tune": cmd_tune, "view": cmd_view, "scenarios": cmd_scenarios,
+                "sweep": cmd_sweep, "sweeps": cmd_sweeps, "report": cmd_report}
     return handlers[args.command](args)
 
 

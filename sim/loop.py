@@ -182,14 +182,15 @@ def run(
     rrd: bool = False,
     live: Any = None,
     keep_trajectory: bool = False,
-    progress: Callable[[float], None] | None = None,
+    progress: Callable[[Simulation], None] | None = None,
     extra_observers: Sequence[Observer] = (),
 ) -> RunResult:
     """Run a scenario headless; write metrics.json (+ video.mp4, run.rrd) to out_dir.
 
     ``extra_observers`` see every tick after the built-in ones and are closed
-    with them. Validation errors (ConfigError) are raised before anything is
-    written.
+    with them. ``progress`` is called with the :class:`Simulation` every 100
+    ticks (e.g. :class:`sim.progress.RunProgress`). Validation errors
+    (ConfigError) are raised before anything is written.
     """
     wall_start = time.perf_counter()
     _mujoco_warnings.clear()
@@ -246,7 +247,7 @@ def run(
                     recorder.event(sim.time_s, message, level="ERROR", tick=sim.tick_count)
                 break
             if progress is not None and sim.tick_count % 100 == 0:
-                progress(sim.time_s / scenario.duration_s)
+                progress(sim)
             if getattr(sim.strategy, "finished", False):
                 # The strategy's mission is over (e.g. every target visited): stop early.
                 if recorder is not None:

@@ -22,7 +22,7 @@ def hover_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("hover")
     result = subprocess.run(
         [sys.executable, "-m", "sim.cli", "run", "hover", "--duration", str(DURATION_S), "--out", str(out),
-         "--video", "--rrd", "--quiet"],
+         "--video", "--rrd"],  # (not --quiet: that prints only the summary line, no file list)
         capture_output=True, text=True, timeout=300,
     )
     assert result.returncode == 0, result.stderr

@@ -93,6 +93,37 @@ def test_scenario_toml_round_trips_and_keeps_unknown_key_checks(tmp_path):
         from_table(table, str(path))
 
 
+def test_every_field_of_the_connected_strategy_is_offered_in_groups():
+    import dataclasses
+
+    from controllers.connectivity.connected_params import ConnectedParams
+
+    scenario = load("connected-office")
+    fields = describe_params(ConnectedParams, scenario.strategy.params)
+    assert [f["name"] for f in fields] == [f.name for f in dataclasses.fields(ConnectedParams) if f.init]
+    groups = {f["group"] for f in fields}
+    assert {"connectivity", "travel", "roles", "estimator", "path planning", "targets"} <= groups
+    by_name = {f["name"]: f for f in fields}
+    assert by_name["cruise_speed_mps"]["group"] == "travel" and not by_name["cruise_speed_mps"]["restarts"]
+    assert by_name["grid_resolution_m"]["restarts"] and by_name["lambda2_source"]["kind"] == "choice"
+    assert by_name["target_lists"]["kind"] == "toml" and by_name["estimator_modes"]["group"] == "estimator"
+    # Group headers are not anyone's help text; every field has its own.
+    assert all(f["help"] and not f["help"].startswith("--") for f in fields)
+
+
+def test_the_strategy_legend_reaches_the_page_status():
+    from viz.tuning import TuningSession
+
+    session = TuningSession(load("hover"))
+    frame, _ = session.sim.tick()
+    frame.commands.info["legend"] = [("anchor", (1.0, 0.6, 0.1, 1.0)), ("team 0", np.array([0.2, 0.4, 1.0, 1.0]))]
+    session._sample(frame)
+    # The strategy's entries, then the true targets (hover has 8) in their model colour.
+    assert session.status()["legend"] == [{"label": "anchor", "color": "#ff991a"},
+                                          {"label": "team 0", "color": "#3366ff"},
+                                          {"label": "target (true)", "color": "#f2bf1a"}]
+
+
 # --------------------------------------------------------------------------- in a real browser
 
 
@@ -179,6 +210,20 @@ def test_page_shows_live_view_parameters_and_plots(page, server):
     _wait_for(lambda: float(page.inner_text("#time")) > 0.5, what="sim time on the page")
     assert ticks_advance(server)
     assert not page.errors
+
+
+def test_plots_sit_beside_the_live_view_and_every_field_has_a_control_in_its_group(page, server):
+    page.wait_for_selector('.plot[data-name="links"] canvas', timeout=15000)
+    view = page.locator("#view").bounding_box()
+    plot = page.locator('.plot[data-name="links"]').bounding_box()
+    # Beside the view (to its right, overlapping its rows), not below it.
+    assert plot["x"] >= view["x"] + view["width"] - 1
+    assert plot["y"] < view["y"] + view["height"]
+    schema = _get(server.url + "api/params")
+    for field in schema["fields"]:
+        control = page.locator(f'fieldset.group[data-group="{field["group"]}"] .param[data-name="{field["name"]}"]')
+        assert control.count() == 1, field["name"]
+        assert control.locator("input, select, textarea").count() >= 1, field["name"]
 
 
 def test_slider_changes_the_running_strategy(page, server):

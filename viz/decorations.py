@@ -16,6 +16,11 @@ keys draw nothing, so strategies that do not use them are unaffected):
 - ``markers``: (K, 3) m and ``marker_colors``: (K, 4) RGBA, generic points of
   interest (e.g. the connected strategy's current targets): spheres in the
   video, ``world/markers`` in the recording;
+- ``legend``: list of ``(label, rgba)``: what the colours mean (roles,
+  teams, paths), drawn as a band at the bottom of the video and beside the
+  tuning page's view;
+- ``robot_scalar_levels``: {name: {value: label}} for ``robot_scalars`` that
+  are codes (e.g. the connected strategy's roles): the plots label them;
 - with ``robot_colors``, quadrotors also get a small marker sphere of their
   colour on top (e.g. the prime traveler highlighted).
 
@@ -27,6 +32,8 @@ from __future__ import annotations
 import numpy as np
 
 PATH_WIDTH_M = 0.012  # video: planned-path capsule width, m
+PATH_MIN_PX = 0.6  # ... and at least this many pixels (large scenes)
+MARKER_MIN_PX = 4.0  # video: meeting points, estimates, markers: at least this radius, px
 MEETING_RADIUS_M = 0.05  # video: meeting-point sphere radius, m
 ESTIMATE_RADIUS_M = 0.07  # video: estimated-target sphere radius, m
 ESTIMATE_RGBA = np.array([1.0, 0.45, 0.0, 0.55], dtype=np.float32)
@@ -35,6 +42,22 @@ MARKER_RADIUS_M = 0.12  # video: ``markers`` sphere radius, m
 QUAD_MARK_RADIUS_M = 0.12  # video: the ``robot_colors`` sphere on top of a quadrotor, m
 QUAD_MARK_HEIGHT_M = 0.12  # ... and its height above the body origin, m
 ELLIPSOID_SIGMAS = 2.0  # recording: covariance ellipsoid half-axes in standard deviations
+
+
+TARGET_RGBA = np.array([0.95, 0.75, 0.1, 1.0], dtype=np.float32)  # models/robots/target.xml's marker
+
+
+def frame_legend(frame) -> list[tuple[str, np.ndarray]]:
+    """What the colours of ``frame``'s picture mean: the strategy's
+    ``legend``, then the true targets and their estimates when shown."""
+    info = frame.commands.info
+    legend = list(info.get("legend", ()))
+    if len(frame.target_positions):
+        legend.append(("target (true)", TARGET_RGBA))
+    estimates = info.get("target_estimates")
+    if estimates is not None and len(estimates):
+        legend.append(("target estimate", ESTIMATE_RGBA))
+    return legend
 
 
 def halo_color(info: dict, robot: int, default: np.ndarray) -> np.ndarray:
@@ -52,19 +75,22 @@ def draw_video_decorations(renderer, frame) -> None:
     :class:`viz.video.FrameRenderer`'s scene (its ``_add_capsule`` /
     ``_add_sphere``)."""
     info = frame.commands.info
+    width = renderer.at_least(PATH_WIDTH_M, PATH_MIN_PX)
     for points, rgba in info.get("paths", ()):
         rgba = np.asarray(rgba, dtype=np.float32)
         points = np.asarray(points, dtype=float)
         for a, b in zip(points[:-1], points[1:]):
             if np.linalg.norm(b - a) > 1e-6:
-                renderer._add_capsule(a, b, PATH_WIDTH_M, rgba)
-    _draw_spheres(renderer, info.get("meeting_points"), info.get("meeting_point_colors"), MEETING_RADIUS_M,
+                renderer._add_capsule(a, b, width, rgba)
+    _draw_spheres(renderer, info.get("meeting_points"), info.get("meeting_point_colors"),
+                  renderer.at_least(MEETING_RADIUS_M, MARKER_MIN_PX),
                   np.array([1, 1, 1, 0.5], np.float32))
     estimates = info.get("target_estimates")
     if estimates is not None:
         for p in np.asarray(estimates, dtype=float):
-            renderer._add_sphere(p, ESTIMATE_RADIUS_M, ESTIMATE_RGBA)
-    _draw_spheres(renderer, info.get("markers"), info.get("marker_colors"), MARKER_RADIUS_M,
+            renderer._add_sphere(p, renderer.at_least(ESTIMATE_RADIUS_M, MARKER_MIN_PX), ESTIMATE_RGBA)
+    _draw_spheres(renderer, info.get("markers"), info.get("marker_colors"),
+                  renderer.at_least(MARKER_RADIUS_M, MARKER_MIN_PX),
                   np.array([1, 1, 1, 0.8], np.float32))
     robot_colors = info.get("robot_colors")
     if robot_colors is not None:
@@ -72,7 +98,8 @@ def draw_video_decorations(renderer, frame) -> None:
         for i in renderer.world.kind_index["quadrotor"]:
             if i < len(robot_colors):
                 top = positions[i] + np.array([0.0, 0.0, QUAD_MARK_HEIGHT_M])
-                renderer._add_sphere(top, QUAD_MARK_RADIUS_M, np.asarray(robot_colors[i], dtype=np.float32))
+                renderer._add_sphere(top, renderer.at_least(QUAD_MARK_RADIUS_M, MARKER_MIN_PX),
+                                     np.asarray(robot_colors[i], dtype=np.float32))
 
 
 def _draw_spheres(renderer, points, colors, radius: float, default_rgba: np.ndarray) -> None:

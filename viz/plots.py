@@ -4,8 +4,10 @@ Every run plots the foundation's series (tracking error, communication-graph
 edges); strategies add theirs through ``commands.info['scalars']`` (name ->
 value), each drawn in its own panel, and ``commands.info['robot_scalars']``
 (name -> (N,) values, NaN where undefined), drawn as one line per robot in
-one panel (e.g. seed 001's Fig. 14d: each robot's role), so a user can look
-instead of reading JSON. Sampled every ``period_s`` of sim time; pages of
+one panel (e.g. seed 001's Fig. 14d: each robot's role; codes named on the
+axis from ``commands.info['robot_scalar_levels']``), so a user can look
+instead of reading JSON. NaN (undefined, e.g. t*(t) before the first
+agreement) is a gap, never a value. Sampled every ``period_s`` of sim time; pages of
 ``PANELS_PER_FIGURE`` panels: ``timeseries.png``, ``timeseries_2.png``, ...
 Drawn by a :class:`Painter` process that imports matplotlib while the run
 goes on, so a run's end waits for the drawing only.
@@ -37,6 +39,7 @@ class PlotRecorder:
         self._next_time = 0.0
         self.files: list[str] = []
         self._painter = Painter()
+        self.levels: dict[str, dict[float, str]] = {}  # coded per-robot series: value -> label
 
     def on_tick(self, frame: Frame) -> None:
         t = frame.observation.time_s
@@ -50,6 +53,8 @@ class PlotRecorder:
             self.series[name].append((t, float(value)))
         for name, values in frame.commands.info.get("robot_scalars", {}).items():
             self.robot_series[name].append((t, np.array(values, dtype=float)))
+        for name, levels in frame.commands.info.get("robot_scalar_levels", {}).items():
+            self.levels[name] = levels
 
     def panels(self) -> list[str]:
         """Panel titles in drawing order: the series, then the per-robot series."""
@@ -62,10 +67,12 @@ class PlotRecorder:
             panels = []
             for name in names[start : start + PANELS_PER_FIGURE]:
                 if name in self.series:
-                    panels.append((name, np.array(self.series[name]), None))
+                    panels.append((name, np.array(self.series[name]), None, None))
                 else:
-                    samples = self.robot_series[name[: -len(PER_ROBOT_SUFFIX)]]
-                    panels.append((name, np.array([t for t, _ in samples]), np.array([v for _, v in samples])))
+                    series = name[: -len(PER_ROBOT_SUFFIX)]
+                    samples = self.robot_series[series]
+                    levels = sorted(self.levels[series].items()) if series in self.levels else None
+                    panels.append((name, np.array([t for t, _ in samples]), np.array([v for _, v in samples]), levels))
             path = self.folder / ("timeseries.png" if page == 0 else f"timeseries_{page + 1}.png")
             pages.append((str(path), panels))
         self.folder.mkdir(parents=True, exist_ok=True)
@@ -127,8 +134,9 @@ def _matplotlib():
 
 def draw_pages(pages, title: str, robot_names) -> list[str]:
     """Write one PNG per page; returns the paths. A panel is (title, data,
-    values): data (T, 2) [time, value] for a series, or times (T,) with
-    values (T, N) for a per-robot series."""
+    values, levels): data (T, 2) [time, value] for a series, or times (T,)
+    with values (T, N) for a per-robot series, whose codes ``levels``
+    [(value, label)] (or None) are named on the axis."""
     figure_class = _matplotlib()
     files = []
     for path, panels in pages:
@@ -138,12 +146,15 @@ def draw_pages(pages, title: str, robot_names) -> list[str]:
         axes = fig.subplots(len(panels), 1, sharex=True, squeeze=False)
         fig.subplots_adjust(left=0.11, right=0.98, top=1.0 - 0.35 / height, bottom=0.45 / height, hspace=0.12)
         legend = True  # on the first per-robot panel of a page
-        for ax, (name, data, values) in zip(axes[:, 0], panels):
+        for ax, (name, data, values, levels) in zip(axes[:, 0], panels):
             if values is None:
                 ax.plot(data[:, 0], data[:, 1], lw=1.2)
             else:
                 _draw_per_robot(ax, data, values, robot_names, legend)
                 legend = False
+                if levels:  # codes (e.g. roles): name each level on the axis
+                    ax.set_yticks([v for v, _ in levels], [label for _, label in levels], fontsize=7)
+                    ax.set_ylim(levels[0][0] - 0.5, levels[-1][0] + 0.5)
             ax.set_ylabel(name, fontsize=8)
             ax.grid(alpha=0.3)
         axes[-1, 0].set_xlabel("sim time (s)")

@@ -62,6 +62,8 @@ MAX_LAG_S = 0.5  # further behind real time than this: stop catching up
 PAGE = Path(__file__).parent / "static" / "tune.html"
 UNIT_SUFFIXES = {"_mps2": "m/s^2", "_mps": "m/s", "_m2": "m^2", "_m": "m", "_s": "s", "_rad": "rad",
                  "_deg": "deg", "_hz": "Hz", "_px": "px"}
+GROUP_MARK = "--"  # a comment line "# -- NAME, ..." in a parameter class starts the group NAME
+GENERAL_GROUP = "general"
 FIGURE_LABELS = {"tracking_error_mean_m": "tracking error, mean over robots (m)", "links": "communication links"}
 
 
@@ -96,11 +98,39 @@ def _field_comments(cls: type) -> dict[str, str]:
             out[tokens[0]] = comment[row]
             continue
         above, r = [], row - 1
-        while r in comment and r not in code:
+        while r in comment and r not in code and not comment[r].startswith(GROUP_MARK):
             above.insert(0, comment[r])
             r -= 1
         if above:
             out[tokens[0]] = " ".join(above)
+    return out
+
+
+def _field_groups(cls: type) -> dict[str, str]:
+    """Field name -> its group: the latest ``# -- group, ...`` comment line
+    above it in the class source (``GENERAL_GROUP`` before any)."""
+    import ast
+    import inspect
+    import textwrap
+
+    try:
+        source = textwrap.dedent(inspect.getsource(cls))
+        tree = ast.parse(source)
+    except (OSError, TypeError, SyntaxError):
+        return {}
+    lines = source.splitlines()
+    headers = []  # (line number, group)
+    for number, line in enumerate(lines, start=1):
+        text = line.strip().lstrip("#").strip()
+        if line.strip().startswith("#") and text.startswith(GROUP_MARK):
+            title = text[len(GROUP_MARK):].strip()
+            headers.append((number, title.split(",")[0].split("(")[0].strip() or GENERAL_GROUP))
+    out: dict[str, str] = {}
+    body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+    for node in body:
+        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            above = [group for number, group in headers if number < node.lineno]
+            out[node.target.id] = above[-1] if above else GENERAL_GROUP
     return out
 
 
@@ -126,21 +156,26 @@ def _field_kind(tp: Any) -> tuple[str, list | None]:
 
 
 def describe_params(cls: type, params: Any) -> list[dict[str, Any]]:
-    """What the page needs to draw one control per tunable field of ``cls``:
-    name, kind (float, int, bool, choice, str, toml), unit, min, max, step,
-    choices, help (the field's source comment) and the current value."""
+    """What the page needs to draw one control per field of ``cls`` (every
+    field a scenario can set): name, kind (float, int, bool, choice, str,
+    toml), unit, min, max, step, choices, help (the field's source comment),
+    group (its ``# -- group`` comment), restarts (true for a field that
+    shapes the set-up, ``tunable=False`` in its metadata: changing it restarts
+    the strategy at the current state) and the current value."""
     hints = get_type_hints(cls)
     comments = _field_comments(cls)
+    groups = _field_groups(cls)
     out = []
     for f in dataclasses.fields(cls):
         meta = f.metadata
-        if not f.init or not meta.get("tunable", True):
+        if not f.init:
             continue
         kind, choices = _field_kind(hints[f.name])
         value = to_table(getattr(params, f.name))
         entry = {"name": f.name, "kind": kind, "unit": meta.get("unit") or _unit_from_name(f.name),
                  "min": meta.get("min"), "max": meta.get("max"), "step": meta.get("step"), "choices": choices,
-                 "help": comments.get(f.name, ""), "value": value}
+                 "help": comments.get(f.name, ""), "group": groups.get(f.name, GENERAL_GROUP),
+                 "restarts": not meta.get("tunable", True), "value": value}
         if kind == "toml":
             entry["text"] = "" if value is None else toml_value(value)
         if kind in ("float", "int") and entry["step"] is None and entry["min"] is not None \
@@ -153,6 +188,11 @@ def describe_params(cls: type, params: Any) -> list[dict[str, Any]]:
 def _nice_step(span: float) -> float:
     """A power of ten giving at least about 100 slider positions over ``span``."""
     return 10.0 ** math.floor(math.log10(span / 100)) if span > 0 else 1.0
+
+
+def _css_color(rgba: Any) -> str:
+    r, g, b = (int(round(255 * min(max(float(c), 0.0), 1.0))) for c in list(rgba)[:3])
+    return f"#{r:02x}{g:02x}{b:02x}"
 
 
 def _parse_toml_value(text: str, field: str) -> Any:
@@ -200,6 +240,7 @@ class TuningSession:
         self._seq = 0
         self._next_sample = 0.0
         self.figures: dict[str, float] = {}
+        self.legend: list[dict[str, str]] = []  # the strategy's info['legend']: what the view's colours mean
         self.real_time_factor: float | None = None
         self._jpeg: bytes | None = None
         self.frame_seq = 0
@@ -343,6 +384,9 @@ class TuningSession:
         values = {"tracking_error_mean_m": float(error.mean()), "links": float(len(obs.links.edges))}
         for name, value in commands.info.get("scalars", {}).items():
             values[str(name)] = float(value)
+        from viz.decorations import frame_legend
+
+        self.legend = [{"label": str(label), "color": _css_color(rgba)} for label, rgba in frame_legend(frame)]
         self._seq += 1
         self._series.append((self._seq, t, values))
         self.figures = values
@@ -391,6 +435,7 @@ class TuningSession:
                 "params_tick": self.params_tick,
                 "camera": self.camera,
                 "figures": dict(self.figures),
+                "legend": list(self.legend),
                 "labels": FIGURE_LABELS,
                 "last_seq": self._seq,
                 "series": series,

@@ -13,15 +13,23 @@ both use it.
 
 Cameras (``video.camera``): ``top`` (top-down) and ``overview`` (perspective)
 use the scene's cameras of those names when it has them, else views computed
-from the scene bounds; ``follow:ROBOT`` tracks one robot (``follow:quad0``);
-any other camera the scene names; ``free``; ``auto`` is ``top``.
+from the scene bounds (``top``: orthographic, straight down, so walls hide
+no floor); ``follow:ROBOT`` tracks one robot (``follow:quad0``); any other
+camera the scene names; ``free``; ``auto`` is ``top``.
+
+Markers, links and paths have a minimum size in pixels of a view of the
+whole floor (:meth:`FrameRenderer.at_least`), so robots stay visible in a
+70 m scene. The overlay's glyphs scale with the frame height; the legend
+band at the bottom says what the colours mean (``info['legend']``).
 """
 
 from __future__ import annotations
 
+import functools
 import pickle
 import queue
 from dataclasses import dataclass
+from typing import Any, Sequence
 
 import mujoco
 import numpy as np
@@ -30,13 +38,22 @@ from sim.config import ConfigError
 from sim.observers import Frame
 from sim.scenario import VideoConfig
 from sim.world import World
-from viz.decorations import draw_video_decorations, halo_color
+from viz.decorations import draw_video_decorations, frame_legend, halo_color
 
 LINK_RGBA = np.array([0.1, 0.75, 0.2, 0.9], dtype=np.float32)
 REFERENCE_RGBA = np.array([0.2, 0.4, 1.0, 0.6], dtype=np.float32)
 LINK_WIDTH_M = 0.02
 GROUND_HALO_RGBA = np.array([0.2, 0.8, 0.3, 0.35], dtype=np.float32)
 GROUND_HALO_RADIUS_M = 0.12
+REFERENCE_RADIUS_M = 0.03
+# Minimum on-screen sizes, px (at the scale of a view of the whole floor): robots stay visible at
+# any scene size.
+ROBOT_MIN_PX = 5.0  # halo radius
+REFERENCE_MIN_PX = 1.5  # reference sphere radius
+LINK_MIN_PX = 0.8  # link capsule radius
+QUADROTOR_SPAN_M = 0.2  # about a quadrotor's size, m: below QUAD_HALO_FROM_PX px it gets a halo
+QUAD_HALO_FROM_PX = 8.0
+TOP_MARGIN = 1.05  # the computed top view shows the floor and 5 % around it
 
 
 MESH_SLICES = 8  # rendering: slices of a sphere / capsule (MuJoCo's default 28)
@@ -85,16 +102,115 @@ def overlay_text(frame: Frame) -> str:
     return "   ".join(parts)
 
 
-def burn_overlay(image: np.ndarray, text: str) -> np.ndarray:
-    """Draw ``text`` on a dark band at the top-left of the frame."""
+OVERLAY_TEXT_SHARE = 1 / 36  # overlay glyph size (font size, px) as a share of the frame height: 20 px at 720
+OVERLAY_MIN_FONT_PX = 9  # never smaller than this, even when shrunk to fit the width
+LEGEND_TEXT_RATIO = 0.8  # the legend band's glyphs against the top band's
+
+
+@functools.lru_cache(maxsize=16)
+def _font(size_px: int):
+    from PIL import ImageFont
+
+    return ImageFont.load_default(size=size_px)  # Pillow's bundled scalable font: the same everywhere
+
+
+def overlay_font_px(height: int) -> int:
+    """Font size of the overlay for a frame ``height`` px tall."""
+    return max(OVERLAY_MIN_FONT_PX, round(height * OVERLAY_TEXT_SHARE))
+
+
+def burn_overlay(image: np.ndarray, text: str, legend: Sequence[tuple[str, Any]] = ()) -> np.ndarray:
+    """Draw ``text`` on a dark band at the top-left of the frame and the
+    ``legend`` ((label, rgba in 0..1) pairs: role or team colours) on a band
+    at the bottom-left; glyphs scale with the frame height (shrunk to fit the
+    width)."""
     from PIL import Image, ImageDraw
 
     canvas = Image.fromarray(image)
     draw = ImageDraw.Draw(canvas)
-    left, top, right, bottom = draw.textbbox((6, 4), text)
-    draw.rectangle((0, 0, right + 6, bottom + 4), fill=(20, 20, 28))
-    draw.text((6, 4), text, fill=(235, 235, 235))
+    height, width = image.shape[:2]
+    size = overlay_font_px(height)
+    while size > OVERLAY_MIN_FONT_PX and draw.textlength(text, font=_font(size)) > width - size:
+        size -= 1
+    font = _font(size)
+    pad = max(3, size // 4)
+    left, top, right, bottom = draw.textbbox((pad, pad), text, font=font)
+    draw.rectangle((0, 0, right + pad, bottom + pad), fill=(20, 20, 28))
+    draw.text((pad, pad), text, fill=(235, 235, 235), font=font)
+    if legend:
+        legend_px = max(OVERLAY_MIN_FONT_PX, round(LEGEND_TEXT_RATIO * overlay_font_px(height)))
+        _burn_legend(draw, legend, _font(legend_px), width, height)
     return np.asarray(canvas)
+
+
+def _burn_legend(draw, legend: Sequence[tuple[str, Any]], font, width: int, height: int) -> None:
+    """Colour swatches and labels in rows along the bottom of the frame."""
+    size = font.size
+    pad, swatch, gap = max(3, size // 4), size, size
+    rows, row, x = [], [], pad
+    for label, rgba in legend:
+        item = swatch + pad + int(draw.textlength(label, font=font)) + gap
+        if row and x + item > width:
+            rows.append(row)
+            row, x = [], pad
+        row.append((x, label, rgba))
+        x += item
+    rows.append(row)
+    line = size + 2 * pad
+    top = height - line * len(rows)
+    right = max(xx + swatch + pad + int(draw.textlength(lbl, font=font)) for r in rows for xx, lbl, _ in r)
+    draw.rectangle((0, top, right + pad, height), fill=(20, 20, 28))
+    for k, items in enumerate(rows):
+        y = top + k * line + pad
+        for x, label, rgba in items:
+            color = tuple(int(round(255 * float(c))) for c in np.asarray(rgba, dtype=float)[:3])
+            draw.rectangle((x, y, x + swatch, y + size), fill=color)
+            draw.text((x + swatch + pad, y), label, fill=(235, 235, 235), font=font)
+
+
+def add_capsule(scene: mujoco.MjvScene, a: np.ndarray, b: np.ndarray, width: float, rgba: np.ndarray) -> None:
+    """One capsule from ``a`` to ``b`` appended to ``scene`` (nothing when it is full)."""
+    if scene.ngeom >= scene.maxgeom:
+        return
+    geom = scene.geoms[scene.ngeom]
+    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, np.zeros(3), np.zeros(3), np.zeros(9), rgba)
+    mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, width, a, b)
+    scene.ngeom += 1
+
+
+def add_sphere(scene: mujoco.MjvScene, p: np.ndarray, radius: float, rgba: np.ndarray) -> None:
+    """One sphere appended to ``scene`` (nothing when it is full)."""
+    if scene.ngeom >= scene.maxgeom:
+        return
+    geom = scene.geoms[scene.ngeom]
+    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_SPHERE, np.full(3, radius), p, np.eye(3).ravel(), rgba)
+    scene.ngeom += 1
+
+
+def draw_decorations(canvas, frame: Frame) -> None:
+    """Links coloured by weight, references, robot halos (role / team
+    colours) and the strategy's decorations (paths, meeting points, target
+    estimates, markers) into ``canvas``: a :class:`FrameRenderer`, or
+    anything with its ``world``, ``metres_per_px``, ``at_least``,
+    ``_add_capsule`` and ``_add_sphere`` (MuJoCo's viewer, viz.viewer)."""
+    positions = frame.observation.position
+    weights = frame.commands.info.get("link_weights")
+    link_width = canvas.at_least(LINK_WIDTH_M, LINK_MIN_PX)
+    for i, j in frame.observation.links.edges:
+        rgba = LINK_RGBA if weights is None else link_color(weights[i, j])
+        canvas._add_capsule(positions[i], positions[j], link_width, rgba)
+    for p in frame.commands.position:
+        canvas._add_sphere(p, canvas.at_least(REFERENCE_RADIUS_M, REFERENCE_MIN_PX), REFERENCE_RGBA)
+    # Ground robots are 7 cm across: a translucent halo keeps them visible; quadrotors get one too
+    # once the scene is so large that their bodies shrink below a few pixels.
+    world = canvas.world
+    halo = canvas.at_least(GROUND_HALO_RADIUS_M, ROBOT_MIN_PX)
+    for i in world.kind_index["ground"]:
+        canvas._add_sphere(positions[i], halo, halo_color(frame.commands.info, i, GROUND_HALO_RGBA))
+    if QUAD_HALO_FROM_PX * canvas.metres_per_px > QUADROTOR_SPAN_M:
+        for i in world.kind_index["quadrotor"]:
+            canvas._add_sphere(positions[i], halo, halo_color(frame.commands.info, i, GROUND_HALO_RGBA))
+    draw_video_decorations(canvas, frame)  # optional info keys: paths, meeting points, target estimates
 
 
 class FrameRenderer:
@@ -123,12 +239,34 @@ class FrameRenderer:
         else:
             self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
         self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+        lo, hi = world.bounds
+        # Metres per pixel of a view of the whole floor: the scale of the minimum marker sizes.
+        self.metres_per_px = TOP_MARGIN * max((hi[0] - lo[0]) / config.width, (hi[1] - lo[1]) / config.height)
+        self._ortho_height_m: float | None = None
         self.set_camera(config.camera)
 
     def set_camera(self, name: str) -> None:
         """Switch camera (ConfigError for an unknown one); see the module docstring."""
         self.camera_name = resolve_camera(self.world.model, name)
+        self._ortho_height_m = None
         self.camera = self._camera(self.camera_name)
+
+    def at_least(self, size_m: float, pixels: float) -> float:
+        """``size_m``, or ``pixels`` of the frame when that is larger: markers
+        stay visible in a 70 m scene as in a 10 m one."""
+        return max(size_m, pixels * self.metres_per_px)
+
+    def _update_scene(self) -> None:
+        vis = self.world.model.vis.global_
+        if self._ortho_height_m is None:
+            self.renderer.update_scene(self.world.data, self.camera, self.options)
+            return
+        # An orthographic free camera reads its view height (m) from the model's free-camera fovy.
+        fovy, vis.fovy = vis.fovy, self._ortho_height_m
+        try:
+            self.renderer.update_scene(self.world.data, self.camera, self.options)
+        finally:
+            vis.fovy = fovy
 
     def _camera(self, name: str):
         model = self.world.model
@@ -147,12 +285,16 @@ class FrameRenderer:
         cam = mujoco.MjvCamera()
         lo, hi = self.world.bounds
         cam.lookat[:] = (lo + hi) / 2
+        self._ortho_height_m = None
         span = float(np.linalg.norm(hi[:2] - lo[:2]))
         cam.azimuth = 90
-        if name == "top":  # straight down, the whole floor in view (45 deg field of view)
+        if name == "top":  # straight down, orthographic: walls hide no floor; the whole floor in view
+            cam.orthographic = 1
             cam.lookat[2] = lo[2]
-            cam.distance = 1.3 * span
-            cam.elevation = -89.9
+            cam.distance = 2.0 * (span + hi[2] - lo[2])  # above everything in the scene
+            cam.elevation = -90.0
+            aspect = self.config.height / self.config.width
+            self._ortho_height_m = TOP_MARGIN * max(hi[1] - lo[1], (hi[0] - lo[0]) * aspect)
         elif name == "overview":  # perspective from the -y side
             cam.distance = 1.1 * span
             cam.elevation = -45
@@ -162,38 +304,17 @@ class FrameRenderer:
         return cam
 
     def _add_capsule(self, a: np.ndarray, b: np.ndarray, width: float, rgba: np.ndarray) -> None:
-        scene = self.renderer.scene
-        if scene.ngeom >= scene.maxgeom:
-            return
-        geom = scene.geoms[scene.ngeom]
-        mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, np.zeros(3), np.zeros(3), np.zeros(9), rgba)
-        mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, width, a, b)
-        scene.ngeom += 1
+        add_capsule(self.renderer.scene, a, b, width, rgba)
 
     def _add_sphere(self, p: np.ndarray, radius: float, rgba: np.ndarray) -> None:
-        scene = self.renderer.scene
-        if scene.ngeom >= scene.maxgeom:
-            return
-        geom = scene.geoms[scene.ngeom]
-        mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_SPHERE, np.full(3, radius), p, np.eye(3).ravel(), rgba)
-        scene.ngeom += 1
+        add_sphere(self.renderer.scene, p, radius, rgba)
 
     def render(self, frame: Frame) -> np.ndarray:
         """The current state of ``world.data`` with ``frame``'s decorations."""
-        self.renderer.update_scene(self.world.data, self.camera, self.options)
-        positions = frame.observation.position
-        weights = frame.commands.info.get("link_weights")
-        for i, j in frame.observation.links.edges:
-            rgba = LINK_RGBA if weights is None else link_color(weights[i, j])
-            self._add_capsule(positions[i], positions[j], LINK_WIDTH_M, rgba)
-        for p in frame.commands.position:
-            self._add_sphere(p, 0.03, REFERENCE_RGBA)
-        # Ground robots are 7 cm across: a translucent halo keeps them visible.
-        for i in self.world.kind_index["ground"]:
-            self._add_sphere(positions[i], GROUND_HALO_RADIUS_M, halo_color(frame.commands.info, i, GROUND_HALO_RGBA))
-        draw_video_decorations(self, frame)  # optional info keys: paths, meeting points, target estimates
+        self._update_scene()
+        draw_decorations(self, frame)
         image = self.renderer.render()
-        return burn_overlay(image, overlay_text(frame))
+        return burn_overlay(image, overlay_text(frame), frame_legend(frame))
 
     def close(self) -> None:
         self.renderer.close()
@@ -223,6 +344,7 @@ class FrameView:
 
     observation: _ObservationView
     commands: _CommandsView
+    target_positions: np.ndarray  # (M, 3) true target positions, m (the legend names them when present)
 
     @staticmethod
     def of(frame: Frame) -> "FrameView":
@@ -230,6 +352,7 @@ class FrameView:
         return FrameView(
             _ObservationView(np.array(obs.position), float(obs.time_s), _LinksView(list(obs.links.edges))),
             _CommandsView(np.array(cmd.position), dict(cmd.info)),
+            np.array(frame.target_positions),
         )
 
 

@@ -116,11 +116,16 @@ def preset_values(preset: str) -> dict[str, float]:
 
 @dataclass(frozen=True)
 class ConnectedParams:
+    # -- general (group headers "# -- NAME, ..." group the fields on the tuning page)
+
     # Table 2 column that fills every field left out: "office" (indoor) or "outdoor" (empty space, town)
     preset: Literal["office", "outdoor"] = param("office", tunable=False)
     # Where lambda2 and the Fiedler vector come from: "exact" (centralised eigh) or
     # "estimator" (decentralised, Yang et al. 2010)
     lambda2_source: Literal["exact", "estimator"] = param("exact", tunable=False)
+
+    # -- estimator, lambda2 and the decentralised estimator (Yang et al. 2010)
+
     # Exact mode and estimator with estimator_modes >= 2: kappa of the smooth lower bound of lambda2 that
     # drives V (0: the paper's lambda2; see smooth_spectrum.py; the estimator takes the soft minimum of its
     # Ritz values)
@@ -144,7 +149,7 @@ class ConnectedParams:
     # K >= 2: K vectors (subspace iteration) with Rayleigh-Ritz, lambda2..lambda_{K+1} (SubspaceEstimator)
     estimator_modes: int = param(2, min=1, max=5, tunable=False)
 
-    # -- connectivity layer, Appendix A (link weight W_ij = range x line of sight x inter-robot factors)
+    # -- connectivity, Appendix A (link weight W_ij = range x line of sight x inter-robot factors)
 
     # R_s: weights vanish at this distance; must equal sensing.comm_range_m
     sensing_range_m: float = param(PRESET, unit="m", min=0.2, max=50.0, tunable=False)
@@ -171,7 +176,7 @@ class ConnectedParams:
     # B: damping of each virtual point, f_B = -B v
     damping_nspm: float = param(PRESET, unit="N s/m", min=0.05, max=50.0)
 
-    # -- exploration layer, Secs. 3.2-3.7
+    # -- travel, Secs. 3.2 and 3.4 (the exploration layer)
 
     # v_cruise: speed of the path reference, eq. (3)
     cruise_speed_mps: float = param(PRESET, unit="m/s", min=0.1, max=10.0)
@@ -183,6 +188,11 @@ class ConnectedParams:
     braking_distance_m: float = param(PRESET, unit="m", min=0.05, max=30.0)
     # R_gamma: a secondary traveler farther than this from its path replans
     replan_distance_m: float = param(PRESET, unit="m", min=0.05, max=30.0)
+    # cap on the travel force (eq. 3 grows with the distance to the path)
+    travel_force_limit_n: float = param(PRESET, unit="N", min=0.1, max=500.0)
+
+    # -- roles, election and consensus, Secs. 3.3-3.7
+
     # R_z: target visit / anchor radius
     target_radius_m: float = param(PRESET, unit="m", min=0.05, max=20.0)
     # Delta t: time to stay within R_z of each target
@@ -191,8 +201,6 @@ class ConnectedParams:
     anchor_gain_n: float = param(PRESET, unit="N", min=0.01, max=100.0)
     # cap on the anchor force (eq. 7 is unbounded at R_z)
     anchor_force_limit_n: float = param(PRESET, unit="N", min=0.1, max=500.0)
-    # cap on the travel force (eq. 3 grows with the distance to the path)
-    travel_force_limit_n: float = param(PRESET, unit="N", min=0.1, max=500.0)
     # x_c / v_cruise: traveling efficiency is 1 below this tracking error, eq. (9)
     efficiency_error_full_ratio: float = param(PRESET, min=0.0, max=5.0)
     # x_M / v_cruise: traveling efficiency is 0 above this tracking error, eq. (9)
@@ -203,6 +211,13 @@ class ConnectedParams:
     consensus_gain: float = param(PRESET, unit="1/s", min=0.01, max=100.0)
     # sigma of eq. (14): weight of force alignment against efficiency in rho
     sigma: float = param(PRESET, min=1.0, max=50.0)
+    # control ticks per hop of an election message (flooding, Sec. 3.3)
+    message_latency_ticks: int = param(1, unit="ticks", min=1, max=100)
+    # robot hosting the start-up election ("robot 1" of the paper)
+    election_host: int = param(0, min=0, tunable=False)
+
+    # -- path planning, Sec. 3.2
+
     # R_grid: path-planning grid spacing
     grid_resolution_m: float = param(PRESET, unit="m", min=0.05, max=5.0, tunable=False)
     # preferred clearance of planned paths from obstacles
@@ -211,12 +226,8 @@ class ConnectedParams:
     path_min_clearance_m: float = param(PRESET, unit="m", min=0.0, max=10.0, tunable=False)
     # how far the smoothing spline may round the grid path's corners
     smoothing_tolerance_m: float = param(PRESET, unit="m", min=0.0, max=5.0, tunable=False)
-    # control ticks per hop of an election message (flooding, Sec. 3.3)
-    message_latency_ticks: int = param(1, unit="ticks", min=1, max=100)
-    # robot hosting the start-up election ("robot 1" of the paper)
-    election_host: int = param(0, min=0, tunable=False)
 
-    # -- target generator, Sec. 2.1 / 4.1
+    # -- targets, the target generator of Secs. 2.1 / 4.1
 
     # "random": uniform free-space targets drawn with the run's generator; "fixed": target_lists
     targets: Literal["random", "fixed"] = param("random", tunable=False)

@@ -114,6 +114,10 @@ ROLE_NAMES = {Role.PRIME_TRAVELER: "prime traveler", Role.SECONDARY_TRAVELER: "s
 PRIME_PATH_RGBA = np.array([0.0, 0.85, 0.75, 0.9])
 SECONDARY_PATH_RGBA = np.array([0.2, 0.2, 0.25, 0.6])
 TARGET_RGBA = np.array([0.95, 0.2, 0.6, 0.8])
+# What the colours mean (``info['legend']``: video, tuning page) and the role codes' names (plots).
+LEGEND = [*((ROLE_NAMES[r], ROLE_COLORS[r]) for r in Role), ("prime's path", PRIME_PATH_RGBA),
+          ("secondary's path", SECONDARY_PATH_RGBA), ("target", TARGET_RGBA)]
+ROLE_LEVELS = {float(r): ROLE_NAMES[r] for r in Role}
 # Spacing of the points that draw a planned path, as a fraction of R_grid.
 _PATH_DRAW_SPACING = 2.0
 # Length of the estimator warm-up steps, s.
@@ -178,7 +182,7 @@ class ConnectedStrategy:
         self.completion_time: float | None = None
         self._finished = False
         self._events: list[str] = []
-        self._drawn_paths: dict[int, np.ndarray] = {}
+        self._drawn_paths: dict[int, list] = {}  # id(path) -> [path, samples (K, 3), nearest sample so far]
         self._visits_seen = 0
         self._skipped_seen = 0
         self.last: ExplorationStep | None = None
@@ -287,11 +291,19 @@ class ConnectedStrategy:
         self._visits_seen, self._skipped_seen = len(out.visits), len(out.skipped)
         self.roles = out.roles.copy()
 
-    def _path_points(self, path) -> np.ndarray:
-        key = id(path)
-        if key not in self._drawn_paths:
-            self._drawn_paths[key] = path.sample(_PATH_DRAW_SPACING * self.params.exploration.grid_resolution)
-        return self._drawn_paths[key]
+    def _path_points(self, path, position: np.ndarray) -> np.ndarray:
+        """The part of ``path`` still ahead of a robot at ``position`` (drawn
+        paths do not trail behind the robots): its samples from the one
+        nearest the robot on (never backwards along the path)."""
+        cached = self._drawn_paths.get(id(path))
+        if cached is None or cached[0] is not path:  # (an id is reused once its path is gone)
+            cached = [path, path.sample(_PATH_DRAW_SPACING * self.params.exploration.grid_resolution), 0]
+            self._drawn_paths[id(path)] = cached
+        _, points, start = cached
+        ahead = points[start:]
+        start += int(np.argmin(np.linalg.norm(ahead - position, axis=1)))
+        cached[2] = start
+        return np.vstack([position[None], points[start + 1:]]) if start + 1 < len(points) else points[-2:]
 
     def _info(self, out: ExplorationStep, state, estimate, f_lambda, tick, robot_distance, obstacle_distance) -> dict:
         roles = out.roles
@@ -326,13 +338,17 @@ class ConnectedStrategy:
         if estimate is not None:
             robot_scalars["lambda2_estimate"] = np.asarray(estimate.lambda2, dtype=float)
         colors = np.array([ROLE_COLORS[Role(int(r))] for r in roles])
-        paths = [(self._path_points(path), PRIME_PATH_RGBA if i == out.prime else SECONDARY_PATH_RGBA)
+        paths = [(self._path_points(path, self.q[i]), PRIME_PATH_RGBA if i == out.prime else SECONDARY_PATH_RGBA)
                  for i, path in enumerate(out.paths) if path is not None]
+        current = {id(path) for path in out.paths if path is not None}
+        self._drawn_paths = {key: value for key, value in self._drawn_paths.items() if key in current}
         has_target = ~np.isnan(out.targets[:, 0])
         prime = self.names[out.prime] if out.prime >= 0 else "none"
         info = {
             "scalars": scalars,
             "robot_scalars": robot_scalars,
+            "robot_scalar_levels": {"role": ROLE_LEVELS},
+            "legend": LEGEND,
             "link_weights": state.weights,
             "robot_colors": colors,
             "paths": paths,

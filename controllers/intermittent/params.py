@@ -25,15 +25,23 @@ Vec3 = tuple[float, float, float]
 
 @dataclass(frozen=True)
 class IntermittentParams:
+    # -- teams (group headers "# -- NAME, ..." group the fields on the tuning page)
+
     # Teams as lists of robot indices (robot order of the scenario, from 0);
     # every robot in exactly two teams, the graph of teams connected.
     teams: tuple[tuple[int, ...], ...] = ()
+
+    # -- planner, the joint-space RRT* (Algorithm 1)
+
     # Samples of Algorithm 1 per plan of a 2-robot team, -; a team of n > 2 robots draws
     # n_sample * n / 2 (its joint space has 2n dimensions: see team_samples).
     n_sample: int = 300
     n_uniform: int = 100  # B: the first B samples are uniform (f1), then f2, -
     delta_m2: float = 0.0144  # goal threshold on lambda_max of a target block, m^2 (paper: 0.12^2)
     step_size_m: float = 1.0  # epsilon of Steer (Alg. 6): longest move of one robot per tree edge, m
+
+    # -- motion and meetings
+
     speed_mps: float = 0.1  # robot speed limit, m/s (paper: 0.1 m per 1 s step)
     step_s: float = 1.0  # one discrete step, s (= sensing.period_s = target_motion.step_s)
     link_margin_m: float = 0.05  # plans keep meeting links within comm_range_m minus this, m
@@ -41,12 +49,18 @@ class IntermittentParams:
     arrival_tolerance_m: float = 0.05  # a robot has arrived when its body is this close to its meeting point, m
     gather_after_s: float = 5.0  # all arrived but the team graph not connected this long: close in on the centroid, s
     max_replans: int = 2  # extra planner runs (fresh samples) after a failed plan, before the fallback, -
+
+    # -- estimator, the EKF
+
     prior_mean: tuple[Vec3, ...] = ()  # EKF initial estimate x^0 per target, m; empty: the paper's x^0
     prior_variance_m2: float = 0.25  # EKF initial covariance C(0) = this * I, m^2 (paper: 0.25)
     # Range readings from sensors all at one height cannot tell a target from
     # its mirror image below that plane; reflect estimates that fall below it
     # (targets are above the floor). false: the paper's plain EKF.
     resolve_mirror: bool = True
+
+    # -- outputs and baselines
+
     lag_team: int = 1  # team whose t*(t) and e_i(t) are plotted (paper Fig. 7: T_2, index 1), -
     random_clearance_m: float = 0.3  # random_meeting: meeting points keep this from walls, m
 

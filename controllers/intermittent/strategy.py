@@ -244,7 +244,7 @@ class MeetingStrategy(ABC):
             queue[0].started = True
             queue[0].timed.offset_s = 0.0
         self._scalars.update({"lambda_max_m2": float(np.linalg.eigvalsh(self.prior.covariance)[-1]),
-                              "t_star_s": 0.0, "t_star_lag_s": 0.0, "local_error_m": 0.0, "meetings_held": 0.0,
+                              "t_star_s": math.nan, "t_star_lag_s": 0.0, "local_error_m": 0.0, "meetings_held": 0.0,
                               "robots_waiting": 0.0})
 
     # ------------------------------------------------------------- designing
@@ -324,7 +324,8 @@ class MeetingStrategy(ABC):
         local = self.beliefs.local_error(team, step)
         self.lags.append((step, agreement, local))
         self._scalars["lambda_max_m2"] = lam
-        self._scalars["t_star_s"] = agreement * self.step_s  # t*(t) of eq. (14), Fig. 7
+        # t*(t) of eq. (14), Fig. 7; undefined (NaN: a gap in the plots) until the team agrees on a step.
+        self._scalars["t_star_s"] = agreement * self.step_s if agreement >= 0 else math.nan
         self._scalars["t_star_lag_s"] = (step - agreement) * self.step_s
         self._scalars["local_error_m"] = local
 
@@ -440,6 +441,8 @@ class MeetingStrategy(ABC):
                 points.append(lifted(p))
                 point_colors.append(rgba)
         self._visual = {
+            "legend": [*((f"team {k}", team_color(k)) for k in range(len(self.teams.members))),
+                       ("no meeting planned", IDLE_COLOR)],
             "robot_colors": np.array(colors),
             "paths": paths,
             "meeting_points": np.array(points).reshape(-1, 3),

@@ -1,0 +1,122 @@
+"""`tether view`: MuJoCo's own viewer on a running simulation, under a real
+X server (Debian's Xvfb, started here on a free display; skipped without it).
+A few ticks, then the screen is read back: not blank, and the user geometry
+(communication links in their green) is drawn."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from viz.viewer import KEY_RIGHT, KEY_SPACE, ViewerControl
+
+XVFB = shutil.which("Xvfb")
+SCREEN = (1024, 768)
+
+
+def test_space_pauses_and_right_arrow_steps_one_tick_while_paused():
+    control = ViewerControl()
+    assert control.take_tick() and control.take_tick()  # running
+    control.key(KEY_SPACE)
+    assert not control.take_tick()
+    control.key(KEY_RIGHT)
+    control.key(KEY_RIGHT)
+    assert control.take_tick() and control.take_tick() and not control.take_tick()  # two steps, then held
+    control.key(KEY_SPACE)
+    assert control.take_tick()
+    control.key(KEY_RIGHT)  # ignored while running
+    control.key(KEY_SPACE)
+    assert not control.take_tick()
+
+
+@pytest.fixture
+def display():
+    if XVFB is None:
+        pytest.skip("Xvfb is not installed (Debian package xvfb: run `make system-deps`)")
+    for number in range(90, 140):
+        if not Path(f"/tmp/.X11-unix/X{number}").exists() and not Path(f"/tmp/.X{number}-lock").exists():
+            break
+    else:
+        pytest.skip("no free X display number")
+    server = subprocess.Popen([XVFB, f":{number}", "-screen", "0", f"{SCREEN[0]}x{SCREEN[1]}x24", "-nolisten", "tcp"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 20
+    while not Path(f"/tmp/.X11-unix/X{number}").exists():
+        if server.poll() is not None or time.monotonic() > deadline:
+            server.kill()
+            pytest.skip("Xvfb did not start")
+        time.sleep(0.1)
+    yield f":{number}"
+    server.terminate()
+    server.wait(timeout=10)
+
+
+def test_tether_view_draws_the_running_simulation_with_its_links(display, tmp_path):
+    from PIL import ImageGrab
+
+    env = {**os.environ, "DISPLAY": display, "MUJOCO_GL": "glfw", "OPENBLAS_NUM_THREADS": "1"}
+    env.pop("PYOPENGL_PLATFORM", None)
+    proc = subprocess.Popen([sys.executable, "-m", "sim.cli", "view", "hover", "--duration", "0.05", "--speed", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        lines = []
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline:  # the run's 5 ticks done: the window stays open on the last state
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if line.startswith("completed"):
+                break
+        stderr = proc.stderr.read() if proc.poll() is not None else ""
+        assert any(line.startswith("completed: hover, t = 0.05 s") for line in lines), (lines, stderr)
+        time.sleep(1.0)  # a few more frames of the viewer's render loop
+        image = np.asarray(ImageGrab.grab(xdisplay=display).convert("RGB"), dtype=int)
+        ImageGrab.grab(xdisplay=display).save(tmp_path / "viewer.png")
+        assert proc.poll() is None  # still open until the window is closed
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    assert image.shape[:2] == (SCREEN[1], SCREEN[0])
+    assert image.std() > 20  # not blank
+    # The communication links are user geometry in LINK_RGBA's green (lit: shades of it).
+    r, g, b = image[..., 0], image[..., 1], image[..., 2]
+    green = (g > 120) & (g > r + 60) & (g > b + 60)
+    assert green.sum() > 30
+    # ... and the scene itself: the office's walls and floor fill much of the window.
+    assert (image.sum(axis=2) > 60).mean() > 0.15
+
+
+def test_bad_input_and_no_display_exit_2_with_one_line(monkeypatch, capsys):
+    from sim.cli import main
+
+    monkeypatch.setenv("DISPLAY", ":0")
+    assert main(["view", "hover", "--set", "strategy.speed_mps=99"]) == 2
+    assert capsys.readouterr().err.strip().startswith("tether: error: strategy.speed_mps: must be in")
+    monkeypatch.delenv("DISPLAY")
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert main(["view", "hover"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs a display" in err[0] and "tether run --video" in err[0]
+
+
+def test_the_viewer_legend_names_every_role_and_team_colour_distinctly():
+    from controllers.connectivity.strategy import LEGEND
+    from controllers.intermittent.runtime import TEAM_COLORS
+    from viz.viewer import colour_name
+
+    roles = [colour_name(rgba) for _, rgba in LEGEND[:4]]
+    assert roles == ["turquoise", "blue", "orange", "grey"]
+    teams = [colour_name(rgba) for rgba in TEAM_COLORS]
+    assert len(set(teams)) == len(teams)
