@@ -50,7 +50,7 @@ def row(label: str, results: list[dict]) -> str:
     finished = [t for t in done if t is not None]
     completion = f"{sum(finished) / len(finished):.0f}" if finished else "-"
     return (f"| {label} | {completion} ({per_seed}) | {sum(r['targets_visited'] for r in results)}/"
-            f"{sum(r['targets_total'] for r in results)} | {mean('mean_travel_m'):.1f} | {mean('max_stretch_m'):.1f} | "
+            f"{sum(r['targets_to_visit'] for r in results)} | {mean('mean_travel_m'):.1f} | {mean('max_stretch_m'):.1f} | "
             f"{mean('lambda2_mean'):.3f} | {min(r['lambda2_min'] for r in results):.4f} | "
             f"{mean('tracking_error_mean_m'):.4f} |")
 

@@ -50,7 +50,7 @@ PAPER_TABLE = {
 }
 
 ROW_METRICS = (
-    "sim_time_s", "wall_time_s", "n_robots", "n_targets",
+    "sim_time_s", "wall_time_s", "n_robots", "n_moving_targets",
     "e_g_mean_m", "e_g_std_m", "lambda_bar_mean_m2", "lambda_bar_std_m2",
     "meetings_scheduled", "meetings_held", "meetings_connected", "max_wait_s",
     "delay_bound_epochs", "max_delay_epochs_observed", "plan_time_mean_s", "plan_time_max_s",
@@ -124,7 +124,7 @@ def read_rows(path: Path) -> list[dict]:
 
 
 def finished_keys(rows: Iterable[dict]) -> set[str]:
-    return {r["key"] for r in rows if r.get("status") in ("completed", "diverged")}
+    return {r["key"] for r in rows if r.get("status") in ("completed", "time limit", "diverged")}
 
 
 def run_trials(trials: list[Trial], path: Path, jobs: int = 1,

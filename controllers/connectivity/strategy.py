@@ -345,14 +345,19 @@ class ConnectedStrategy:
             self._events = []
         return info
 
+    def progress(self) -> str:
+        """How far the mission got, for the run's status message."""
+        visited = len(self.last.visits) if self.last is not None else 0
+        return f"{visited}/{self.targets_total} targets visited"
+
     def summary(self) -> dict:
-        """Seed 001's figures for metrics.json (see the README)."""
+        """Seed 001's figures for metrics.json (docs/connected.md)."""
         last = self.last
         visited = len(last.visits) if last is not None else 0
         return {
             "lambda2_source": self.params.lambda2_source,
             "completion_time_s": self.completion_time,
-            "targets_total": self.targets_total,
+            "targets_to_visit": self.targets_total,
             "targets_visited": visited,
             "targets_skipped": len(last.skipped) if last is not None else 0,
             "explorers": int(len(self.explorers)),
