@@ -52,7 +52,7 @@ def _facts(f: dataclasses.Field, tp: Any) -> str:
         parts.append(f"unit {unit}")
     default = _default_text(f)
     if default:
-        parts.append(f"default {default}")
+        parts.append(default if default == "required" else f"default {default}")
     low, high = meta.get("min"), meta.get("max")
     if low is not None and high is not None:
         parts.append(f"{low:g} to {high:g}")
@@ -70,8 +70,8 @@ def _comment(text: str) -> list[str]:
 
 
 def _key_lines(f: dataclasses.Field, tp: Any, value: Any, meaning: str) -> list[str]:
-    facts = _facts(f, tp)
-    lines = _comment(f"{meaning} [{facts}]" if meaning and facts else meaning or f"[{facts}]")
+    # The meaning first, then the facts on a line of their own just above the key.
+    lines = _comment(meaning) + [f"# [{_facts(f, tp)}]"]
     if value is None:
         lines.append(f"# {f.name} =   (unset)")
     else:
@@ -123,8 +123,9 @@ def annotated_scenario(scenario: Scenario, scene_text: str | None = None, header
         out += ["", ""] + _comment(comments.get(f.name, "")) + [f"[{f.name}]"]
         out += _table_lines(value)[0]
     kind = scenario.strategy.kind
-    out += ["", "", "# The method that drives the robots; its keys follow.", "[strategy]"]
-    out += _comment("one of " + ", ".join(strategy_kinds()) + f" ({kind}: {STRATEGIES[kind].summary})")
+    out += ["", "", "[strategy]"]
+    out += _comment(f"the method that drives the robots ({kind}: {STRATEGIES[kind].summary}); its keys follow")
+    out.append(f"# [required; one of {', '.join(strategy_kinds())}]")
     out.append(f"kind = {toml_value(kind)}")
     out += _table_lines(scenario.strategy.params)[0]
     for f, entries in arrays:
