@@ -20,7 +20,7 @@ from sim.cli import main
 from sim.geometry import point_clearance
 from sim.loop import end_of_run, run
 from sim.placement import SceneGeometry, load_in_scene, starts_fit
-from sim.scenario import MODELS_DIR, load, to_scenario_table
+from sim.scenario import MODELS_DIR, builtin_scenarios, load, to_scenario_table
 from sim.targets import nominal_path_samples
 
 FLAT = MODELS_DIR / "scenes" / "examples" / "flat.xml"
@@ -169,3 +169,12 @@ def test_the_init_file_runs(tmp_path):
     result = run(load(str(path), ["strategy.n_sample=40", "strategy.n_uniform=20"], duration_s=2.0), tmp_path / "out")
     assert result.status == "completed"
     assert result.metrics["n_moving_targets"] == 4
+
+
+@pytest.mark.parametrize("name", sorted(builtin_scenarios()))
+def test_init_of_every_built_in_reloads_to_the_same_scenario(name, tmp_path):
+    code, text, _ = cli("init", name)
+    assert code == 0
+    path = tmp_path / f"{name}.toml"
+    path.write_text(text)
+    assert to_scenario_table(load(str(path))) == to_scenario_table(load(name))
