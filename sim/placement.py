@@ -153,14 +153,24 @@ def _halton(count: int, base: int) -> np.ndarray:
     return out
 
 
-def _target_fits(geometry: SceneGeometry, target: dict, taken: list[np.ndarray]) -> bool:
+def path_problem(geometry: SceneGeometry, target: dict) -> str | None:
+    """Why a target's nominal path does not fit the scene, or None if it does."""
     samples = nominal_path_samples(build(TargetConfig, target, "targets"))
     lo, hi = geometry.bounds
-    if np.any(samples < lo + TARGET_CLEARANCE_M) or np.any(samples[:, :2] > hi[:2] - TARGET_CLEARANCE_M):
-        return False
-    if np.any(samples[:, 2] > hi[2]):
-        return False
+    if np.any(samples < lo) or np.any(samples > hi):
+        return "leaves the scene bounds"
     if np.any(point_clearance(geometry.obstacles, samples) < TARGET_CLEARANCE_M):
+        return f"passes through or within {TARGET_CLEARANCE_M:g} m of an obstacle"
+    return None
+
+
+def _fits_beside(geometry: SceneGeometry, target: dict, taken: list[np.ndarray]) -> bool:
+    """A redrawn path fits, keeps clear of the bounds' walls, and does not cross the others."""
+    if path_problem(geometry, target) is not None:
+        return False
+    samples = nominal_path_samples(build(TargetConfig, target, "targets"))
+    lo, hi = geometry.bounds
+    if np.any(samples[:, :2] < lo[:2] + TARGET_CLEARANCE_M) or np.any(samples[:, :2] > hi[:2] - TARGET_CLEARANCE_M):
         return False
     return all(np.min(np.linalg.norm(samples[:, None] - other[None], axis=2)) > 2 * TARGET_CLEARANCE_M
                for other in taken)
@@ -190,24 +200,23 @@ def redraw_targets(geometry: SceneGeometry, targets: list[dict], scene_name: str
     out, notes, taken = [], [], []
     next_candidate = 0
     for index, target in enumerate(targets):
-        if _target_fits(geometry, target, taken):
-            out.append(target)
-        else:
+        problem = path_problem(geometry, target)
+        if problem is not None:
             placed = None
             while placed is None and next_candidate < len(candidates):
                 anchor = candidates[next_candidate]
                 next_candidate += 1
                 turns = range(4) if target["path"] == "linear" else range(1)
                 placed = next((m for m in (_moved_target(target, anchor, t) for t in turns)
-                               if _target_fits(geometry, m, taken)), None)
+                               if _fits_beside(geometry, m, taken)), None)
             if placed is None:
-                raise ConfigError(f"targets.{index}", f"its {target['path']} path does not fit {scene_name} and no "
+                raise ConfigError(f"targets.{index}", f"its {target['path']} path {problem} in {scene_name} and no "
                                   f"free place was found for it; set targets.{index} by hand (see tether init)")
             key = "center" if target["path"] == "circular" else "start"
-            notes.append(f"targets.{index}: its {target['path']} path leaves the free space of {scene_name}; "
+            notes.append(f"targets.{index}: its {target['path']} path {problem} in {scene_name}; "
                          f"redrawn at {tuple(placed[key])} m")
             target = placed
-            out.append(target)
+        out.append(target)
         taken.append(nominal_path_samples(build(TargetConfig, target, "targets")))
     return out, notes
 
