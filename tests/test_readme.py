@@ -24,7 +24,7 @@ from sim.scenario import load
 
 REPO = Path(__file__).resolve().parent.parent
 README = REPO / "README.md"
-SHORT_DURATION_S = "0.5"
+SHORT_DURATION_S = "0.2"
 # Fewer RRT* samples for the intermittent methods' a priori plans (300 and 100 in the scenarios).
 CHEAP_PLANNING = ["--set", "strategy.n_sample=40", "--set", "strategy.n_uniform=20"]
 # Subcommands and programs not run here, and why.
