@@ -86,9 +86,16 @@ def _is_connected(adjacency: np.ndarray) -> bool:
     return bool(seen.all())
 
 
-def starts_fit(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, comm_range_m: float) -> bool:
-    """Every start inside the bounds and clear of obstacles, the team connected
-    by links within ``comm_range_m`` whose line of sight keeps the same clearance."""
+def connected_by_range(starts: np.ndarray, comm_range_m: float) -> bool:
+    """The team's graph of pairs within ``comm_range_m`` is connected (walls aside)."""
+    return _is_connected(np.linalg.norm(starts[:, None] - starts[None], axis=2) <= comm_range_m)
+
+
+def starts_fit(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, comm_range_m: float,
+               connected: bool = True) -> bool:
+    """Every start inside the bounds and clear of obstacles and, if ``connected``,
+    the team connected by links within ``comm_range_m`` whose line of sight keeps
+    the same clearance."""
     lo, hi = geometry.bounds
     margin = np.array([START_CLEARANCE_M[k] for k in kinds])
     probe = starts.copy()
@@ -99,7 +106,7 @@ def starts_fit(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, co
     if not inside.all() or np.any(point_clearance(geometry.obstacles, probe) < margin):
         return False
     n = len(probe)
-    if n == 1:
+    if n == 1 or not connected:
         return True
     i, j = np.triu_indices(n, 1)
     in_range = np.linalg.norm(probe[i] - probe[j], axis=1) <= comm_range_m
@@ -114,7 +121,8 @@ def starts_fit(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, co
     return _is_connected(adjacency)
 
 
-def move_team(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, comm_range_m: float) -> np.ndarray | None:
+def move_team(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, comm_range_m: float,
+              connected: bool = True) -> np.ndarray | None:
     """The start pattern translated (in x and y; in z only as far as the bounds
     require) to the fitting spot nearest the scene's centre, or None."""
     lo, hi = geometry.bounds
@@ -135,7 +143,7 @@ def move_team(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, com
     for c in grid[order]:
         moved = pattern.copy()
         moved[:, :2] += c - centroid
-        if starts_fit(geometry, kinds, moved, comm_range_m):
+        if starts_fit(geometry, kinds, moved, comm_range_m, connected):
             return moved
     return None
 
@@ -211,7 +219,7 @@ def redraw_targets(geometry: SceneGeometry, targets: list[dict], scene_name: str
                                if _fits_beside(geometry, m, taken)), None)
             if placed is None:
                 raise ConfigError(f"targets.{index}", f"its {target['path']} path {problem} in {scene_name} and no "
-                                  f"free place was found for it; set targets.{index} by hand (see tether init)")
+                                  f"free place was found for it; set targets.{index} by hand (tether init writes a file to edit)")
             key = "center" if target["path"] == "circular" else "start"
             notes.append(f"targets.{index}: its {target['path']} path {problem} in {scene_name}; "
                          f"redrawn at {tuple(placed[key])} m")
@@ -240,12 +248,16 @@ def place_in_scene(table: dict, source: str, scene: str, keep: set[str] = frozen
         kinds = [kind for kind, _ in scenario.robot_starts()]
         starts = np.array([p for _, p in scenario.robot_starts()], dtype=float)
         comm = scenario.sensing.comm_range_m
-        if not starts_fit(geometry, kinds, starts, comm):
-            moved = move_team(geometry, kinds, starts, comm)
+        # A team that starts connected (the methods rely on it) must stay so; one
+        # spread out on purpose (the waypoint demo) need not.
+        connected = connected_by_range(starts, comm)
+        if not starts_fit(geometry, kinds, starts, comm, connected):
+            moved = move_team(geometry, kinds, starts, comm, connected)
             if moved is None:
-                raise ConfigError("robots", f"no free place in {scene_name} holds the team's start pattern clear of "
-                                  "obstacles and connected; set robots.0.starts (write the scenario out with "
-                                  "tether init and edit it)")
+                needs = "clear of obstacles and connected" if connected else "clear of obstacles"
+                raise ConfigError("robots", f"no free place in {scene_name} holds the team's start pattern {needs}; "
+                                  "set the starts of each robots entry (tether init "
+                                  f"{scenario.name} > my.toml writes a file to edit)")
             groups, k = [], 0
             for group in scenario.robots:
                 n = len(group.positions())
@@ -253,8 +265,9 @@ def place_in_scene(table: dict, source: str, scene: str, keep: set[str] = frozen
                 k += n
             table["robots"] = groups
             centre = tuple(round(float(v), 2) for v in moved[:, :2].mean(axis=0))
+            where = "every robot is clear of obstacles" + (" and the team is connected" if connected else "")
             notes.append(f"robots: the team's start pattern moved to {centre} m in {scene_name}, the free spot "
-                         "nearest its centre where every robot is clear of obstacles and the team is connected")
+                         f"nearest its centre where {where}")
 
     if table.get("targets") and not any(k == "targets" or k.startswith("targets.") for k in keep):
         table["targets"], target_notes = redraw_targets(geometry, list(table["targets"]), scene_name)

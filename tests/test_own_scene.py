@@ -178,3 +178,22 @@ def test_init_of_every_built_in_reloads_to_the_same_scenario(name, tmp_path):
     path = tmp_path / f"{name}.toml"
     path.write_text(text)
     assert to_scenario_table(load(str(path))) == to_scenario_table(load(name))
+
+
+TINY_ROOM = """
+<mujoco model="tiny">
+  <custom><numeric name="tether_bounds" data="0 0 0 2 2 2"/></custom>
+  <worldbody>
+    <geom name="floor" type="plane" size="1 1 0.05" pos="1 1 0" group="0"/>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_a_scene_too_small_for_the_team_says_in_one_line_what_to_set(tmp_path):
+    scene = tmp_path / "tiny.xml"
+    scene.write_text(TINY_ROOM)
+    code, text, err = cli("run", CONNECTED, "--scene", str(scene), "--out", str(tmp_path / "out"))
+    assert code == 2 and text == "" and not (tmp_path / "out").exists()
+    assert err.count("\n") == 1
+    assert "robots: no free place in tiny.xml" in err and "set the starts" in err and "tether init" in err
