@@ -284,8 +284,9 @@ def place_in_scene(table: dict, source: str, scene: str, keep: set[str] = frozen
             table["strategy"]["prior_variance_m2"] = variance
         notes.append(f"strategy.prior_mean: the built-in's EKF prior describes its own scene; every target's estimate "
                      f"now starts at the centre of {scene_name}, {tuple(centre)} m, with C(0) = "
-                     f"{table['strategy']['prior_variance_m2']:g} I m^2 (non-informative; set strategy.prior_mean "
-                     "and strategy.prior_variance_m2 to choose)")
+                     f"{table['strategy']['prior_variance_m2']:g} I m^2 (non-informative; if you know roughly where "
+                     "the targets are, set strategy.prior_mean there: a range-only EKF started far off can settle "
+                     "on a wrong point)")
     return table, notes
 
 
