@@ -1,6 +1,6 @@
 """``tether`` command line: a thin layer over :func:`sim.loop.run`.
 
-Exit codes: 0 completed, 1 diverged, 2 bad input (one line on stderr naming
+Exit codes: 0 completed or time limit, 1 diverged, 2 bad input (one line on stderr naming
 the field and the problem; nothing written).
 """
 
@@ -30,6 +30,9 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override a scenario value, e.g. --set strategy.speed_mps=0.3 (repeatable)")
     run.add_argument("--quiet", action="store_true", help="print only the summary line (no progress, no file list)")
+    run.add_argument("--scene", default=None, metavar="MJCF",
+                     help="run the scenario in this scene (a built-in name or an MJCF file): starts, targets and "
+                          "prior are placed in it, each change printed")
     _video_arguments(run, implies_video=True)
     run.add_argument("--rerun-live", action="store_true",
                      help="also stream to Rerun viewers while running (gRPC server and web viewer on 127.0.0.1; "
@@ -62,6 +65,15 @@ def _parser() -> argparse.ArgumentParser:
                       help="sim speed as a multiple of real time (default 1; 0: as fast as possible)")
 
     sub.add_parser("scenarios", help="list built-in scenarios")
+
+    init = sub.add_parser("init", help="write a scenario as a commented TOML file to start from "
+                          "(every key with unit, default and meaning)")
+    init.add_argument("scenario", help="built-in scenario name or a TOML file")
+    init.add_argument("--scene", default=None, metavar="MJCF",
+                      help="place it in this scene (a built-in name or an MJCF file), as 'tether run --scene' does")
+    init.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    init.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                      help="override a scenario value (repeatable)")
 
     sweep = sub.add_parser("sweep", help="run many headless trials (a built-in sweep or a TOML file), resumable",
                            description="Run a sweep's trials on a local process pool or a Ray cluster; every "
@@ -152,13 +164,21 @@ def cmd_run(args: argparse.Namespace) -> int:
         return _fail(f"--duration: must be positive, got {args.duration}")
     try:
         video_overrides = _video_overrides(args)
-        scenario = load(args.scenario, [*args.overrides, *video_overrides], seed=args.seed,
-                        duration_s=args.duration)
+        overrides = [*args.overrides, *video_overrides]
+        if args.scene is not None:
+            from sim.placement import load_in_scene
+
+            scenario, placement_notes = load_in_scene(args.scenario, args.scene, overrides, seed=args.seed,
+                                                      duration_s=args.duration)
+        else:
+            scenario, placement_notes = load(args.scenario, overrides, seed=args.seed, duration_s=args.duration), []
         if args.rerun_live:
             grpc_port = _port(args.rerun_port, "--rerun-port")
             web_port = _port(args.rerun_web_port, "--rerun-web-port", host="0.0.0.0")
     except ConfigError as err:
         return _fail(str(err))
+    for note in placement_notes:
+        print(note, flush=True)
     out = Path(args.out) if args.out else Path("runs") / scenario.name
     if out.exists() and not out.is_dir():
         return _fail(f"--out: {out} exists and is not a folder")
@@ -206,7 +226,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             pass
         finally:
             live.close()
-    return 0 if result.status == "completed" else 1
+    return 0 if result.status in ("completed", "time limit") else 1
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
@@ -273,6 +293,38 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
     width = max(map(len, scenarios), default=0)
     for name, description in scenarios.items():
         print(f"{name:{width}s}  {description}")
+    return 0
+
+
+def cmd_init(args: argparse.Namespace) -> int:
+    from sim.annotated import annotated_scenario
+    from sim.scenario import SCENE_DIR
+
+    try:
+        if args.scene is not None:
+            from sim.placement import load_in_scene
+
+            scenario, notes = load_in_scene(args.scenario, args.scene, args.overrides, seed=args.seed)
+        else:
+            from sim.scenario import load
+
+            scenario, notes = load(args.scenario, args.overrides, seed=args.seed), []
+    except ConfigError as err:
+        return _fail(str(err))
+    placed = f", placed in {args.scene}" if args.scene else ""
+    header = [f"tether scenario: {args.scenario}{placed} (written by tether init).",
+              "Run it with: tether run FILE. Every key is below, under a comment with its meaning,",
+              "[unit; default; accepted range]. Unset optional keys are commented out."]
+    if notes:
+        header += ["", "Placed in the new scene:"] + [f"  {note}" for note in notes]
+    # The scene as the user typed it (relative to where they run tether); a scene
+    # file the source scenario named relative to itself is written absolute.
+    scene_text = args.scene
+    if scene_text is None and scenario.scene_path.parent != SCENE_DIR:
+        scene_text = str(scenario.scene_path.resolve())
+    sys.stdout.write(annotated_scenario(scenario, scene_text, header))
+    for note in notes:
+        print(note, file=sys.stderr)
     return 0
 
 
@@ -346,7 +398,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     handlers = {"run": cmd_run, "tune": cmd_tune, "view": cmd_view, "scenarios": cmd_scenarios,
-                "sweep": cmd_sweep, "sweeps": cmd_sweeps, "report": cmd_report}
+                "init": cmd_init, "sweep": cmd_sweep, "sweeps": cmd_sweeps, "report": cmd_report}
     return handlers[args.command](args)
 
 

@@ -15,6 +15,9 @@ reads the same metadata to draw sliders.
 from __future__ import annotations
 
 import dataclasses
+import inspect
+import io
+import tokenize
 import types
 import typing
 from typing import Any, get_args, get_origin, get_type_hints
@@ -187,3 +190,54 @@ def require(condition: bool, field: str, problem: str) -> None:
     """Raise ValueError('field: problem') for __post_init__ checks."""
     if not condition:
         raise ValueError(f"{field}: {problem}")
+
+
+GROUP_MARK = "--"  # a comment line "# -- NAME, ..." in a parameter class starts the group NAME (not a field's help)
+
+
+def field_comments(cls: type) -> dict[str, str]:
+    """Field name -> its source comment (trailing, else the comment lines just above):
+    the help of a field on the tuning page and in ``tether init``'s files."""
+    try:
+        source = inspect.getsource(cls)
+    except (OSError, TypeError):
+        return {}
+    names = {f.name for f in dataclasses.fields(cls)}
+    code: dict[int, list[str]] = {}  # line -> its code tokens
+    comment: dict[int, str] = {}  # line -> its comment
+    skip = (tokenize.NL, tokenize.NEWLINE, tokenize.INDENT, tokenize.DEDENT, tokenize.ENDMARKER)
+    try:
+        for tok in tokenize.generate_tokens(io.StringIO(source).readline):
+            if tok.type == tokenize.COMMENT:
+                comment[tok.start[0]] = tok.string.lstrip("#").strip()
+            elif tok.type not in skip:
+                code.setdefault(tok.start[0], []).append(tok.string)
+    except (tokenize.TokenError, IndentationError, SyntaxError):
+        return {}
+    out: dict[str, str] = {}
+    for row, tokens in sorted(code.items()):
+        if len(tokens) < 2 or tokens[0] not in names or tokens[1] != ":" or tokens[0] in out:
+            continue
+        if row in comment:
+            out[tokens[0]] = comment[row]
+            continue
+        above, r = [], row - 1
+        while r in comment and r not in code and not comment[r].startswith(GROUP_MARK):
+            above.insert(0, comment[r])
+            r -= 1
+        if above:
+            out[tokens[0]] = " ".join(above)
+    return out
+
+
+# Units that field names end in (speed_mps, timestep_s, ...).
+UNIT_SUFFIXES = {"_mps2": "m/s^2", "_mps": "m/s", "_m2": "m^2", "_m": "m", "_s": "s", "_rad": "rad",
+                 "_deg": "deg", "_hz": "Hz", "_px": "px"}
+
+
+def unit_from_name(name: str) -> str:
+    """The unit a field's name ends in (``speed_mps`` -> "m/s"), or ""."""
+    for suffix, unit in UNIT_SUFFIXES.items():
+        if name.endswith(suffix):
+            return unit
+    return ""

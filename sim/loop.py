@@ -53,11 +53,31 @@ mujoco.set_mju_user_warning(_collect_warning)
 
 @dataclass
 class RunResult:
-    status: str  # "completed" | "diverged"
+    status: str  # "completed" | "time limit" | "diverged" (see end_of_run)
     metrics: dict[str, Any]
     out_dir: Path | None
     files: dict[str, str] = field(default_factory=dict)
     trajectory: np.ndarray | None = None  # (ticks, N, 3) body positions, when asked
+
+
+def end_of_run(strategy: Any, mission_ended: bool, duration_s: float, time_s: float) -> tuple[str, str]:
+    """Status word and message of a run that did not diverge.
+
+    A strategy with a ``finished`` attribute has a mission that can end (every
+    target visited); if the duration runs out first the run stopped at its
+    "time limit", which a user must not read as "completed". A strategy
+    without one (waypoints, the intermittent methods' tracking over
+    [0, t_end]) has done its job when it ran the full duration. The optional
+    ``progress() -> str`` says how far the mission got (e.g. "7/25 targets
+    visited") in either case.
+    """
+    progress = strategy.progress() if callable(getattr(strategy, "progress", None)) else ""
+    detail = f": {progress}" if progress else ""
+    if mission_ended:
+        return "completed", f"mission completed at t = {time_s:.1f} s{detail}"
+    if hasattr(strategy, "finished"):
+        return "time limit", f"stopped at the {duration_s:g} s time limit before the mission ended{detail}"
+    return "completed", f"ran the full {duration_s:g} s{detail}"
 
 
 class Simulation:
@@ -230,6 +250,7 @@ def run(
 
     n_ticks = int(round(scenario.duration_s / sim.dt))
     status = "completed"
+    mission_ended = False
     trajectory = [] if keep_trajectory else None
     message = ""
     try:
@@ -252,7 +273,10 @@ def run(
                 # The strategy's mission is over (e.g. every target visited): stop early.
                 if recorder is not None:
                     recorder.event(sim.time_s, f"strategy finished at t = {sim.time_s:.2f} s", tick=sim.tick_count)
+                mission_ended = True
                 break
+        if status != "diverged":
+            status, message = end_of_run(sim.strategy, mission_ended, scenario.duration_s, sim.time_s)
     finally:
         for observer in observers:
             observer.close(status)
@@ -270,7 +294,9 @@ def run(
         "n_robots": sim.world.n_robots,
         "n_quadrotors": int(len(sim.world.kind_index["quadrotor"])),
         "n_ground_robots": int(len(sim.world.kind_index["ground"])),
-        "n_targets": sim.targets.n_targets,
+        # The scene's moving targets ([[targets]], tracked by range sensors), not
+        # the connected method's points to visit (its targets_to_visit).
+        "n_moving_targets": sim.targets.n_targets,
         "control_ticks": sim.tick_count,
         **tracking.summary(),
         **links.summary(),

@@ -29,24 +29,24 @@ STRATEGIES: dict[str, StrategySpec] = {
     "intermittent": StrategySpec(
         "controllers.intermittent.params:IntermittentParams",
         "controllers.intermittent.strategy:IntermittentStrategy",
-        "seed 000: teams meet on a conflict-free schedule at places and times chosen by a joint-space "
+        "Khodayi-mehr et al. 2019: teams meet on a conflict-free schedule at places and times chosen by a joint-space "
         "informative RRT* (Algorithm 5)",
     ),
     "all_time": StrategySpec(
         "controllers.intermittent.params:IntermittentParams",
         "controllers.baselines.all_time:AllTimeStrategy",
-        "seed 000 baseline: the robots keep their connected start formation, whose centre follows "
+        "Khodayi-mehr et al. 2019, baseline: the robots keep their connected start formation, whose centre follows "
         "informative RRT* paths",
     ),
     "random_meeting": StrategySpec(
         "controllers.intermittent.params:IntermittentParams",
         "controllers.baselines.random_meeting:RandomMeetingStrategy",
-        "seed 000 baseline: the same teams and schedule, geodesic paths to random meeting points",
+        "Khodayi-mehr et al. 2019, baseline: the same teams and schedule, geodesic paths to random meeting points",
     ),
     "connected": StrategySpec(
         "controllers.connectivity.connected_params:ConnectedParams",
         "controllers.connectivity.strategy:ConnectedStrategy",
-        "seed 001: quadrotors track virtual points driven by lambda2-gradient connectivity forces while "
+        "Nestmeyer et al. 2017: quadrotors track virtual points driven by lambda2-gradient connectivity forces while "
         "explorers visit their targets under prime-traveler election",
     ),
 }

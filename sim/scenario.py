@@ -48,10 +48,10 @@ class PhysicsConfig:
 
 @dataclass(frozen=True)
 class SensingConfig:
-    target_range_m: float = 5.0  # range sensor limit (seed 000: 5 m)
+    target_range_m: float = 5.0  # range-sensor limit, m (the intermittent paper: 5 m)
     comm_range_m: float = 2.5  # robot-robot link range with line of sight, m
-    range_noise: bool = True  # add seed 000 eq. (12) noise to range readings
-    period_s: float = 1.0  # target range readings every period_s (seed 000's Delta t)
+    range_noise: bool = True  # add the intermittent paper's eq. (12) noise to range readings
+    period_s: float = 1.0  # target range readings every period_s, s (the intermittent paper's Delta t)
 
     def __post_init__(self):
         for name in ("target_range_m", "comm_range_m", "period_s"):
@@ -63,7 +63,7 @@ class SensingConfig:
 class RobotGroup:
     """A group of robots of one kind: explicit ``starts`` or a grid of ``count``."""
 
-    kind: Literal["quadrotor", "ground"]
+    kind: Literal["quadrotor", "ground"]  # "quadrotor" or "ground" (e-puck-sized, differential drive)
     starts: tuple[Vec3, ...] = ()  # start positions, m (z ignored for ground robots)
     count: int | None = None  # with spawn_center: a square grid of this many robots
     spawn_center: Vec3 | None = None  # grid centre, m
@@ -97,7 +97,7 @@ class RobotGroup:
 class TargetConfig:
     """One moving target (seed 000 eq. 11): linear back-and-forth, circular, or static."""
 
-    path: Literal["linear", "circular", "static"]
+    path: Literal["linear", "circular", "static"]  # "linear" (back and forth), "circular" or "static"
     start: Vec3 | None = None  # linear/static: first point, m
     end: Vec3 | None = None  # linear: second point, m
     center: Vec3 | None = None  # circular: centre, m
@@ -127,13 +127,13 @@ class TargetMotionConfig:
 
 @dataclass(frozen=True)
 class VideoConfig:
-    width: int = 640  # px
-    height: int = 480  # px
+    width: int = 640  # frame width, px (even)
+    height: int = 480  # frame height, px (even)
     fps: float = 30.0  # frames per second of sim time
     # "top" (top-down), "overview" (perspective), "follow:ROBOT" (tracks one robot, e.g. follow:quad0),
     # another camera named in the scene, "free" (default view), or "auto" ("top")
     camera: str = "auto"
-    shadows: bool = False
+    shadows: bool = False  # shadows cost render time
 
     def __post_init__(self):
         require(16 <= self.width <= 4096, "width", f"must be in [16, 4096] px, got {self.width}")
@@ -156,15 +156,15 @@ class ScenarioBody:
     """The scenario file's top level, the strategy table aside (its type
     depends on ``strategy.kind``, so it is built through the registry)."""
 
-    name: str
-    scene: str  # built-in scene name or path to an MJCF file
-    robots: tuple[RobotGroup, ...]
-    description: str = ""
+    name: str  # the scenario's name (a file's own name; not written to files)
+    scene: str  # built-in scene name (indoor, empty, town) or path to an MJCF file, relative to this file or the working folder
+    robots: tuple[RobotGroup, ...]  # groups of robots, each of one kind, in robot order
+    description: str = ""  # one line, shown by `tether scenarios`
     duration_s: float = 30.0  # simulated time, s
     seed: int = 0  # seeds the run's single np.random.Generator
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
     sensing: SensingConfig = field(default_factory=SensingConfig)
-    targets: tuple[TargetConfig, ...] = ()
+    targets: tuple[TargetConfig, ...] = ()  # moving targets, seen by the range sensors
     target_motion: TargetMotionConfig = field(default_factory=TargetMotionConfig)
     video: VideoConfig = field(default_factory=VideoConfig)
 
@@ -278,9 +278,9 @@ def from_table(table: dict, source: str = "") -> Scenario:
     return Scenario(**fields, strategy=StrategyConfig(kind, params), source=source)
 
 
-def load(name_or_path: str, overrides: list[str] = (), seed: int | None = None,
-         duration_s: float | None = None) -> Scenario:
-    """Load, override and validate a scenario (raises ConfigError)."""
+def load_table(name_or_path: str, overrides: list[str] = (), seed: int | None = None,
+               duration_s: float | None = None) -> tuple[dict, str]:
+    """A scenario's raw table with the overrides applied, and its source path."""
     table, source = read_table(name_or_path)
     for assignment in overrides:
         apply_override(table, assignment)
@@ -288,7 +288,13 @@ def load(name_or_path: str, overrides: list[str] = (), seed: int | None = None,
         table["seed"] = seed
     if duration_s is not None:
         table["duration_s"] = duration_s
-    return from_table(table, source)
+    return table, source
+
+
+def load(name_or_path: str, overrides: list[str] = (), seed: int | None = None,
+         duration_s: float | None = None) -> Scenario:
+    """Load, override and validate a scenario (raises ConfigError)."""
+    return from_table(*load_table(name_or_path, overrides, seed, duration_s))
 
 
 def to_scenario_table(scenario: Scenario) -> dict:

@@ -101,7 +101,10 @@ class Strategy(Protocol):
     (:meth:`sim.loop.Simulation.set_strategy_params`).
 
     Optional: a ``finished`` attribute (bool); once it reads True after a
-    tick, :func:`sim.loop.run` stops early (e.g. every target visited).
+    tick, :func:`sim.loop.run` stops early (e.g. every target visited), and a
+    run whose duration runs out first ends with status "time limit".
+    Optional: ``progress() -> str``, how far the mission got ("7/25 targets
+    visited"), for the run's status message.
     Optional: ``summary() -> dict``, merged into metrics.json.
     """
 

@@ -214,11 +214,11 @@ def test_small_mission_completes_and_stops_early(small_mission):
     result, out, _ = small_mission
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["status"] == "completed"
-    assert metrics["targets_total"] == metrics["targets_visited"] == 3
+    assert metrics["targets_to_visit"] == metrics["targets_visited"] == 3
     assert metrics["completion_time_s"] is not None
     assert metrics["sim_time_s"] < 40.0  # the loop stopped when the strategy finished
     assert metrics["completion_time_s"] == pytest.approx(metrics["sim_time_s"], abs=0.02)
-    for key in ("completion_time_s", "targets_total", "targets_visited", "lambda2_min", "lambda2_mean",
+    for key in ("completion_time_s", "targets_to_visit", "targets_visited", "lambda2_min", "lambda2_mean",
                 "edges_min", "max_stretch_m", "mean_travel_m", "min_robot_distance_m", "min_obstacle_distance_m",
                 "prime_travelers_max", "lambda2_estimate_error_mean", "tracking_error_mean_m", "real_time_factor"):
         assert key in metrics, key

@@ -34,7 +34,6 @@ import json
 import math
 import threading
 import time
-import tokenize
 import tomllib
 import typing
 from collections import deque
@@ -46,7 +45,7 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
-from sim.config import ConfigError, build, to_table
+from sim.config import ConfigError, build, field_comments, to_table, unit_from_name
 from sim.loop import Simulation
 from sim.observers import Frame, tracking_errors
 from sim.registry import strategy_params_class
@@ -60,50 +59,12 @@ HISTORY_POINTS = 3000  # plot samples kept (5 min of sim time)
 JPEG_QUALITY = 80
 MAX_LAG_S = 0.5  # further behind real time than this: stop catching up
 PAGE = Path(__file__).parent / "static" / "tune.html"
-UNIT_SUFFIXES = {"_mps2": "m/s^2", "_mps": "m/s", "_m2": "m^2", "_m": "m", "_s": "s", "_rad": "rad",
-                 "_deg": "deg", "_hz": "Hz", "_px": "px"}
 GROUP_MARK = "--"  # a comment line "# -- NAME, ..." in a parameter class starts the group NAME
 GENERAL_GROUP = "general"
 FIGURE_LABELS = {"tracking_error_mean_m": "tracking error, mean over robots (m)", "links": "communication links"}
 
 
 # --------------------------------------------------------------------------- parameter fields
-
-
-def _field_comments(cls: type) -> dict[str, str]:
-    """Field name -> its source comment (trailing, else the comment lines just above)."""
-    import inspect
-
-    try:
-        source = inspect.getsource(cls)
-    except (OSError, TypeError):
-        return {}
-    names = {f.name for f in dataclasses.fields(cls)}
-    code: dict[int, list[str]] = {}  # line -> its code tokens
-    comment: dict[int, str] = {}  # line -> its comment
-    skip = (tokenize.NL, tokenize.NEWLINE, tokenize.INDENT, tokenize.DEDENT, tokenize.ENDMARKER)
-    try:
-        for tok in tokenize.generate_tokens(io.StringIO(source).readline):
-            if tok.type == tokenize.COMMENT:
-                comment[tok.start[0]] = tok.string.lstrip("#").strip()
-            elif tok.type not in skip:
-                code.setdefault(tok.start[0], []).append(tok.string)
-    except (tokenize.TokenError, IndentationError, SyntaxError):
-        return {}
-    out: dict[str, str] = {}
-    for row, tokens in sorted(code.items()):
-        if len(tokens) < 2 or tokens[0] not in names or tokens[1] != ":" or tokens[0] in out:
-            continue
-        if row in comment:
-            out[tokens[0]] = comment[row]
-            continue
-        above, r = [], row - 1
-        while r in comment and r not in code and not comment[r].startswith(GROUP_MARK):
-            above.insert(0, comment[r])
-            r -= 1
-        if above:
-            out[tokens[0]] = " ".join(above)
-    return out
 
 
 def _field_groups(cls: type) -> dict[str, str]:
@@ -134,13 +95,6 @@ def _field_groups(cls: type) -> dict[str, str]:
     return out
 
 
-def _unit_from_name(name: str) -> str:
-    for suffix, unit in UNIT_SUFFIXES.items():
-        if name.endswith(suffix):
-            return unit
-    return ""
-
-
 def _field_kind(tp: Any) -> tuple[str, list | None]:
     if tp is bool:
         return "bool", None
@@ -163,7 +117,7 @@ def describe_params(cls: type, params: Any) -> list[dict[str, Any]]:
     shapes the set-up, ``tunable=False`` in its metadata: changing it restarts
     the strategy at the current state) and the current value."""
     hints = get_type_hints(cls)
-    comments = _field_comments(cls)
+    comments = field_comments(cls)
     groups = _field_groups(cls)
     out = []
     for f in dataclasses.fields(cls):
@@ -172,7 +126,7 @@ def describe_params(cls: type, params: Any) -> list[dict[str, Any]]:
             continue
         kind, choices = _field_kind(hints[f.name])
         value = to_table(getattr(params, f.name))
-        entry = {"name": f.name, "kind": kind, "unit": meta.get("unit") or _unit_from_name(f.name),
+        entry = {"name": f.name, "kind": kind, "unit": meta.get("unit") or unit_from_name(f.name),
                  "min": meta.get("min"), "max": meta.get("max"), "step": meta.get("step"), "choices": choices,
                  "help": comments.get(f.name, ""), "group": groups.get(f.name, GENERAL_GROUP),
                  "restarts": not meta.get("tunable", True), "value": value}

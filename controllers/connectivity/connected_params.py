@@ -50,7 +50,7 @@ _TARGET_DEFAULTS = {
     "office": dict(target_clearance_m=0.6, target_height_min_m=0.6, target_height_max_m=4.4),
     "outdoor": dict(target_clearance_m=1.75, target_height_min_m=2.0, target_height_max_m=12.0),
 }
-# Not in the paper (see README, deviations): k_lambda scaled with the cruise speed (a prime traveler
+# Not in the paper (see docs/deviations.md): k_lambda scaled with the cruise speed (a prime traveler
 # pulls with up to k_v v_cruise), so the barrier holds a pulled link about as far from R_s outdoors
 # as indoors; f_travel capped at twice k_v v_cruise (Problem 1 asks for a bounded f_i); the anchor
 # force cap twice that, so an anchor is not dragged out of R_z by a prime traveler's pull (its dwell

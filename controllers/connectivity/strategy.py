@@ -59,7 +59,7 @@ paths.py, travel.py, roles.py, election.py, targets.py). Here:
   be out of range for the bodies. ``estimator_links = "messages"`` restricts
   the estimator to W o A and makes f_lambda the gradient of lambda2(W o A)
   (A held fixed; lambda2(W) >= lambda2(W o A)); a dropped bridge then
-  isolates a robot discontinuously (README: seed 1 disconnects).
+  isolates a robot discontinuously (docs/results.md: seed 1 disconnects).
 - Estimator mode: robot i evaluates V' at min(its estimate, N/(N-1) d_i),
   with d_i = sum_j W_ij its own degree (lambda2 <= N/(N-1) min_i d_i,
   Fiedler 1973: a bound every robot knows), and at no less than
@@ -361,14 +361,19 @@ class ConnectedStrategy:
             self._events = []
         return info
 
+    def progress(self) -> str:
+        """How far the mission got, for the run's status message."""
+        visited = len(self.last.visits) if self.last is not None else 0
+        return f"{visited}/{self.targets_total} targets visited"
+
     def summary(self) -> dict:
-        """Seed 001's figures for metrics.json (see the README)."""
+        """Seed 001's figures for metrics.json (docs/connected.md)."""
         last = self.last
         visited = len(last.visits) if last is not None else 0
         return {
             "lambda2_source": self.params.lambda2_source,
             "completion_time_s": self.completion_time,
-            "targets_total": self.targets_total,
+            "targets_to_visit": self.targets_total,
             "targets_visited": visited,
             "targets_skipped": len(last.skipped) if last is not None else 0,
             "explorers": int(len(self.explorers)),

@@ -465,6 +465,12 @@ class MeetingStrategy(ABC):
             self.events = []
         return info
 
+    def progress(self) -> str:
+        """Meetings held so far against those scheduled, for the run's status message."""
+        scheduled = sum(m.planned_time_s <= self._time_s + 1e-9 for m in self.meetings)
+        held = sum(m.held_s is not None for m in self.meetings)
+        return f"{held}/{scheduled} scheduled meetings held"
+
     def summary(self) -> dict:
         t_end = self._time_s
         scheduled = [m for m in self.meetings if m.planned_time_s <= t_end + 1e-9]

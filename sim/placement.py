@@ -1,0 +1,304 @@
+"""A scenario moved into another scene (``tether run NAME --scene my.xml``).
+
+A built-in scenario is written for its own scene: its starts, fixed targets
+and (for the intermittent methods) its EKF prior are coordinates of that
+scene. :func:`place_in_scene` rewrites them for a user's scene, on the raw
+TOML table, before the scenario is validated:
+
+- starts: if the scenario's starts do not fit (outside the bounds, too close
+  to an obstacle, or the team not connected), the whole start pattern is
+  moved, unchanged, to the free spot nearest the scene's centre where every
+  robot is clear of obstacles and the team is connected (links within the
+  communication range and in line of sight). The pattern keeps the spacing
+  the method was tuned for (the connected method's lattice at R'_c, the
+  intermittent teams' 0.12 m cluster).
+- targets (``[[targets]]``): a path that leaves the bounds or passes through
+  an obstacle is redrawn, same shape and speed, at the first free spot of a
+  deterministic low-discrepancy sequence over the scene.
+- prior (intermittent methods): the built-in's prior is a guess about its own
+  scene; in another one every target starts at the scene's centre with a
+  variance that spans the scene (non-informative).
+
+Every change is returned as one line for the user. Nothing here is random:
+the same scenario, scene and overrides always give the same placement, so
+same seed, same run. Keys the user set with ``--set`` are left alone.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from sim.config import ConfigError, build
+from sim.geometry import Boxes, point_clearance, segment_clearance
+from sim.scenario import SCENE_DIR, Scenario, TargetConfig, from_table, load_table, resolve_scene
+from sim.targets import nominal_path_samples
+from sim.world import ROBOT_RADIUS_M, extract_obstacles, load_scene_spec, scene_bounds
+
+# Clearance of each start from obstacles, m. Quadrotors: the connected method's
+# full-weight line-of-sight clearance in the office (R'_o = 0.6 m), so the
+# start graph has full weights. Ground robots: their 0.036 m radius plus the
+# intermittent planner's 0.08 m path clearance, rounded up.
+START_CLEARANCE_M = {"quadrotor": 0.6, "ground": 0.12}
+# A ground robot's footprint is checked this far above its clearance (so the
+# floor itself does not count as an obstacle near it), m.
+GROUND_PROBE_LIFT_M = 0.01
+# Candidate team centres lie on a grid this fine (at least), m; coarser in
+# large scenes so the search stays within ~40,000 candidates.
+CANDIDATE_STEP_M = 0.05
+MAX_CANDIDATES_PER_AXIS = 200
+# Redrawn targets keep this clearance from obstacles and bounds, m.
+TARGET_CLEARANCE_M = 0.3
+# Low-discrepancy candidates tried per redrawn target.
+TARGET_CANDIDATES = 4096
+# The intermittent methods' strategy kinds (they share one parameter class).
+INTERMITTENT_KINDS = ("intermittent", "all_time", "random_meeting")
+
+
+class SceneGeometry:
+    """Obstacle boxes and free-space bounds of one MJCF scene."""
+
+    def __init__(self, scene_path: Path):
+        model = load_scene_spec(scene_path).compile()
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+        self.obstacles: Boxes = extract_obstacles(model, data)
+        self.bounds: np.ndarray = scene_bounds(model, self.obstacles)  # (2, 3): min, max corner, m
+
+    @property
+    def center(self) -> np.ndarray:
+        return self.bounds.mean(axis=0)
+
+
+def _is_connected(adjacency: np.ndarray) -> bool:
+    n = len(adjacency)
+    seen = np.zeros(n, dtype=bool)
+    seen[0] = True
+    frontier = [0]
+    while frontier:
+        i = frontier.pop()
+        for j in np.flatnonzero(adjacency[i] & ~seen):
+            seen[j] = True
+            frontier.append(j)
+    return bool(seen.all())
+
+
+def connected_by_range(starts: np.ndarray, comm_range_m: float) -> bool:
+    """The team's graph of pairs within ``comm_range_m`` is connected (walls aside)."""
+    return _is_connected(np.linalg.norm(starts[:, None] - starts[None], axis=2) <= comm_range_m)
+
+
+def starts_fit(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, comm_range_m: float,
+               connected: bool = True) -> bool:
+    """Every start inside the bounds and clear of obstacles and, if ``connected``,
+    the team connected by links within ``comm_range_m`` whose line of sight keeps
+    the same clearance."""
+    lo, hi = geometry.bounds
+    margin = np.array([START_CLEARANCE_M[k] for k in kinds])
+    probe = starts.copy()
+    ground = np.array([k == "ground" for k in kinds])
+    probe[ground, 2] = lo[2] + margin[ground] + GROUND_PROBE_LIFT_M
+    inside = np.all((probe[:, :2] >= lo[:2] + margin[:, None]) & (probe[:, :2] <= hi[:2] - margin[:, None]), axis=1)
+    inside &= ground | ((probe[:, 2] >= lo[2] + margin) & (probe[:, 2] <= hi[2] - margin))
+    if not inside.all() or np.any(point_clearance(geometry.obstacles, probe) < margin):
+        return False
+    n = len(probe)
+    if n == 1 or not connected:
+        return True
+    i, j = np.triu_indices(n, 1)
+    in_range = np.linalg.norm(probe[i] - probe[j], axis=1) <= comm_range_m
+    i, j = i[in_range], j[in_range]
+    adjacency = np.zeros((n, n), dtype=bool)
+    if len(i):
+        # Ground robots' links only need an unblocked line; quadrotors' keep the start clearance.
+        needed = np.minimum(margin[i], margin[j])
+        needed[ground[i] | ground[j]] = 0.0
+        clear = segment_clearance(geometry.obstacles, probe[i], probe[j]).distance > needed
+        adjacency[i[clear], j[clear]] = adjacency[j[clear], i[clear]] = True
+    return _is_connected(adjacency)
+
+
+def move_team(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, comm_range_m: float,
+              connected: bool = True) -> np.ndarray | None:
+    """The start pattern translated (in x and y; in z only as far as the bounds
+    require) to the fitting spot nearest the scene's centre, or None."""
+    lo, hi = geometry.bounds
+    pattern = starts.copy()
+    flying = np.array([k != "ground" for k in kinds])
+    if flying.any():
+        margin = max(START_CLEARANCE_M[k] for k in kinds if k != "ground")
+        z = pattern[flying, 2]
+        shift = max(0.0, lo[2] + margin - z.min()) - max(0.0, z.max() - (hi[2] - margin))
+        pattern[flying, 2] += shift
+    centroid = pattern[:, :2].mean(axis=0)
+    step = max(CANDIDATE_STEP_M, float((hi - lo)[:2].max()) / MAX_CANDIDATES_PER_AXIS)
+    xs = np.arange(lo[0], hi[0] + 1e-9, step)
+    ys = np.arange(lo[1], hi[1] + 1e-9, step)
+    grid = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+    # Nearest the centre first; ties broken by position so the order is fixed.
+    order = np.lexsort((grid[:, 1], grid[:, 0], np.linalg.norm(grid - geometry.center[:2], axis=1).round(9)))
+    for c in grid[order]:
+        moved = pattern.copy()
+        moved[:, :2] += c - centroid
+        if starts_fit(geometry, kinds, moved, comm_range_m, connected):
+            return moved
+    return None
+
+
+def _halton(count: int, base: int) -> np.ndarray:
+    """The first ``count`` points (from index 1) of the van der Corput sequence in ``base``."""
+    out = np.zeros(count)
+    for k in range(count):
+        f, i, x = 1.0, k + 1, 0.0
+        while i:
+            f /= base
+            x += f * (i % base)
+            i //= base
+        out[k] = x
+    return out
+
+
+def path_problem(geometry: SceneGeometry, target: dict) -> str | None:
+    """Why a target's nominal path does not fit the scene, or None if it does."""
+    samples = nominal_path_samples(build(TargetConfig, target, "targets"))
+    lo, hi = geometry.bounds
+    if np.any(samples < lo) or np.any(samples > hi):
+        return "leaves the scene bounds"
+    if np.any(point_clearance(geometry.obstacles, samples) < TARGET_CLEARANCE_M):
+        return f"passes through or within {TARGET_CLEARANCE_M:g} m of an obstacle"
+    return None
+
+
+def _fits_beside(geometry: SceneGeometry, target: dict, taken: list[np.ndarray]) -> bool:
+    """A redrawn path fits, keeps clear of the bounds' walls, and does not cross the others."""
+    if path_problem(geometry, target) is not None:
+        return False
+    samples = nominal_path_samples(build(TargetConfig, target, "targets"))
+    lo, hi = geometry.bounds
+    if np.any(samples[:, :2] < lo[:2] + TARGET_CLEARANCE_M) or np.any(samples[:, :2] > hi[:2] - TARGET_CLEARANCE_M):
+        return False
+    return all(np.min(np.linalg.norm(samples[:, None] - other[None], axis=2)) > 2 * TARGET_CLEARANCE_M
+               for other in taken)
+
+
+def _moved_target(target: dict, anchor: np.ndarray, turn: int) -> dict:
+    """``target`` with its path moved so that its first point (centre of a circle) is
+    ``anchor`` (x, y), a linear path's direction turned by ``turn`` quarter turns."""
+    out = copy.deepcopy(target)
+    key = "center" if target["path"] == "circular" else "start"
+    first = np.array(target[key], dtype=float)
+    new_first = np.array([anchor[0], anchor[1], first[2]])
+    out[key] = [round(float(v), 3) for v in new_first]
+    if target["path"] == "linear":
+        d = np.array(target["end"], dtype=float) - first
+        c, s = [(1, 0), (0, 1), (-1, 0), (0, -1)][turn]
+        d[:2] = [c * d[0] - s * d[1], s * d[0] + c * d[1]]
+        out["end"] = [round(float(v), 3) for v in new_first + d]
+    return out
+
+
+def redraw_targets(geometry: SceneGeometry, targets: list[dict], scene_name: str) -> tuple[list[dict], list[str]]:
+    """Targets whose path fits the scene are kept; the others are moved to the first
+    fitting spot of a Halton sequence over the bounds (same shape, speed, height)."""
+    lo, hi = geometry.bounds
+    candidates = lo[:2] + np.stack([_halton(TARGET_CANDIDATES, 2), _halton(TARGET_CANDIDATES, 3)], axis=1) * (hi - lo)[:2]
+    out, notes, taken = [], [], []
+    next_candidate = 0
+    for index, target in enumerate(targets):
+        problem = path_problem(geometry, target)
+        if problem is not None:
+            placed = None
+            while placed is None and next_candidate < len(candidates):
+                anchor = candidates[next_candidate]
+                next_candidate += 1
+                turns = range(4) if target["path"] == "linear" else range(1)
+                placed = next((m for m in (_moved_target(target, anchor, t) for t in turns)
+                               if _fits_beside(geometry, m, taken)), None)
+            if placed is None:
+                raise ConfigError(f"targets.{index}", f"its {target['path']} path {problem} in {scene_name} and no "
+                                  f"free place was found for it; set targets.{index} by hand (tether init writes a file to edit)")
+            key = "center" if target["path"] == "circular" else "start"
+            notes.append(f"targets.{index}: its {target['path']} path {problem} in {scene_name}; "
+                         f"redrawn at {tuple(placed[key])} m")
+            target = placed
+        out.append(target)
+        taken.append(nominal_path_samples(build(TargetConfig, target, "targets")))
+    return out, notes
+
+
+def place_in_scene(table: dict, source: str, scene: str, keep: set[str] = frozenset()) -> tuple[dict, list[str]]:
+    """``table`` (a scenario's raw TOML table, overrides applied) moved into ``scene``
+    (a built-in scene name or an MJCF path); returns the new table and one line per
+    change. Keys in ``keep`` (those set by --set, dotted) are left as they are."""
+    table = copy.deepcopy(table)
+    new_path = resolve_scene(scene).resolve()
+    old_path = resolve_scene(table.get("scene", ""), source).resolve() if table.get("scene") else None
+    table["scene"] = scene if (SCENE_DIR / f"{scene}.xml").is_file() else str(new_path)
+    if new_path == old_path:
+        return table, []
+    scene_name = new_path.name
+    geometry = SceneGeometry(new_path)
+    notes: list[str] = []
+    scenario: Scenario = from_table(table, source)
+
+    if not any(k == "robots" or k.startswith("robots.") for k in keep):
+        kinds = [kind for kind, _ in scenario.robot_starts()]
+        starts = np.array([p for _, p in scenario.robot_starts()], dtype=float)
+        comm = scenario.sensing.comm_range_m
+        # A team that starts connected (the methods rely on it) must stay so; one
+        # spread out on purpose (the waypoint demo) need not.
+        connected = connected_by_range(starts, comm)
+        if not starts_fit(geometry, kinds, starts, comm, connected):
+            moved = move_team(geometry, kinds, starts, comm, connected)
+            if moved is None:
+                needs = "clear of obstacles and connected" if connected else "clear of obstacles"
+                raise ConfigError("robots", f"no free place in {scene_name} holds the team's start pattern {needs}; "
+                                  "set the starts of each robots entry (tether init "
+                                  f"{scenario.name} > my.toml writes a file to edit)")
+            groups, k = [], 0
+            for group in scenario.robots:
+                n = len(group.positions())
+                groups.append({"kind": group.kind, "starts": [[round(float(v), 3) for v in p] for p in moved[k:k + n]]})
+                k += n
+            table["robots"] = groups
+            centre = tuple(round(float(v), 2) for v in moved[:, :2].mean(axis=0))
+            where = "every robot is clear of obstacles" + (" and the team is connected" if connected else "")
+            notes.append(f"robots: the team's start pattern moved to {centre} m in {scene_name}, the free spot "
+                         f"nearest its centre where {where}")
+
+    if table.get("targets") and not any(k == "targets" or k.startswith("targets.") for k in keep):
+        table["targets"], target_notes = redraw_targets(geometry, list(table["targets"]), scene_name)
+        notes += target_notes
+
+    kind = scenario.strategy.kind
+    if kind in INTERMITTENT_KINDS and table.get("targets") and "strategy.prior_mean" not in keep:
+        centre = [round(float(v), 3) for v in geometry.center]
+        half_diagonal = float(np.linalg.norm((geometry.bounds[1] - geometry.bounds[0])[:2])) / 2
+        # 2 sigma of the prior reach from the centre to the scene's corners.
+        variance = round((half_diagonal / 2) ** 2, 3)
+        table["strategy"]["prior_mean"] = [centre] * len(table["targets"])
+        if "strategy.prior_variance_m2" not in keep:
+            table["strategy"]["prior_variance_m2"] = variance
+        notes.append(f"strategy.prior_mean: the built-in's EKF prior describes its own scene; every target's estimate "
+                     f"now starts at the centre of {scene_name}, {tuple(centre)} m, with C(0) = "
+                     f"{table['strategy']['prior_variance_m2']:g} I m^2 (non-informative; if you know roughly where "
+                     "the targets are, set strategy.prior_mean there: a range-only EKF started far off can settle "
+                     "on a wrong point)")
+    return table, notes
+
+
+def override_keys(overrides: list[str]) -> set[str]:
+    """The dotted keys of ``--set key=value`` overrides."""
+    return {assignment.partition("=")[0].strip() for assignment in overrides}
+
+
+def load_in_scene(name_or_path: str, scene: str, overrides: list[str] = (), seed: int | None = None,
+                  duration_s: float | None = None) -> tuple[Scenario, list[str]]:
+    """:func:`sim.scenario.load` with the scenario moved into ``scene``; also the
+    lines that say what was moved (raises ConfigError)."""
+    table, source = load_table(name_or_path, overrides, seed, duration_s)
+    table, notes = place_in_scene(table, source, scene, override_keys(list(overrides)))
+    return from_table(table, source), notes
