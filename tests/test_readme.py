@@ -31,6 +31,7 @@ CHEAP_PLANNING = ["--set", "strategy.n_sample=40", "--set", "strategy.n_uniform=
 SKIPPED = {
     "make": "make demo / make test: this suite is make test, and make demo is a run like the ones below",
     "rerun": "opens the Rerun viewer, a window that stays open",
+    "view": "opens MuJoCo's viewer window until closed (tests/test_viewer.py drives it under Xvfb)",
     "tune": "serves the tuning page until Ctrl-C (tests/test_tuning_page.py drives it in a browser)",
     "sweep": "runs 60 trials of 300 s (the sweep's own tests run small sweeps)",
     "report": "reads a sweep's results folder, which the skipped sweep would have written",
