@@ -209,7 +209,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     m = result.metrics
     print(f"{m['status']}: {m['scenario']} ({m['strategy']}), seed {m['seed']}, "
           f"{m['sim_time_s']:.1f} s simulated in {m['wall_time_s']:.1f} s (x{m['real_time_factor']:.2f} real time)")
-    if m.get("message"):
+    if m.get("message") and not args.quiet:  # --quiet: the summary line alone
         print(f"  {m['message']}")
     for name, path in ({} if args.quiet else result.files).items():
         print(f"  {name:10s} {path}")
