@@ -4,11 +4,13 @@ Rays see only static obstacles (geom group 0), so robot and target bodies
 never occlude. One ``mj_multiRay`` call per robot covers every ray that
 robot casts in a tick (to targets in range and to robots of higher index in
 comm range); rays are cast with unnormalised direction vectors, so a hit at
-parameter x < 1 means the segment is blocked. Segment clearance for seed
-001's R_o comes from the exact box geometry (:mod:`sim.geometry`).
+parameter x < 1 means the segment is blocked. Segment clearance (exact box
+geometry, :mod:`sim.geometry`) is computed only when ``Links.clearance`` is read.
 """
 
 from __future__ import annotations
+
+import functools
 
 import mujoco
 import numpy as np
@@ -56,13 +58,18 @@ class RaySensors:
                 free = ~self._blocked(positions[i], positions[js])
                 los[i, js] = free
                 los[js, i] = free
+        return Links(distance, los, los & in_range, functools.partial(self._clearance, positions.copy(), in_range))
+
+    def _clearance(self, positions: np.ndarray, in_range: np.ndarray) -> np.ndarray:
+        """(N, N) segment clearance of the pairs in comm range, m; inf elsewhere."""
+        n = len(positions)
         clearance = np.full((n, n), np.inf)
         ii, jj = np.nonzero(np.triu(in_range, 1))
         if len(ii):
             c = segment_clearance(self.world.obstacles, positions[ii], positions[jj]).distance
             clearance[ii, jj] = c
             clearance[jj, ii] = c
-        return Links(distance, los, clearance, los & in_range)
+        return clearance
 
     def target_ranges(self, sensors: np.ndarray, targets: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """(N, M) range readings of seed 000, eq. (12); NaN where the target is
