@@ -49,6 +49,7 @@ Deviations from the paper
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -269,13 +270,15 @@ def weighted_laplacian(weights: np.ndarray) -> np.ndarray:
     return np.diag(weights.sum(axis=1)) - weights
 
 
+def _fiedler_sign(vector: np.ndarray) -> np.ndarray:
+    """The eigenvector with its largest-magnitude entry positive."""
+    return -vector if vector[np.argmax(np.abs(vector))] < 0 else vector
+
+
 def fiedler_pair(laplacian: np.ndarray) -> tuple[float, np.ndarray]:
     """lambda2 and its unit eigenvector (sign: largest-magnitude entry positive)."""
     eigenvalues, eigenvectors = np.linalg.eigh(laplacian)
-    vector = eigenvectors[:, 1]
-    if vector[np.argmax(np.abs(vector))] < 0:
-        vector = -vector
-    return float(eigenvalues[1]), vector
+    return float(eigenvalues[1]), _fiedler_sign(eigenvectors[:, 1])
 
 
 @dataclass(frozen=True)
@@ -284,16 +287,28 @@ class ConnectivityState:
 
     links: the weights and their derivative data.
     laplacian: (N, N) weighted Laplacian.
+    eigenvalues: (N,) its spectrum, ascending; eigenvectors: (N, N) as columns.
     lambda2: second-smallest eigenvalue of the Laplacian (weight units).
-    fiedler: (N,) its unit-norm eigenvector.
-    lambda2_gradient: (N, 3) dlambda2/dq_i, 1/m.
+    fiedler: (N,) its unit-norm eigenvector (largest-magnitude entry positive).
+    lambda2_gradient: (N, 3) dlambda2/dq_i, 1/m (computed on first use).
     """
 
     links: LinkWeights
     laplacian: np.ndarray
-    lambda2: float
-    fiedler: np.ndarray
-    lambda2_gradient: np.ndarray
+    eigenvalues: np.ndarray
+    eigenvectors: np.ndarray
+
+    @property
+    def lambda2(self) -> float:
+        return float(self.eigenvalues[1])
+
+    @functools.cached_property
+    def fiedler(self) -> np.ndarray:
+        return _fiedler_sign(self.eigenvectors[:, 1])
+
+    @functools.cached_property
+    def lambda2_gradient(self) -> np.ndarray:
+        return self.links.lambda2_gradient(self.fiedler)
 
     @property
     def weights(self) -> np.ndarray:
@@ -305,11 +320,12 @@ class ConnectivityState:
 
 
 def connectivity_state(positions: np.ndarray, boxes: Boxes | None, params: ConnectivityParams) -> ConnectivityState:
-    """Weights, Laplacian, exact lambda2 / Fiedler vector (one eigh) and dlambda2/dq."""
+    """Weights, Laplacian and its eigendecomposition (one eigh); lambda2, the
+    Fiedler vector and dlambda2/dq derive from them when read."""
     links = link_weights(positions, boxes, params)
     laplacian = weighted_laplacian(links.weights)
-    lambda2, fiedler = fiedler_pair(laplacian)
-    return ConnectivityState(links, laplacian, lambda2, fiedler, links.lambda2_gradient(fiedler))
+    eigenvalues, eigenvectors = np.linalg.eigh(laplacian)
+    return ConnectivityState(links, laplacian, eigenvalues, eigenvectors)
 
 
 def generalized_connectivity_force(

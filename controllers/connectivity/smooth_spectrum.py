@@ -92,7 +92,9 @@ def smooth_lambda2_gradient(links: LinkWeights, eigenvalues: np.ndarray, eigenve
                             kappa: float) -> tuple[float, np.ndarray]:
     """s and ds/dq (N, 3), 1/m, from the Laplacian's eigh (values ascending, vectors as columns)."""
     s, slope = smooth_lambda2(eigenvalues, kappa)
+    modes = np.flatnonzero(slope > _MIN_WEIGHT * slope.max())
     gradient = np.zeros((links.num_robots, 3))
-    for k in np.flatnonzero(slope > _MIN_WEIGHT * slope.max()):
-        gradient += slope[k] * links.lambda2_gradient(eigenvectors[:, k + 1])
+    # One batched eq. (17) for all modes (each bit-identical to the single-vector one), summed in mode order.
+    for k, mode_gradient in zip(modes, links.lambda2_gradients(eigenvectors[:, modes + 1])):
+        gradient += slope[k] * mode_gradient
     return s, gradient

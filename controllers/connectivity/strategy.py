@@ -39,7 +39,9 @@ estimates, Theta, rho, distances: plots and the recording), ``robot_scalars``
 ``link_weights`` (W: link colours in the video), ``robot_colors`` (prime
 traveler highlighted), ``paths`` (planned paths gamma_i), ``markers`` and
 ``marker_colors`` (current targets), ``events`` (role changes and visits),
-``overlay`` (one line burned into the video).
+``overlay`` (one line burned into the video). Built only on ticks whose
+observation has ``info_wanted`` (an observer reads them); role changes and
+visits wait in ``events`` until then.
 
 Deviations from the paper
 -------------------------
@@ -243,8 +245,8 @@ class ConnectedStrategy:
                 lambda2_used = np.maximum(np.minimum(estimate.lambda2, bound), floor)
                 f_lambda = generalized_connectivity_force(links, lambda2_used, estimate.fiedler, c)
         elif p.spectrum_smoothing > 0:
-            values, vectors = np.linalg.eigh(state.laplacian)
-            smooth, gradient = smooth_lambda2_gradient(state.links, values, vectors, p.spectrum_smoothing)
+            smooth, gradient = smooth_lambda2_gradient(state.links, state.eigenvalues, state.eigenvectors,
+                                                       p.spectrum_smoothing)
             f_lambda = -guarded_potential_slope(smooth, c) * gradient
         else:
             f_lambda = generalized_connectivity_force(state.links, state.lambda2, state.fiedler, c)
@@ -267,8 +269,10 @@ class ConnectedStrategy:
             if not out.skipped and len(out.visits) == self.targets_total:
                 self.completion_time = max((visit.completion_time for visit in out.visits), default=t)
         self.last = out
-        commands = Commands(q.copy(), v.copy(), acceleration, np.zeros(len(q)),
-                            self._info(out, state, estimate, f_lambda, tick, robot_distance, obstacle_distance))
+        info = {}
+        if observation.info_wanted:  # figures and decorations only for observers that read them
+            info = self._info(out, state, estimate, f_lambda, tick, robot_distance, obstacle_distance)
+        commands = Commands(q.copy(), v.copy(), acceleration, np.zeros(len(q)), info)
         self.q, self.v = q_next, v_next
         return commands
 

@@ -3,7 +3,7 @@
 Pure math, never imports MuJoCo; batched over all N quadrotors of a team (all
 share one :class:`QuadrotorParams`, since they come from one robot file). The
 controller and the mixer are compiled kernels (numba, cached on disk, see
-:mod:`controllers.compiled`): at N <= 35 numpy's per-call overhead cost ~20x
+:mod:`sim.compiled`): at N <= 35 numpy's per-call overhead cost ~20x
 their arithmetic.
 
 Frames and conventions
@@ -63,7 +63,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from controllers.compiled import kernel
+from sim.compiled import kernel
 
 
 @dataclass(frozen=True)
