@@ -112,21 +112,11 @@ class SegmentClearance:
         return (1.0 - self.s)[:, None] * unit, self.s[:, None] * unit
 
 
-def bounding_box_gaps(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(S, K) distance between the world-frame bounding boxes of each segment
-    [a_s, b_s] and of each box: a cheap lower bound of their clearance."""
-    box_half = boxes.half_sizes if boxes.aligned else np.einsum("kij,kj->ki", np.abs(boxes.rotations), boxes.half_sizes)
-    low_corner, high_corner = np.minimum(a, b), np.maximum(a, b)
-    gap = np.maximum(low_corner[:, None, :] - (boxes.centers + box_half)[None], 0.0)
-    gap += np.maximum((boxes.centers - box_half)[None] - high_corner[:, None, :], 0.0)
-    return np.sqrt(np.einsum("nki,nki->nk", gap, gap))
-
-
 def segment_clearance(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> SegmentClearance:
     """Minimum distance from each segment [a_p, b_p] to all boxes.
 
     Exact (piecewise-quadratic minimisation per box, see
-    :func:`_segment_box_distance`), one compiled loop over segments and boxes.
+    :func:`segment_box_distance`), one compiled loop over segments and boxes.
     """
     a = np.ascontiguousarray(np.atleast_2d(np.asarray(a, dtype=float)))
     b = np.ascontiguousarray(np.atleast_2d(np.asarray(b, dtype=float)))
@@ -135,11 +125,11 @@ def segment_clearance(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> SegmentClea
         return SegmentClearance(np.full(n, np.inf), np.zeros(n), np.full((n, 3), np.nan))
     distance, s, witness = np.empty(n), np.empty(n), np.empty((n, 3))
     _segment_clearance_kernel(a, b, boxes.centers, boxes.half_sizes, np.ascontiguousarray(boxes.rotations),
-                              _world_half_extents(boxes), boxes.aligned, distance, s, witness)
+                              world_half_extents(boxes), boxes.aligned, distance, s, witness)
     return SegmentClearance(distance, s, witness)
 
 
-def _world_half_extents(boxes: Boxes) -> np.ndarray:
+def world_half_extents(boxes: Boxes) -> np.ndarray:
     """(K, 3) half extents of each box's world-frame bounding box."""
     if boxes.aligned:
         return np.ascontiguousarray(boxes.half_sizes, dtype=float)
@@ -147,7 +137,7 @@ def _world_half_extents(boxes: Boxes) -> np.ndarray:
 
 
 @kernel
-def _segment_box_distance(la, lb, half):
+def segment_box_distance(la, lb, half):
     """Exact distance from the segment [la, lb] (3,) to the centred box with
     half extents ``half`` (3,), all in the box frame; returns (s*, distance).
 
@@ -241,7 +231,7 @@ def _segment_clearance_kernel(a, b, centers, half_sizes, rotations, world_half, 
                              * rotations[k, 1, j]) + (a[p, 2] - centers[k, 2]) * rotations[k, 2, j]
                     lb[j] = ((b[p, 0] - centers[k, 0]) * rotations[k, 0, j] + (b[p, 1] - centers[k, 1])
                              * rotations[k, 1, j]) + (b[p, 2] - centers[k, 2]) * rotations[k, 2, j]
-            s, distance = _segment_box_distance(la, lb, half_sizes[k])
+            s, distance = segment_box_distance(la, lb, half_sizes[k])
             if distance < CONTACT_TOLERANCE_M:
                 distance = 0.0
             if distance < best_distance:
