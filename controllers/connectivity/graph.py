@@ -85,16 +85,6 @@ def _half_cosine_rise_array(x, start, end, value, slope):
         value[k], slope[k] = _half_cosine_rise(x[k], start, end)
 
 
-def _scatter_add(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """Sum rows of values (P, ...) into (n, ...) by index (P,). Each output
-    entry is summed in row order (np.bincount), whatever the trailing shape."""
-    trailing = values.shape[1:]
-    width = int(np.prod(trailing))
-    flat = values.reshape(len(index), width)
-    bins = (index[:, None] * width + np.arange(width)).ravel()
-    return np.bincount(bins, flat.ravel(), minlength=n * width).reshape((n, *trailing))
-
-
 @dataclass(frozen=True)
 class LinkWeights:
     """Weights W(q) and what their derivatives need, over candidate pairs.
@@ -174,20 +164,55 @@ class LinkWeights:
         vectors = np.asarray(vectors, dtype=float)
         if vectors.ndim != 2 or len(vectors) != n:
             raise ValueError(f"vectors must have shape ({n}, M), got {vectors.shape}")
-        first, second = self.pairs.T
-        squared_gap = (vectors[first] - vectors[second]) ** 2  # (P, M)
-        collision_pair = self.collision_factor[first] * self.collision_factor[second]
-        # Through alpha and beta: only the two ends of a link move its weight.
-        coefficient = (squared_gap * collision_pair[:, None])[:, :, None]
-        gradient = _scatter_add(first, coefficient * self.link_factor_grad_first[:, None, :], n)
-        gradient += _scatter_add(second, coefficient * self.link_factor_grad_second[:, None, :], n)
-        # Through the collision factors: robot i moves every link of i and of
-        # each robot within R'_c of it.
-        pair_weight = (self.link_factor * collision_pair)[:, None]
-        node_sum = _scatter_add(first, pair_weight * squared_gap, n) + _scatter_add(second, pair_weight * squared_gap, n)
-        push = (self.collision_log_slope[:, None] * (node_sum[first] + node_sum[second]))[:, :, None] * self.unit[:, None, :]
-        gradient += _scatter_add(first, push, n) - _scatter_add(second, push, n)
-        return np.moveaxis(gradient, 1, 0)
+        gradients = np.empty((vectors.shape[1], n, 3))
+        _lambda2_gradients_kernel(self.pairs, np.ascontiguousarray(vectors), self.collision_factor, self.link_factor,
+                                  self.link_factor_grad_first, self.link_factor_grad_second,
+                                  self.collision_log_slope, self.unit, gradients)
+        return gradients
+
+
+@kernel
+def _lambda2_gradients_kernel(pairs, vectors, collision_factor, link_factor, grad_first, grad_second, log_slope,
+                              unit, out):
+    """out[m] = sum_{i<j} dW_ij/dq (v_i - v_j)^2 for v = vectors[:, m]; (M, N, 3).
+
+    Each robot's sums run over the pairs in order, the two ends' sums kept
+    apart and added at the end, as the numpy scatter-add (np.bincount) did."""
+    n_pairs, n_modes, n = pairs.shape[0], vectors.shape[1], vectors.shape[0]
+    through_first = np.zeros((n_modes, n, 3))
+    through_second = np.zeros((n_modes, n, 3))
+    node_first = np.zeros((n_modes, n))
+    node_second = np.zeros((n_modes, n))
+    for p in range(n_pairs):
+        i, j = pairs[p, 0], pairs[p, 1]
+        collision_pair = collision_factor[i] * collision_factor[j]
+        pair_weight = link_factor[p] * collision_pair
+        for m in range(n_modes):
+            squared_gap = (vectors[i, m] - vectors[j, m]) ** 2
+            # Through alpha and beta: only the two ends of a link move its weight.
+            coefficient = squared_gap * collision_pair
+            for k in range(3):
+                through_first[m, i, k] += coefficient * grad_first[p, k]
+                through_second[m, j, k] += coefficient * grad_second[p, k]
+            node_first[m, i] += pair_weight * squared_gap
+            node_second[m, j] += pair_weight * squared_gap
+    # Through the collision factors: robot i moves every link of i and of
+    # each robot within R'_c of it.
+    push_first = np.zeros((n_modes, n, 3))
+    push_second = np.zeros((n_modes, n, 3))
+    for p in range(n_pairs):
+        i, j = pairs[p, 0], pairs[p, 1]
+        for m in range(n_modes):
+            node_sum = (node_first[m, i] + node_second[m, i]) + (node_first[m, j] + node_second[m, j])
+            push = log_slope[p] * node_sum
+            for k in range(3):
+                push_first[m, i, k] += push * unit[p, k]
+                push_second[m, j, k] += push * unit[p, k]
+    for m in range(n_modes):
+        for r in range(n):
+            for k in range(3):
+                out[m, r, k] = (through_first[m, r, k] + through_second[m, r, k]) + (
+                    push_first[m, r, k] - push_second[m, r, k])
 
 
 @kernel
