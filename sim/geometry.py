@@ -71,14 +71,33 @@ class Boxes:
 
 def point_clearance(boxes: Boxes, points: np.ndarray) -> np.ndarray:
     """Distance (P,) from each point (P, 3) to the nearest box; inf if no boxes."""
-    points = np.atleast_2d(points)
+    points = np.ascontiguousarray(np.atleast_2d(points), dtype=float)
     if len(boxes) == 0:
         return np.full(len(points), np.inf)
-    # Distance to a box = norm of how far each local coordinate exceeds the half extent
-    # (the closest point is not needed here).
-    excess = np.abs(boxes.to_local(points)) - boxes.half_sizes
-    np.maximum(excess, 0.0, out=excess)
-    return np.sqrt(np.einsum("pki,pki->pk", excess, excess).min(axis=1))
+    clearance = np.empty(len(points))
+    _point_clearance_kernel(points, boxes.centers, boxes.half_sizes, np.ascontiguousarray(boxes.rotations),
+                            boxes.aligned, clearance)
+    return clearance
+
+
+@kernel
+def _point_clearance_kernel(points, centers, half_sizes, rotations, aligned, out):
+    # Distance to a box = norm of how far each local coordinate exceeds the half extent.
+    excess = np.empty(3)
+    for p in range(points.shape[0]):
+        smallest = np.inf
+        for k in range(centers.shape[0]):
+            for j in range(3):
+                if aligned:
+                    local = points[p, j] - centers[k, j]
+                else:
+                    local = ((points[p, 0] - centers[k, 0]) * rotations[k, 0, j] + (points[p, 1] - centers[k, 1])
+                             * rotations[k, 1, j]) + (points[p, 2] - centers[k, 2]) * rotations[k, 2, j]
+                excess[j] = max(abs(local) - half_sizes[k, j], 0.0)
+            # Summed in the order numpy's einsum used before (x^2 + z^2) + y^2: same figures to the bit.
+            squared = (excess[0] * excess[0] + excess[2] * excess[2]) + excess[1] * excess[1]
+            smallest = min(smallest, squared)
+        out[p] = np.sqrt(smallest)
 
 
 def inside_any(boxes: Boxes, points: np.ndarray, margin: float = 0.0) -> np.ndarray:

@@ -36,6 +36,7 @@ from controllers.connectivity.graph import ConnectivityState
 from controllers.connectivity.paths import GridPlanner
 from controllers.connectivity.roles import Role
 from controllers.connectivity.targets import TargetQueues
+from sim.compiled import kernel
 from sim.config import ConfigError
 from sim.geometry import Boxes, point_clearance
 
@@ -166,8 +167,17 @@ def pairwise_min_distance(points: np.ndarray) -> float:
     """Smallest distance between two of ``points`` (N, 3), m (inf for N < 2)."""
     if len(points) < 2:
         return float("inf")
-    distance = np.linalg.norm(points[:, None] - points[None], axis=-1)
-    return float(distance[np.triu_indices(len(points), 1)].min())
+    return float(_pairwise_min_distance(np.ascontiguousarray(points, dtype=float)))
+
+
+@kernel
+def _pairwise_min_distance(points):
+    smallest = np.inf
+    for i in range(points.shape[0]):
+        for j in range(i + 1, points.shape[0]):
+            dx, dy, dz = points[i, 0] - points[j, 0], points[i, 1] - points[j, 1], points[i, 2] - points[j, 2]
+            smallest = min(smallest, np.sqrt(dx * dx + dy * dy + dz * dz))
+    return smallest
 
 
 @dataclass
