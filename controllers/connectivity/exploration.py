@@ -144,12 +144,15 @@ class ExplorationController:
         p = self.params
         return path_reference(self.paths[robot], position[None], p.cruise_speed, p.braking_distance)
 
-    def _references(self, q: np.ndarray) -> dict[int, PathReference]:
-        """Path references of every robot with a path, batched in one numpy pass."""
+    def _references(self, q: np.ndarray) -> tuple[np.ndarray, PathReference | None]:
+        """Robots with a path (ascending indices) and their path references, one
+        row each: splines batched in one compiled pass, single-point paths alone."""
         p = self.params
-        robots = [i for i in range(self.n_robots) if self.paths[i] is not None]
+        robots = np.array([i for i in range(self.n_robots) if self.paths[i] is not None], dtype=int)
+        if not len(robots):
+            return robots, None
         batched = [i for i in robots if self.paths[i].spline is not None]
-        references = {i: self._reference(i, q[i]) for i in robots if self.paths[i].spline is None}
+        stacked = None
         if batched:
             paths = [self.paths[i] for i in batched]
             if self._batch is None or len(self._batch) != len(paths) or any(
@@ -157,9 +160,22 @@ class ExplorationController:
             ):
                 self._batch = PathBatch(paths)
             stacked = batch_path_reference(self._batch, q[batched], p.cruise_speed, p.braking_distance)
-            for k, i in enumerate(batched):
-                references[i] = stacked.row(k)
-        return references
+            if len(batched) == len(robots):
+                return robots, stacked
+        single = {i: self._reference(i, q[i]) for i in robots if self.paths[i].spline is None}
+        batch_row = {i: k for k, i in enumerate(batched)}
+        rows = [single[i] if i in single else stacked.row(batch_row[i]) for i in robots]
+        return robots, PathReference.stack(rows)
+
+    @staticmethod
+    def _replace_row(references: PathReference, k: int, row: PathReference) -> PathReference:
+        """``references`` with row k replaced by the one-row ``row``."""
+        fields = {}
+        for name in PathReference.__dataclass_fields__:
+            values = getattr(references, name).copy()
+            values[k] = getattr(row, name)[0]
+            fields[name] = values
+        return PathReference(**fields)
 
     # -- one control tick ---------------------------------------------------
 
@@ -196,12 +212,13 @@ class ExplorationController:
             for i in np.flatnonzero((self.role_machine.roles == Role.CONNECTOR) & self.queues.pending()):
                 got_target[i] = self._extract_and_plan(i, q[i])
 
-        references = self._references(q)
-        for i in list(references):
-            secondary = self.role_machine.roles[i] == Role.SECONDARY_TRAVELER
-            if secondary and needs_replanning(references[i], p.replan_distance)[0]:  # Alg. 1 line 17
+        travelers, references = self._references(q)
+        if references is not None:
+            secondary = self.role_machine.roles[travelers] == Role.SECONDARY_TRAVELER
+            for k in np.flatnonzero(secondary & needs_replanning(references, p.replan_distance)):  # Alg. 1 line 17
+                i = int(travelers[k])
                 self._replan(i, q[i])
-                references[i] = self._reference(i, q[i])
+                references = self._replace_row(references, k, self._reference(i, q[i]))
 
         target_points = np.array([t.position if t is not None else np.full(3, np.nan) for t in self.targets])
         to_target = np.linalg.norm(q - target_points, axis=1)
@@ -211,15 +228,19 @@ class ExplorationController:
         dwell_needed = np.array([t.dwell_time if t is not None else np.inf for t in self.targets])
         task_done = anchors & near_target & (self.dwell.elapsed(float(time)) >= dwell_needed)
         remaining = np.full(n, np.inf)
-        for i, reference in references.items():
-            remaining[i] = reference.remaining[0]
+        if references is not None:
+            remaining[travelers] = references.remaining
 
         changes = self.role_machine.step(self.tick, adjacency, got_target, near_target, task_done, remaining)
         roles = changes.roles
         for i in np.flatnonzero(changes.became_anchor):
             self.paths[i] = None  # lines 13, 20
-            references.pop(i, None)
             self.arrival_time[i] = float(time)
+        if references is not None and changes.became_anchor[travelers].any():
+            keep = ~changes.became_anchor[travelers]
+            travelers = travelers[keep]
+            references = PathReference(*(getattr(references, name)[keep]
+                                         for name in PathReference.__dataclass_fields__))
         self.dwell.update(float(time), (roles == Role.ANCHOR) & near_target)
         for i in np.flatnonzero(changes.became_connector):
             self.visits.append(Visit(self.targets[i], float(self.arrival_time[i]), float(time)))
@@ -231,9 +252,8 @@ class ExplorationController:
         lam = np.full(n, np.nan)
         error = np.full(n, np.nan)
         path_points = np.full((n, 3), np.nan)
-        travelers = np.array(sorted(references), dtype=int)
         if len(travelers):
-            batch = PathReference.stack([references[i] for i in travelers])
+            batch = references
             f_travel = travel_force(q[travelers], v[travelers], batch, p.position_gain, p.velocity_gain, p.virtual_mass,
                                     p.travel_force_limit)
             error[travelers] = tracking_error(q[travelers], v[travelers], batch, p.position_error_weight)
