@@ -343,8 +343,9 @@ def geometric_control(
     yaw_rate = reference.yaw_rate if reference.yaw_rate is not None else np.zeros(n)
     # The commanded heading's trigonometry stays numpy's (its vectorised sin/cos/arctan2 differ from
     # libm's in the last bit; keeping them keeps trajectories bit-identical to the numpy controller).
-    rot = quaternion_to_matrix(state.quaternion)
-    heading = np.arctan2(rot[:, 1, 0], rot[:, 0, 0])
+    q = np.asarray(state.quaternion, dtype=float)
+    w, x, y, z = (q / np.linalg.norm(q, axis=1, keepdims=True)).T  # as quaternion_to_matrix, two entries only
+    heading = np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
     yaw_error = np.angle(np.exp(1j * (reference.yaw - heading)))
     yaw_cmd = heading + np.clip(yaw_error, -gains.max_yaw_error, gains.max_yaw_error)
     _geometric_control_kernel(
