@@ -110,6 +110,7 @@ class ExplorationController:
         self.n_robots = n
         self.role_machine = RoleMachine(n, params.message_latency_ticks, params.election_host)
         self.targets: list[Target | None] = [None] * n
+        self._target_table: tuple[np.ndarray, np.ndarray] | None = None  # built when the targets change
         self.paths: list[SplinePath | None] = [None] * n
         self.estimates = np.zeros(n)  # hat-Lambda_p^i, start-up line 12
         self.dwell = DwellClock(n)
@@ -131,6 +132,7 @@ class ExplorationController:
                 self.skipped.append(target)
                 continue
             self.targets[robot] = target
+            self._target_table = None
             return True
         return False
 
@@ -166,6 +168,16 @@ class ExplorationController:
         batch_row = {i: k for k, i in enumerate(batched)}
         rows = [single[i] if i in single else stacked.row(batch_row[i]) for i in robots]
         return robots, PathReference.stack(rows)
+
+    def _targets_now(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each robot's current target point (N, 3; NaN without one) and dwell time (N,; inf)."""
+        if self._target_table is None:
+            self._target_table = (
+                np.array([t.position if t is not None else np.full(3, np.nan) for t in self.targets]),
+                np.array([t.dwell_time if t is not None else np.inf for t in self.targets]),
+            )
+        points, dwell = self._target_table
+        return points.copy(), dwell
 
     @staticmethod
     def _replace_row(references: PathReference, k: int, row: PathReference) -> PathReference:
@@ -220,12 +232,11 @@ class ExplorationController:
                 self._replan(i, q[i])
                 references = self._replace_row(references, k, self._reference(i, q[i]))
 
-        target_points = np.array([t.position if t is not None else np.full(3, np.nan) for t in self.targets])
+        target_points, dwell_needed = self._targets_now()
         to_target = np.linalg.norm(q - target_points, axis=1)
         near_target = np.nan_to_num(to_target, nan=np.inf) < p.target_radius
         anchors = self.role_machine.roles == Role.ANCHOR
         self.dwell.update(float(time), anchors & near_target)
-        dwell_needed = np.array([t.dwell_time if t is not None else np.inf for t in self.targets])
         task_done = anchors & near_target & (self.dwell.elapsed(float(time)) >= dwell_needed)
         remaining = np.full(n, np.inf)
         if references is not None:
@@ -245,6 +256,7 @@ class ExplorationController:
         for i in np.flatnonzero(changes.became_connector):
             self.visits.append(Visit(self.targets[i], float(self.arrival_time[i]), float(time)))
             self.targets[i] = None
+            self._target_table = None
             self.arrival_time[i] = np.nan
 
         # Algorithm 2.
@@ -286,7 +298,7 @@ class ExplorationController:
         self.last_time = float(time)
         prime = self.role_machine.prime
         finished = bool(np.all(roles == Role.CONNECTOR) and len(self.queues) == 0)
-        target_points = np.array([t.position if t is not None else np.full(3, np.nan) for t in self.targets])
+        target_points, _ = self._targets_now()
         return ExplorationStep(
             forces=forces,
             roles=roles,
