@@ -34,7 +34,7 @@ import numpy as np
 from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.graph import ConnectivityState
 from controllers.connectivity.paths import GridPlanner
-from controllers.connectivity.roles import Role
+from controllers.connectivity.roles import PRIME_CODE
 from controllers.connectivity.targets import TargetQueues
 from sim.compiled import kernel
 from sim.config import ConfigError
@@ -227,7 +227,7 @@ class MissionStatistics:
         self.min_obstacle_distance = min(self.min_obstacle_distance, float(obstacle_distance.min()))
         self.min_body_distance = min(self.min_body_distance, pairwise_min_distance(body))
         self.min_body_obstacle_distance = min(self.min_body_obstacle_distance, float(body_obstacle_distance.min()))
-        primes = int(np.sum(roles == Role.PRIME_TRAVELER))
+        primes = int(np.sum(roles == PRIME_CODE))
         self.prime_max = max(self.prime_max, primes)
         tick = {"lambda2": state.lambda2, "edges": float(edges), "stretch_m": stretch, "prime_travelers": float(primes)}
         if lambda2_estimate is not None:
