@@ -39,9 +39,11 @@ class WaypointParams:
         require(self.dwell_s >= 0, "dwell_s", f"must be non-negative, got {self.dwell_s}")
 
 
-def min_jerk(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """s, ds/dtau, d2s/dtau2 of the minimum-jerk blend for tau in [0, 1]."""
-    tau = np.clip(tau, 0.0, 1.0)
+def min_jerk(tau: float) -> tuple[float, float, float]:
+    """s, ds/dtau, d2s/dtau2 of the minimum-jerk blend for tau in [0, 1] (clipped there).
+
+    Python floats: the same libm pow and the same figures as numpy's scalars, without their overhead."""
+    tau = min(max(float(tau), 0.0), 1.0)
     s = tau**3 * (10 - 15 * tau + 6 * tau**2)
     ds = 30 * tau**2 * (1 - tau) ** 2
     dds = 60 * tau * (1 - tau) * (1 - 2 * tau)
@@ -96,7 +98,7 @@ class Route:
                 continue
             t -= self.dwell
             if t < duration:
-                s, ds, dds = min_jerk(np.array(t / duration))
+                s, ds, dds = min_jerk(t / duration)
                 delta = end - start
                 return start + s * delta, ds / duration * delta, dds / duration**2 * delta
             t -= duration
