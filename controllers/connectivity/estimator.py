@@ -541,7 +541,7 @@ def ritz_connectivity_gradient(links, estimate: SubspaceEstimate, kappa: float) 
     coefficients (sign-consistent by construction). ``links`` is a
     graph.LinkWeights (only its ``lambda2_gradient`` is used).
     """
-    from controllers.connectivity.smooth_spectrum import smooth_lambda2
+    from controllers.connectivity.smooth_spectrum import smooth_minimum
 
     n = len(estimate.lambda2)
     smooth = np.zeros(n)
@@ -553,7 +553,7 @@ def ritz_connectivity_gradient(links, estimate: SubspaceEstimate, kappa: float) 
             smooth[i] = estimate.lambda2[i]
             continue
         values = estimate.values[i, valid]
-        s, slope = smooth_lambda2(np.concatenate([[0.0], values]), kappa)
+        s, slope = smooth_minimum(values, kappa)
         smooth[i] = s
         vectors = estimate.components @ estimate.coefficients[i][:, valid] * scale
         terms += [(i, slope[k], vectors[:, k]) for k in np.flatnonzero(slope > 1e-9 * slope.max())]

@@ -35,6 +35,7 @@ from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.graph import ConnectivityState
 from controllers.connectivity.paths import GridPlanner
 from controllers.connectivity.roles import PRIME_CODE
+from controllers.connectivity.travel import row_norm
 from controllers.connectivity.targets import TargetQueues
 from sim.compiled import kernel
 from sim.config import ConfigError
@@ -220,9 +221,10 @@ class MissionStatistics:
         stretch = 0.0
         if len(self.explorers) > 1:
             e = q[self.explorers]
-            stretch = float(np.linalg.norm(e[:, None] - e[None], axis=-1).max())
+            offset = e[:, None] - e[None]
+            stretch = float(np.sqrt(np.add.reduce(offset * offset, axis=-1)).max())  # np.linalg.norm's sum
         self.max_stretch = max(self.max_stretch, stretch)
-        self.travel += np.linalg.norm(q_next - q, axis=1)
+        self.travel += row_norm(q_next - q)
         self.min_robot_distance = min(self.min_robot_distance, robot_distance)
         self.min_obstacle_distance = min(self.min_obstacle_distance, float(obstacle_distance.min()))
         self.min_body_distance = min(self.min_body_distance, pairwise_min_distance(body))

@@ -98,7 +98,12 @@ def _softmin(values, tau, weights):
 
 def smooth_lambda2(eigenvalues: np.ndarray, kappa: float) -> tuple[float, np.ndarray]:
     """s and ds/dlambda_k for k = 2..N (array of N - 1), from all N ascending eigenvalues (compiled)."""
-    values = np.ascontiguousarray(eigenvalues, dtype=float)[1:]
+    return smooth_minimum(np.asarray(eigenvalues, dtype=float)[1:], kappa)
+
+
+def smooth_minimum(values: np.ndarray, kappa: float) -> tuple[float, np.ndarray]:
+    """``smooth_lambda2`` from the non-zero eigenvalues lambda_2..lambda_N (M,) alone."""
+    values = np.ascontiguousarray(values, dtype=float)
     slope = np.empty(len(values))
     return float(_smooth_lambda2_kernel(values, float(kappa), slope)), slope
 
