@@ -61,6 +61,8 @@ class Route:
         self.durations = np.where(lengths > 0, _MIN_JERK_PEAK_RATIO * lengths / speed, 0.0)
         self.dwell = dwell
         self.period = float(np.sum(self.durations + dwell))
+        # Per segment (start, end, duration) as row views and Python floats, for sample's loop.
+        self._segments = list(zip(self.starts, self.ends, self.durations.tolist()))
 
     def progress(self, t: float) -> float:
         """Where on the route time ``t`` falls: ``2k + f`` while resting at
@@ -90,7 +92,7 @@ class Route:
         if len(self.points) == 1 or self.period == 0:
             return self.points[0], np.zeros(3), np.zeros(3)
         t = t % self.period
-        for start, end, duration in zip(self.starts, self.ends, self.durations):
+        for start, end, duration in self._segments:
             if t < self.dwell or duration == 0:
                 if t < self.dwell + duration:
                     return start, np.zeros(3), np.zeros(3)
