@@ -31,6 +31,11 @@ class EstimationMetrics:
         self.errors: list[float] = []
         self._last: float | None = None
 
+    def reads_info(self, time_s: float) -> bool:
+        # Only the metrics keys (target_estimate, target_estimate_step), which
+        # strategies always provide; it adds e_g to the scalars when they are there.
+        return False
+
     def on_tick(self, frame: Frame) -> None:
         info = frame.commands.info
         estimate = info.get("target_estimate")

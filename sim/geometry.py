@@ -1,4 +1,5 @@
-"""Static obstacle geometry as oriented boxes: pure numpy, no MuJoCo.
+"""Static obstacle geometry as oriented boxes: pure math (numpy and compiled
+kernels), no MuJoCo.
 
 The world builder extracts every static collision geom of a scene into a
 :class:`Boxes` set once; controllers and planners then ask clearance questions
@@ -10,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from sim.compiled import kernel
 
 # Round-off below this is contact (a segment grazing or crossing a box).
 CONTACT_TOLERANCE_M = 1e-9
@@ -68,14 +71,33 @@ class Boxes:
 
 def point_clearance(boxes: Boxes, points: np.ndarray) -> np.ndarray:
     """Distance (P,) from each point (P, 3) to the nearest box; inf if no boxes."""
-    points = np.atleast_2d(points)
+    points = np.ascontiguousarray(np.atleast_2d(points), dtype=float)
     if len(boxes) == 0:
         return np.full(len(points), np.inf)
-    # Distance to a box = norm of how far each local coordinate exceeds the half extent
-    # (the closest point is not needed here).
-    excess = np.abs(boxes.to_local(points)) - boxes.half_sizes
-    np.maximum(excess, 0.0, out=excess)
-    return np.sqrt(np.einsum("pki,pki->pk", excess, excess).min(axis=1))
+    clearance = np.empty(len(points))
+    _point_clearance_kernel(points, boxes.centers, boxes.half_sizes, np.ascontiguousarray(boxes.rotations),
+                            boxes.aligned, clearance)
+    return clearance
+
+
+@kernel
+def _point_clearance_kernel(points, centers, half_sizes, rotations, aligned, out):
+    # Distance to a box = norm of how far each local coordinate exceeds the half extent.
+    excess = np.empty(3)
+    for p in range(points.shape[0]):
+        smallest = np.inf
+        for k in range(centers.shape[0]):
+            for j in range(3):
+                if aligned:
+                    local = points[p, j] - centers[k, j]
+                else:
+                    local = ((points[p, 0] - centers[k, 0]) * rotations[k, 0, j] + (points[p, 1] - centers[k, 1])
+                             * rotations[k, 1, j]) + (points[p, 2] - centers[k, 2]) * rotations[k, 2, j]
+                excess[j] = max(abs(local) - half_sizes[k, j], 0.0)
+            # Summed in the order numpy's einsum used before (x^2 + z^2) + y^2: same figures to the bit.
+            squared = (excess[0] * excess[0] + excess[2] * excess[2]) + excess[1] * excess[1]
+            smallest = min(smallest, squared)
+        out[p] = np.sqrt(smallest)
 
 
 def inside_any(boxes: Boxes, points: np.ndarray, margin: float = 0.0) -> np.ndarray:
@@ -109,113 +131,146 @@ class SegmentClearance:
         return (1.0 - self.s)[:, None] * unit, self.s[:, None] * unit
 
 
-def bounding_box_gaps(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(S, K) distance between the world-frame bounding boxes of each segment
-    [a_s, b_s] and of each box: a cheap lower bound of their clearance."""
-    box_half = boxes.half_sizes if boxes.aligned else np.einsum("kij,kj->ki", np.abs(boxes.rotations), boxes.half_sizes)
-    low_corner, high_corner = np.minimum(a, b), np.maximum(a, b)
-    gap = np.maximum(low_corner[:, None, :] - (boxes.centers + box_half)[None], 0.0)
-    gap += np.maximum((boxes.centers - box_half)[None] - high_corner[:, None, :], 0.0)
-    return np.sqrt(np.einsum("nki,nki->nk", gap, gap))
-
-
 def segment_clearance(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> SegmentClearance:
     """Minimum distance from each segment [a_p, b_p] to all boxes.
 
     Exact (piecewise-quadratic minimisation per box, see
-    :func:`_segment_box_distance`), vectorised over all candidate pairs.
+    :func:`segment_box_distance`), one compiled loop over segments and boxes.
     """
-    a = np.atleast_2d(np.asarray(a, dtype=float))
-    b = np.atleast_2d(np.asarray(b, dtype=float))
+    a = np.ascontiguousarray(np.atleast_2d(np.asarray(a, dtype=float)))
+    b = np.ascontiguousarray(np.atleast_2d(np.asarray(b, dtype=float)))
     n = len(a)
     if len(boxes) == 0 or n == 0:
         return SegmentClearance(np.full(n, np.inf), np.zeros(n), np.full((n, 3), np.nan))
-    k = len(boxes)
-    # Prune (segment, box) pairs that cannot hold the minimum: a box whose
-    # distance from the segment is certainly above the segment's nearest
-    # sampled point's clearance is skipped. Lower bounds: the box's bounding
-    # sphere, and the gap between the world-frame bounding boxes of the
-    # segment and of the box (tight for axis-aligned walls and slabs).
-    upper = point_clearance(boxes, np.concatenate([a, b, 0.5 * (a + b)])).reshape(3, n).min(axis=0)
-    radius = np.linalg.norm(boxes.half_sizes, axis=1)
-    lower = _point_segment_distance(boxes.centers, a, b) - radius[None, :]
-    lower = np.maximum(lower, bounding_box_gaps(boxes, a, b))
-    rows, cols = np.nonzero(lower <= upper[:, None] + 1e-12)
-    # Work in each candidate box's frame: (C, 3).
+    distance, s, witness = np.empty(n), np.empty(n), np.empty((n, 3))
+    _segment_clearance_kernel(a, b, boxes.centers, boxes.half_sizes, np.ascontiguousarray(boxes.rotations),
+                              world_half_extents(boxes), boxes.aligned, distance, s, witness)
+    return SegmentClearance(distance, s, witness)
+
+
+def world_half_extents(boxes: Boxes) -> np.ndarray:
+    """(K, 3) half extents of each box's world-frame bounding box."""
     if boxes.aligned:
-        la = a[rows] - boxes.centers[cols]
-        lb = b[rows] - boxes.centers[cols]
-    else:
-        rot = boxes.rotations[cols]
-        la = np.einsum("ci,cij->cj", a[rows] - boxes.centers[cols], rot)
-        lb = np.einsum("ci,cij->cj", b[rows] - boxes.centers[cols], rot)
-    half = boxes.half_sizes[cols]
-
-    s_cand, d_cand = _segment_box_distance(la, lb, half)
-    d_cand[d_cand < CONTACT_TOLERANCE_M] = 0.0
-    dist = np.full((n, k), np.inf)
-    s = np.zeros((n, k))
-    dist[rows, cols] = d_cand
-    s[rows, cols] = s_cand
-
-    best_box = dist.argmin(axis=1)
-    segment = np.arange(n)
-    s_best = s[segment, best_box]
-    d_best = dist[segment, best_box]
-    point = a + s_best[:, None] * (b - a)
-    # Witness: the closest point of the best box only.
-    half = boxes.half_sizes[best_box]
-    if boxes.aligned:
-        witness = np.clip(point - boxes.centers[best_box], -half, half) + boxes.centers[best_box]
-    else:
-        rot = boxes.rotations[best_box]
-        local = np.clip(np.einsum("ni,nij->nj", point - boxes.centers[best_box], rot), -half, half)
-        witness = np.einsum("nij,nj->ni", rot, local) + boxes.centers[best_box]
-    return SegmentClearance(d_best, s_best, witness)
+        return np.ascontiguousarray(boxes.half_sizes, dtype=float)
+    return np.einsum("kij,kj->ki", np.abs(boxes.rotations), boxes.half_sizes)
 
 
-def _segment_box_distance(la: np.ndarray, lb: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Exact distance from segments [la, lb] (C, 3) to centred boxes with half
-    extents ``half`` (C, 3), all in box frames; returns (s*, distance), (C,).
+@kernel
+def segment_box_distance(la, lb, half):
+    """Exact distance from the segment [la, lb] (3,) to the centred box with
+    half extents ``half`` (3,), all in the box frame; returns (s*, distance).
 
     Along p(s) = la + s d each axis is below, inside or above its slab, with
     switches at most at 6 values of s. Between switches the squared distance
     is a convex quadratic sum_i (alpha_i + beta_i s)^2, minimised in closed
-    form and clamped to the interval; the best interval wins.
+    form and clamped to the interval; the best interval wins (the first one
+    on ties).
     """
     d = lb - la
-    with np.errstate(divide="ignore", invalid="ignore"):
-        crossings = np.concatenate([(-half - la) / d, (half - la) / d], axis=1)  # (C, 6)
-    crossings = np.where(np.isfinite(crossings), np.clip(crossings, 0.0, 1.0), 0.0)
-    knots = np.sort(np.concatenate([np.zeros((len(la), 1)), crossings, np.ones((len(la), 1))], axis=1), axis=1)
-    start, end = knots[:, :-1], knots[:, 1:]  # (C, 7) intervals
-    mid = 0.5 * (start + end)
-    p_mid = la[:, None, :] + mid[..., None] * d[:, None, :]  # (C, 7, 3)
-    above = p_mid > half[:, None, :]
-    below = p_mid < -half[:, None, :]
-    # excess_i(s) = alpha_i + beta_i s on the outside axes, 0 inside.
-    alpha = np.where(above, la[:, None, :] - half[:, None, :], np.where(below, -half[:, None, :] - la[:, None, :], 0.0))
-    beta = np.where(above, d[:, None, :], np.where(below, -d[:, None, :], 0.0))
-    bb = (beta * beta).sum(axis=-1)
-    ab = (alpha * beta).sum(axis=-1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s_star = np.where(bb > 0, -ab / bb, mid)
-    s_star = np.clip(s_star, start, end)
-    # Evaluate the true distance (not the interval's quadratic) at each candidate.
-    p = la[:, None, :] + s_star[..., None] * d[:, None, :]
-    dist = np.linalg.norm(p - np.clip(p, -half[:, None, :], half[:, None, :]), axis=-1)
-    best = dist.argmin(axis=1)
-    rows = np.arange(len(la))
-    return s_star[rows, best], dist[rows, best]
+    knots = np.empty(8)
+    knots[0], knots[7] = 0.0, 1.0
+    for i in range(3):
+        below_at, above_at = (-half[i] - la[i]) / d[i], (half[i] - la[i]) / d[i]  # +-inf / NaN if d_i = 0
+        knots[1 + i] = min(max(below_at, 0.0), 1.0) if np.isfinite(below_at) else 0.0
+        knots[4 + i] = min(max(above_at, 0.0), 1.0) if np.isfinite(above_at) else 0.0
+    knots.sort()
+    best_s, best_distance = 0.0, np.inf
+    for m in range(7):
+        start, end = knots[m], knots[m + 1]
+        mid = 0.5 * (start + end)
+        bb = 0.0
+        ab = 0.0
+        for i in range(3):
+            # excess_i(s) = alpha_i + beta_i s on the outside axes, 0 inside (at the interval's middle).
+            p_mid = la[i] + mid * d[i]
+            if p_mid > half[i]:
+                alpha, beta = la[i] - half[i], d[i]
+            elif p_mid < -half[i]:
+                alpha, beta = -half[i] - la[i], -d[i]
+            else:
+                alpha, beta = 0.0, 0.0
+            bb += beta * beta
+            ab += alpha * beta
+        s_star = -ab / bb if bb > 0 else mid
+        s_star = min(max(s_star, start), end)
+        # The true distance (not the interval's quadratic) at the candidate.
+        squared = 0.0
+        for i in range(3):
+            p = la[i] + s_star * d[i]
+            excess = p - min(max(p, -half[i]), half[i])
+            squared += excess * excess
+        distance = np.sqrt(squared)
+        if distance < best_distance:
+            best_s, best_distance = s_star, distance
+    return best_s, best_distance
 
 
-def _point_segment_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distance (P, K) from each of K points to each of P segments [a_p, b_p]."""
-    ab = b - a
-    length2 = np.maximum(np.einsum("pi,pi->p", ab, ab), 1e-300)
-    rel = points[None, :, :] - a[:, None, :]
-    t = np.clip(np.einsum("pki,pi->pk", rel, ab) / length2[:, None], 0.0, 1.0)
-    return np.linalg.norm(rel - t[..., None] * ab[:, None, :], axis=-1)
+@kernel
+def _segment_clearance_kernel(a, b, centers, half_sizes, rotations, world_half, aligned, distance_out, s_out,
+                              witness_out):
+    n_boxes = centers.shape[0]
+    la = np.empty(3)
+    lb = np.empty(3)
+    point = np.empty(3)
+    for p in range(a.shape[0]):
+        # Upper bound of the clearance: that of the segment's ends and middle.
+        bound = np.inf
+        for t in (0.0, 0.5, 1.0):
+            for j in range(3):
+                point[j] = a[p, j] + t * (b[p, j] - a[p, j])
+            for k in range(n_boxes):
+                squared = 0.0
+                for j in range(3):
+                    if aligned:
+                        local = point[j] - centers[k, j]
+                    else:
+                        local = ((point[0] - centers[k, 0]) * rotations[k, 0, j] + (point[1] - centers[k, 1])
+                                 * rotations[k, 1, j]) + (point[2] - centers[k, 2]) * rotations[k, 2, j]
+                    excess = max(abs(local) - half_sizes[k, j], 0.0)
+                    squared += excess * excess
+                bound = min(bound, np.sqrt(squared))
+        best_distance, best_s, best_box = np.inf, 0.0, 0
+        for k in range(n_boxes):
+            # Skip a box whose world bounding box is farther than the bound or the best box
+            # so far (a lower bound of its distance): it cannot hold the minimum.
+            gap = 0.0
+            for i in range(3):
+                low = min(a[p, i], b[p, i]) - (centers[k, i] + world_half[k, i])
+                high = (centers[k, i] - world_half[k, i]) - max(a[p, i], b[p, i])
+                excess = max(low, 0.0) + max(high, 0.0)
+                gap += excess * excess
+            if np.sqrt(gap) > min(bound + 1e-12, best_distance):
+                continue
+            for j in range(3):
+                if aligned:
+                    la[j] = a[p, j] - centers[k, j]
+                    lb[j] = b[p, j] - centers[k, j]
+                else:
+                    la[j] = ((a[p, 0] - centers[k, 0]) * rotations[k, 0, j] + (a[p, 1] - centers[k, 1])
+                             * rotations[k, 1, j]) + (a[p, 2] - centers[k, 2]) * rotations[k, 2, j]
+                    lb[j] = ((b[p, 0] - centers[k, 0]) * rotations[k, 0, j] + (b[p, 1] - centers[k, 1])
+                             * rotations[k, 1, j]) + (b[p, 2] - centers[k, 2]) * rotations[k, 2, j]
+            s, distance = segment_box_distance(la, lb, half_sizes[k])
+            if distance < CONTACT_TOLERANCE_M:
+                distance = 0.0
+            if distance < best_distance:
+                best_distance, best_s, best_box = distance, s, k
+        distance_out[p] = best_distance
+        s_out[p] = best_s
+        # Witness: the closest point of the best box.
+        k = best_box
+        for j in range(3):
+            la[j] = a[p, j] + best_s * (b[p, j] - a[p, j]) - centers[k, j]  # the segment point, box-centred
+        if aligned:
+            for j in range(3):
+                witness_out[p, j] = min(max(la[j], -half_sizes[k, j]), half_sizes[k, j]) + centers[k, j]
+        else:
+            for j in range(3):
+                local = la[0] * rotations[k, 0, j] + la[1] * rotations[k, 1, j] + la[2] * rotations[k, 2, j]
+                lb[j] = min(max(local, -half_sizes[k, j]), half_sizes[k, j])
+            for i in range(3):
+                witness_out[p, i] = (rotations[k, i, 0] * lb[0] + rotations[k, i, 1] * lb[1]
+                                     + rotations[k, i, 2] * lb[2]) + centers[k, i]
 
 
 def segments_free(boxes: Boxes, a: np.ndarray, b: np.ndarray, margin: float = 0.0) -> np.ndarray:

@@ -31,15 +31,19 @@ from sim.targets import TargetDriver, nominal_path_samples
 from sim.types import Observation, WorldInfo
 from sim.world import World, build_world
 
-_WARNINGS_THAT_DIVERGE = (
+_WARNINGS_THAT_DIVERGE = tuple(int(w) for w in (
     mujoco.mjtWarning.mjWARN_BADQACC,
     mujoco.mjtWarning.mjWARN_BADQPOS,
     mujoco.mjtWarning.mjWARN_BADQVEL,
     mujoco.mjtWarning.mjWARN_BADCTRL,
-)
+))
 
 
 _mujoco_warnings: list[str] = []
+
+# Stages of a control tick timed by the loop (wall seconds, time.perf_counter),
+# reported as metrics.json's ``timing`` block.
+TIMED_STAGES = ("physics", "sensing", "strategy", "lowlevel", "observers")
 
 
 def _collect_warning(text: str) -> None:
@@ -99,7 +103,16 @@ class Simulation:
         self.tick_count = 0
         self.time_s = 0.0
         self._next_reading_s = 0.0
+        self._warning_numbers = self.world.data.warning.number  # (mjNWARNING,) view, updated by mj_step
         self._warnings = self._warning_count()
+        # Index arrays for reading every robot's free-joint state in one fancy-index each.
+        qpos_adr = np.asarray(self.world.qpos_adr)[:, None]
+        qvel_adr = np.asarray(self.world.qvel_adr)[:, None]
+        self._position_index = qpos_adr + np.arange(3)
+        self._quaternion_index = qpos_adr + np.arange(3, 7)
+        self._velocity_index = qvel_adr + np.arange(3)
+        self._angular_index = qvel_adr + np.arange(3, 6)
+        self.timing = dict.fromkeys(TIMED_STAGES, 0.0)  # wall s per stage, summed over ticks
         self.info = WorldInfo(
             robot_names=self.world.robot_names, robot_kinds=self.world.robot_kinds,
             obstacles=self.world.obstacles, bounds=self.world.bounds,
@@ -139,7 +152,18 @@ class Simulation:
         return how
 
     def _warning_count(self) -> int:
-        return int(sum(self.world.data.warning[w].number for w in _WARNINGS_THAT_DIVERGE))
+        # A live view of the counters, indexed with plain ints: a few hundred ns a tick.
+        number = self._warning_numbers
+        return int(sum(number[w] for w in _WARNINGS_THAT_DIVERGE))
+
+    def _diverged(self) -> bool:
+        """Non-finite state, or a divergence warning since the last check."""
+        data = self.world.data
+        if not (np.isfinite(data.qpos).all() and np.isfinite(data.qvel).all()):
+            return True
+        count = self._warning_count()
+        diverged, self._warnings = count != self._warnings, count
+        return diverged
 
     def _move_targets(self) -> np.ndarray:
         positions = self.targets.positions(self.time_s)
@@ -147,15 +171,16 @@ class Simulation:
             self.world.data.mocap_pos[self.world.target_mocap_ids] = positions
         return positions
 
-    def observe(self, read_targets: bool = True) -> Observation:
+    def observe(self, read_targets: bool = True, info_wanted: bool = True) -> Observation:
         """Read the state and sense; target ranges only at reading instants
-        (every ``sensing.period_s``) and when ``read_targets``."""
+        (every ``sensing.period_s``) and when ``read_targets``. ``info_wanted``
+        goes into the observation (see :class:`sim.types.Observation`)."""
         world, data = self.world, self.world.data
         qpos, qvel = data.qpos, data.qvel
-        position = np.stack([qpos[a : a + 3] for a in world.qpos_adr])
-        quaternion = np.stack([qpos[a + 3 : a + 7] for a in world.qpos_adr])
-        velocity = np.stack([qvel[a : a + 3] for a in world.qvel_adr])
-        angular = np.stack([qvel[a + 3 : a + 6] for a in world.qvel_adr])
+        position = qpos[self._position_index]
+        quaternion = qpos[self._quaternion_index]
+        velocity = qvel[self._velocity_index]
+        angular = qvel[self._angular_index]
         sensors = self.sensors.sensor_positions()
         ranges, step = None, None
         if read_targets and self.targets.n_targets and self.time_s + 1e-9 >= self._next_reading_s:
@@ -165,26 +190,56 @@ class Simulation:
         return Observation(
             time_s=self.time_s, tick=self.tick_count, position=position, velocity=velocity,
             quaternion=quaternion, angular_velocity=angular, sensor_position=sensors,
-            links=self.sensors.links(position), target_ranges=ranges, target_step=step,
+            links=self.sensors.links(position), target_ranges=ranges, target_step=step, info_wanted=info_wanted,
         )
 
-    def tick(self) -> tuple[Frame, bool]:
+    def tick(self, info_wanted: bool = True) -> tuple[Frame, bool]:
         """One control period. Returns the frame (state before the step) and
-        whether the physics stayed finite and warning-free."""
-        observation = self.observe()
+        whether the physics stayed finite and warning-free.
+
+        ``info_wanted``: whether an observer reads the strategy's figures and
+        decorations (``commands.info``) this tick (see :class:`sim.types.Observation`).
+        Each stage's wall time is added to ``self.timing``."""
+        timing = self.timing
+        start = time.perf_counter()
+        observation = self.observe(info_wanted=info_wanted)
+        sensed = time.perf_counter()
         commands = self.strategy.step(observation)
+        planned = time.perf_counter()
         self.control.apply(observation, commands)
         frame = Frame(observation, commands, self.world.data.mocap_pos[self.world.target_mocap_ids].copy())
+        controlled = time.perf_counter()
         model, data = self.world.model, self.world.data
         for _ in range(self.substeps):
             mujoco.mj_step(model, data)
+        stepped = time.perf_counter()
         self.tick_count += 1
         self.time_s = self.tick_count * self.dt
         self._move_targets()
-        healthy = bool(np.all(np.isfinite(data.qpos)) and np.all(np.isfinite(data.qvel)))
-        warnings = self._warning_count()
-        healthy = healthy and warnings == self._warnings
+        healthy = not self._diverged()
+        timing["sensing"] += sensed - start
+        timing["strategy"] += planned - sensed
+        timing["lowlevel"] += controlled - planned
+        timing["physics"] += stepped - controlled
         return frame, healthy
+
+
+def timing_summary(timing: dict[str, float], setup_s: float, closing_s: float) -> dict[str, float | None]:
+    """metrics.json's ``timing`` block: wall seconds per tick stage summed over
+    the run (``physics_s``: mj_step; ``sensing_s``: state read-out, mj_ray
+    links and target ranges; ``strategy_s``; ``lowlevel_s``: rotor / wheel
+    commands; ``observers_s``: metrics, plots' sampling, video, recording),
+    ``setup_s`` (world build and strategy reset), ``closing_s`` (observers'
+    close: plots, video encoding), and ``stack_to_physics``: the per-tick
+    stages other than physics over physics."""
+    stack = sum(timing[stage] for stage in TIMED_STAGES if stage != "physics")
+    physics = timing["physics"]
+    return {
+        **{f"{stage}_s": timing[stage] for stage in TIMED_STAGES},
+        "setup_s": setup_s,
+        "closing_s": closing_s,
+        "stack_to_physics": stack / physics if physics > 0 else None,
+    }
 
 
 def _write_json(path: Path, payload: dict) -> None:
@@ -253,11 +308,18 @@ def run(
     mission_ended = False
     trajectory = [] if keep_trajectory else None
     message = ""
+    info_readers = [getattr(observer, "reads_info", None) for observer in observers]
+    always_info = any(reader is None for reader in info_readers)
+    timing = sim.timing
+    setup_s = time.perf_counter() - wall_start
     try:
         for _ in range(n_ticks):
-            frame, healthy = sim.tick()
+            info_wanted = always_info or any(reader(sim.time_s) for reader in info_readers)
+            frame, healthy = sim.tick(info_wanted)
+            observed = time.perf_counter()
             for observer in observers:
                 observer.on_tick(frame)
+            timing["observers"] += time.perf_counter() - observed
             if trajectory is not None:
                 trajectory.append(frame.observation.position)
             if not healthy:
@@ -278,8 +340,10 @@ def run(
         if status != "diverged":
             status, message = end_of_run(sim.strategy, mission_ended, scenario.duration_s, sim.time_s)
     finally:
+        closing = time.perf_counter()
         for observer in observers:
             observer.close(status)
+        closing_s = time.perf_counter() - closing
 
     wall = time.perf_counter() - wall_start
     metrics: dict[str, Any] = {
@@ -298,6 +362,7 @@ def run(
         # the connected method's points to visit (its targets_to_visit).
         "n_moving_targets": sim.targets.n_targets,
         "control_ticks": sim.tick_count,
+        "timing": timing_summary(timing, setup_s, closing_s),
         **tracking.summary(),
         **links.summary(),
         **estimation.summary(),

@@ -23,6 +23,15 @@ class Frame:
 
 
 class Observer(Protocol):
+    """Sees every tick's frame; ``close`` once at the end.
+
+    Optional: ``reads_info(time_s) -> bool``, whether it will read
+    ``frame.commands.info`` beyond the metrics keys on the tick that starts at
+    ``time_s``; the loop asks the strategy for its figures and decorations only
+    when some observer does. An observer without it is assumed to read them
+    every tick.
+    """
+
     def on_tick(self, frame: Frame) -> None: ...
 
     def close(self, status: str) -> None: ...
@@ -48,6 +57,9 @@ class TrackingMetrics:
         self._max = 0.0
         self.last_error = np.zeros(len(robot_kinds))
 
+    def reads_info(self, time_s: float) -> bool:
+        return False
+
     def on_tick(self, frame: Frame) -> None:
         error = tracking_errors(self._kinds, frame.observation.position, frame.commands.position)
         self.last_error = error
@@ -71,8 +83,11 @@ class LinkMetrics:
         self.edges_sum = 0
         self.ticks = 0
 
+    def reads_info(self, time_s: float) -> bool:
+        return False
+
     def on_tick(self, frame: Frame) -> None:
-        edges = len(frame.observation.links.edges)
+        edges = int(np.count_nonzero(frame.observation.links.adjacency)) // 2
         self.edges_min = edges if self.edges_min is None else min(self.edges_min, edges)
         self.edges_sum += edges
         self.ticks += 1

@@ -7,8 +7,9 @@ targets (M first). Units: m, s, rad; world frame, z up; quaternions w, x, y, z.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
@@ -44,12 +45,20 @@ class Links:
 
     distance: np.ndarray  # centre distance, m
     line_of_sight: np.ndarray  # bool: segment free of obstacles (mj_ray)
-    clearance: np.ndarray  # segment distance to the nearest obstacle, m (inf if not computed)
     adjacency: np.ndarray  # bool: within comm range and in line of sight, no self-loops
+    # Computes :attr:`clearance` on first use (no strategy reads it every tick).
+    clearance_of: Callable[[], np.ndarray] | None = field(default=None, repr=False, compare=False)
 
-    @property
+    @functools.cached_property
+    def clearance(self) -> np.ndarray:
+        """Segment distance to the nearest obstacle, m, for pairs in comm range (inf elsewhere)."""
+        if self.clearance_of is None:
+            return np.full(self.distance.shape, np.inf)
+        return self.clearance_of()
+
+    @functools.cached_property
     def edges(self) -> np.ndarray:
-        """(E, 2) index pairs i < j of communicating robots."""
+        """(E, 2) index pairs i < j of communicating robots (built once, on first use)."""
         i, j = np.nonzero(np.triu(self.adjacency, 1))
         return np.stack([i, j], axis=1)
 
@@ -68,6 +77,12 @@ class Observation:
     links: Links
     target_ranges: np.ndarray | None = None  # (N, M) noisy range, m; NaN = not seen; None = no reading this tick
     target_step: int | None = None  # discrete target time step k of the readings
+    # Whether an observer reads the strategy's figures and decorations
+    # (``Commands.info``: scalars, colours, paths, overlay, events) this tick.
+    # When False a strategy may skip building them; ``info`` must still carry
+    # what metrics need (``target_estimate``, ``target_estimate_step``).
+    # The loop sets it from the observers' ``reads_info`` (sim.observers).
+    info_wanted: bool = True
 
 
 @dataclass
@@ -106,6 +121,10 @@ class Strategy(Protocol):
     Optional: ``progress() -> str``, how far the mission got ("7/25 targets
     visited"), for the run's status message.
     Optional: ``summary() -> dict``, merged into metrics.json.
+
+    ``step`` may skip building ``Commands.info``'s figures and decorations
+    when ``observation.info_wanted`` is False (no observer reads them this
+    tick); the metrics keys stay.
     """
 
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:

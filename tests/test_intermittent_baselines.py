@@ -48,7 +48,7 @@ def test_same_seed_same_run_other_seed_other_run(tmp_path):
     def trajectory(seed):
         scenario = load(str(room_scenario(tmp_path, duration=12.0, seed=seed, n_sample=40)))
         result = run(scenario, keep_trajectory=True)
-        metrics = {k: v for k, v in result.metrics.items() if k not in ("wall_time_s", "real_time_factor")
+        metrics = {k: v for k, v in result.metrics.items() if k not in ("wall_time_s", "real_time_factor", "timing")
                    and "plan_time" not in k and k != "plan_cost_share"}
         return result.trajectory, metrics
 

@@ -41,6 +41,10 @@ class PlotRecorder:
         self._painter = Painter()
         self.levels: dict[str, dict[float, str]] = {}  # coded per-robot series: value -> label
 
+    def reads_info(self, time_s: float) -> bool:
+        """The strategy's scalars are read only on sampled ticks."""
+        return time_s + 1e-9 >= self._next_time
+
     def on_tick(self, frame: Frame) -> None:
         t = frame.observation.time_s
         if t + 1e-9 < self._next_time:

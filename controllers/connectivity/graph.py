@@ -49,33 +49,40 @@ Deviations from the paper
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
 from controllers.connectivity.params import ConnectivityParams
 from controllers.connectivity.potential import guarded_potential_slope
-from sim.geometry import Boxes, bounding_box_gaps, segment_clearance
+from sim.compiled import kernel
+from sim.geometry import CONTACT_TOLERANCE_M, Boxes, segment_box_distance, world_half_extents
 
 
 def half_cosine_rise(x, start: float, end: float) -> tuple[np.ndarray, np.ndarray]:
     """Smooth step from 0 (x <= start) to 1 (x >= end) and its slope d/dx (1 / unit of x)."""
     x = np.asarray(x, dtype=float)
+    flat = np.ascontiguousarray(x).reshape(-1)
+    value, slope = np.empty(len(flat)), np.empty(len(flat))
+    _half_cosine_rise_array(flat, float(start), float(end), value, slope)
+    return value.reshape(x.shape), slope.reshape(x.shape)
+
+
+@kernel
+def _half_cosine_rise(x, start, end):
+    """half_cosine_rise of one value: (value, slope)."""
     span = end - start
-    s = np.clip((x - start) / span, 0.0, 1.0)
+    s = min(max((x - start) / span, 0.0), 1.0)
     value = 0.5 * (1.0 - np.cos(np.pi * s))
-    slope = np.where((s > 0) & (s < 1), 0.5 * np.pi / span * np.sin(np.pi * s), 0.0)
+    slope = 0.5 * np.pi / span * np.sin(np.pi * s) if 0.0 < s < 1.0 else 0.0
     return value, slope
 
 
-def _scatter_add(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """Sum rows of values (P, ...) into (n, ...) by index (P,). Each output
-    entry is summed in row order (np.bincount), whatever the trailing shape."""
-    trailing = values.shape[1:]
-    width = int(np.prod(trailing))
-    flat = values.reshape(len(index), width)
-    bins = (index[:, None] * width + np.arange(width)).ravel()
-    return np.bincount(bins, flat.ravel(), minlength=n * width).reshape((n, *trailing))
+@kernel
+def _half_cosine_rise_array(x, start, end, value, slope):
+    for k in range(x.shape[0]):
+        value[k], slope[k] = _half_cosine_rise(x[k], start, end)
 
 
 @dataclass(frozen=True)
@@ -157,110 +164,201 @@ class LinkWeights:
         vectors = np.asarray(vectors, dtype=float)
         if vectors.ndim != 2 or len(vectors) != n:
             raise ValueError(f"vectors must have shape ({n}, M), got {vectors.shape}")
-        first, second = self.pairs.T
-        squared_gap = (vectors[first] - vectors[second]) ** 2  # (P, M)
-        collision_pair = self.collision_factor[first] * self.collision_factor[second]
-        # Through alpha and beta: only the two ends of a link move its weight.
-        coefficient = (squared_gap * collision_pair[:, None])[:, :, None]
-        gradient = _scatter_add(first, coefficient * self.link_factor_grad_first[:, None, :], n)
-        gradient += _scatter_add(second, coefficient * self.link_factor_grad_second[:, None, :], n)
-        # Through the collision factors: robot i moves every link of i and of
-        # each robot within R'_c of it.
-        pair_weight = (self.link_factor * collision_pair)[:, None]
-        node_sum = _scatter_add(first, pair_weight * squared_gap, n) + _scatter_add(second, pair_weight * squared_gap, n)
-        push = (self.collision_log_slope[:, None] * (node_sum[first] + node_sum[second]))[:, :, None] * self.unit[:, None, :]
-        gradient += _scatter_add(first, push, n) - _scatter_add(second, push, n)
-        return np.moveaxis(gradient, 1, 0)
+        gradients = np.empty((vectors.shape[1], n, 3))
+        _lambda2_gradients_kernel(self.pairs, np.ascontiguousarray(vectors), self.collision_factor, self.link_factor,
+                                  self.link_factor_grad_first, self.link_factor_grad_second,
+                                  self.collision_log_slope, self.unit, gradients)
+        return gradients
 
 
-def _pairwise(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    offsets = positions[:, None, :] - positions[None, :, :]
-    return offsets, np.linalg.norm(offsets, axis=-1)
+@kernel
+def _lambda2_gradients_kernel(pairs, vectors, collision_factor, link_factor, grad_first, grad_second, log_slope,
+                              unit, out):
+    """out[m] = sum_{i<j} dW_ij/dq (v_i - v_j)^2 for v = vectors[:, m]; (M, N, 3).
+
+    Each robot's sums run over the pairs in order, the two ends' sums kept
+    apart and added at the end, as the numpy scatter-add (np.bincount) did."""
+    n_pairs, n_modes, n = pairs.shape[0], vectors.shape[1], vectors.shape[0]
+    through_first = np.zeros((n_modes, n, 3))
+    through_second = np.zeros((n_modes, n, 3))
+    node_first = np.zeros((n_modes, n))
+    node_second = np.zeros((n_modes, n))
+    for p in range(n_pairs):
+        i, j = pairs[p, 0], pairs[p, 1]
+        collision_pair = collision_factor[i] * collision_factor[j]
+        pair_weight = link_factor[p] * collision_pair
+        for m in range(n_modes):
+            squared_gap = (vectors[i, m] - vectors[j, m]) ** 2
+            # Through alpha and beta: only the two ends of a link move its weight.
+            coefficient = squared_gap * collision_pair
+            for k in range(3):
+                through_first[m, i, k] += coefficient * grad_first[p, k]
+                through_second[m, j, k] += coefficient * grad_second[p, k]
+            node_first[m, i] += pair_weight * squared_gap
+            node_second[m, j] += pair_weight * squared_gap
+    # Through the collision factors: robot i moves every link of i and of
+    # each robot within R'_c of it.
+    push_first = np.zeros((n_modes, n, 3))
+    push_second = np.zeros((n_modes, n, 3))
+    for p in range(n_pairs):
+        i, j = pairs[p, 0], pairs[p, 1]
+        for m in range(n_modes):
+            node_sum = (node_first[m, i] + node_second[m, i]) + (node_first[m, j] + node_second[m, j])
+            push = log_slope[p] * node_sum
+            for k in range(3):
+                push_first[m, i, k] += push * unit[p, k]
+                push_second[m, j, k] += push * unit[p, k]
+    for m in range(n_modes):
+        for r in range(n):
+            for k in range(3):
+                out[m, r, k] = (through_first[m, r, k] + through_second[m, r, k]) + (
+                    push_first[m, r, k] - push_second[m, r, k])
 
 
-def _boxes_subset(boxes: Boxes, mask: np.ndarray) -> Boxes:
-    return Boxes(boxes.centers[mask], boxes.half_sizes[mask], boxes.rotations[mask])
+@kernel
+def _line_of_sight(a, b, centers, half_sizes, rotations, world_half, aligned, r_o, r_o_full, grad_a, grad_b):
+    """beta(d_ijo) of the segment [a, b] (3,) and its gradients (written to grad_a, grad_b).
+
+    Only boxes whose world bounding box is within R'_o of the segment's are
+    measured (a cheap lower bound of their distance): beyond it beta = 1."""
+    la, lb, point = np.empty(3), np.empty(3), np.empty(3)
+    best_distance, best_s, best_box = np.inf, 0.0, -1
+    for k in range(centers.shape[0]):
+        gap = 0.0
+        for i in range(3):
+            low = min(a[i], b[i]) - (centers[k, i] + world_half[k, i])
+            high = (centers[k, i] - world_half[k, i]) - max(a[i], b[i])
+            excess = max(low, 0.0) + max(high, 0.0)
+            gap += excess * excess
+        if not np.sqrt(gap) < r_o_full:
+            continue
+        for j in range(3):
+            if aligned:
+                la[j] = a[j] - centers[k, j]
+                lb[j] = b[j] - centers[k, j]
+            else:
+                la[j] = ((a[0] - centers[k, 0]) * rotations[k, 0, j] + (a[1] - centers[k, 1]) * rotations[k, 1, j]
+                         + (a[2] - centers[k, 2]) * rotations[k, 2, j])
+                lb[j] = ((b[0] - centers[k, 0]) * rotations[k, 0, j] + (b[1] - centers[k, 1]) * rotations[k, 1, j]
+                         + (b[2] - centers[k, 2]) * rotations[k, 2, j])
+        s, distance = segment_box_distance(la, lb, half_sizes[k])
+        if distance < CONTACT_TOLERANCE_M:
+            distance = 0.0
+        if distance < best_distance:
+            best_distance, best_s, best_box = distance, s, k
+    grad_a[:] = 0.0
+    grad_b[:] = 0.0
+    if best_box < 0:
+        return 1.0
+    factor, slope = _half_cosine_rise(best_distance, r_o, r_o_full)
+    # d clearance / d a = (1 - s) u and / d b = s u, u the unit vector from the witness
+    # (closest box point) to the segment point (envelope theorem); zero in contact.
+    k = best_box
+    for j in range(3):
+        point[j] = a[j] + best_s * (b[j] - a[j])
+        la[j] = point[j] - centers[k, j]
+    for j in range(3):
+        if aligned:
+            witness = min(max(la[j], -half_sizes[k, j]), half_sizes[k, j]) + centers[k, j]
+        else:
+            witness = centers[k, j]
+            for m in range(3):
+                local = la[0] * rotations[k, 0, m] + la[1] * rotations[k, 1, m] + la[2] * rotations[k, 2, m]
+                witness += rotations[k, j, m] * min(max(local, -half_sizes[k, m]), half_sizes[k, m])
+        unit = (point[j] - witness) / best_distance if best_distance > 0 else 0.0
+        grad_a[j] = slope * ((1.0 - best_s) * unit)
+        grad_b[j] = slope * (best_s * unit)
+    return factor
 
 
-def _line_of_sight_factor(
-    boxes: Boxes | None, start: np.ndarray, end: np.ndarray, params: ConnectivityParams
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """beta(d_ijo) (P,) and its gradients w.r.t. the segment ends (P, 3) each."""
-    count = len(start)
-    value = np.ones(count)
-    grad_start = np.zeros((count, 3))
-    grad_end = np.zeros((count, 3))
-    if boxes is None or len(boxes) == 0 or count == 0:
-        return value, grad_start, grad_end
-    # Cheap lower bound on each segment/box distance (gap between their
-    # world-frame bounding boxes): a pair whose bound reaches R'_o has
-    # beta = 1 and needs no exact clearance query.
-    near = bounding_box_gaps(boxes, start, end) < params.full_weight_obstacle_clearance
-    near_pairs = near.any(axis=1)
-    if not near_pairs.any():
-        return value, grad_start, grad_end
-    subset = _boxes_subset(boxes, near.any(axis=0))
-    a, b = start[near_pairs], end[near_pairs]
-    clearance = segment_clearance(subset, a, b)
-    factor, slope = half_cosine_rise(
-        clearance.distance, params.min_obstacle_clearance, params.full_weight_obstacle_clearance
-    )
-    d_a, d_b = clearance.gradients(a, b)
-    value[near_pairs] = factor
-    grad_start[near_pairs] = slope[:, None] * d_a
-    grad_end[near_pairs] = slope[:, None] * d_b
-    return value, grad_start, grad_end
+@kernel
+def _link_weights_kernel(positions, r_s_full, r_s, r_c, r_c_full, r_o, r_o_full, centers, half_sizes, rotations,
+                         world_half, aligned, pairs, weights, link_factor, grad_first, grad_second,
+                         collision_factor, log_slope, unit):
+    """Fills the LinkWeights arrays (pairs i < j in row-major order); returns the pair count."""
+    n = positions.shape[0]
+    distance = np.empty((n, n))
+    delta = np.ones((n, n))
+    delta_slope = np.zeros((n, n))
+    for i in range(n):
+        for j in range(n):
+            dx = positions[i, 0] - positions[j, 0]
+            dy = positions[i, 1] - positions[j, 1]
+            dz = positions[i, 2] - positions[j, 2]
+            distance[i, j] = np.sqrt(dx * dx + dy * dy + dz * dz)
+            if i != j:  # the diagonal is not a pair: delta = 1
+                delta[i, j], delta_slope[i, j] = _half_cosine_rise(distance[i, j], r_c, r_c_full)
+    for i in range(n):
+        product = delta[i, 0]
+        for j in range(1, n):
+            product *= delta[i, j]
+        collision_factor[i] = product
+    sight_a, sight_b = np.empty(3), np.empty(3)
+    count = 0
+    for i in range(n):
+        for j in range(i + 1, n):
+            d = distance[i, j]
+            if not d < r_s:
+                continue
+            pairs[count, 0], pairs[count, 1] = i, j
+            for m in range(3):
+                unit[count, m] = (positions[i, m] - positions[j, m]) / d if d > 0 else 0.0
+            rise, rise_slope = _half_cosine_rise(d, r_s_full, r_s)
+            range_factor, range_slope = 1.0 - rise, -rise_slope
+            if centers.shape[0]:
+                sight = _line_of_sight(positions[i], positions[j], centers, half_sizes, rotations, world_half,
+                                       aligned, r_o, r_o_full, sight_a, sight_b)
+            else:
+                sight = 1.0
+                sight_a[:] = 0.0
+                sight_b[:] = 0.0
+            link_factor[count] = range_factor * sight
+            for m in range(3):
+                range_grad = range_slope * unit[count, m]  # d alpha / d q_i; d alpha / d q_j is its negative
+                grad_first[count, m] = range_grad * sight + range_factor * sight_a[m]
+                grad_second[count, m] = -range_grad * sight + range_factor * sight_b[m]
+            # delta' / delta is finite wherever delta > 0; where delta = 0, c_i = 0
+            # and delta' = 0, so every term it would multiply vanishes.
+            log_slope[count] = delta_slope[i, j] / delta[i, j] if delta[i, j] > 0 else 0.0
+            weight = link_factor[count] * collision_factor[i] * collision_factor[j]
+            weights[i, j] = weight
+            weights[j, i] = weight
+            count += 1
+    return count
+
+
+_NO_BOXES = Boxes.axis_aligned(np.zeros((0, 3)), np.zeros((0, 3)))
 
 
 def link_weights(positions: np.ndarray, boxes: Boxes | None, params: ConnectivityParams) -> LinkWeights:
-    """Weights W_ij(q) of Appendix A for all robots, with their derivative data."""
-    positions = np.asarray(positions, dtype=float)
+    """Weights W_ij(q) of Appendix A for all robots, with their derivative data (one compiled pass)."""
+    positions = np.ascontiguousarray(positions, dtype=float)
     n = len(positions)
     if positions.shape != (n, 3) or n < 2:
         raise ValueError(f"positions must have shape (N, 3) with N >= 2, got {positions.shape}")
-    offsets, distances = _pairwise(positions)
-
-    # Inter-robot factor delta(d_ik) for all pairs; the diagonal is not a pair.
-    delta, delta_slope = half_cosine_rise(distances, params.min_robot_distance, params.full_weight_robot_distance)
-    np.fill_diagonal(delta, 1.0)
-    collision_factor = delta.prod(axis=1)
-
-    first, second = np.triu_indices(n, k=1)
-    in_range = distances[first, second] < params.sensing_range
-    first, second = first[in_range], second[in_range]
-    pair_distance = distances[first, second]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        unit = np.where(pair_distance[:, None] > 0, offsets[first, second] / pair_distance[:, None], 0.0)
-
-    rise, rise_slope = half_cosine_rise(pair_distance, params.full_weight_range, params.sensing_range)
-    range_factor, range_slope = 1.0 - rise, -rise_slope
-    sight_factor, sight_grad_first, sight_grad_second = _line_of_sight_factor(
-        boxes, positions[first], positions[second], params
-    )
-    link_factor = range_factor * sight_factor
-    range_grad = range_slope[:, None] * unit  # d alpha / d q_i; d alpha / d q_j is its negative
-    grad_first = range_grad * sight_factor[:, None] + range_factor[:, None] * sight_grad_first
-    grad_second = -range_grad * sight_factor[:, None] + range_factor[:, None] * sight_grad_second
-
-    pair_delta = delta[first, second]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        # delta' / delta is finite wherever delta > 0; where delta = 0, c_i = 0
-        # and delta' = 0, so every term it would multiply vanishes.
-        log_slope = np.where(pair_delta > 0, delta_slope[first, second] / pair_delta, 0.0)
-
+    boxes = _NO_BOXES if boxes is None else boxes
+    most = n * (n - 1) // 2
+    pairs = np.empty((most, 2), dtype=np.int64)
     weights = np.zeros((n, n))
-    pair_weight = link_factor * collision_factor[first] * collision_factor[second]
-    weights[first, second] = pair_weight
-    weights[second, first] = pair_weight
+    link_factor, log_slope = np.empty(most), np.empty(most)
+    grad_first, grad_second, unit = np.empty((most, 3)), np.empty((most, 3)), np.empty((most, 3))
+    collision_factor = np.empty(n)
+    p = params
+    count = _link_weights_kernel(
+        positions, p.full_weight_range, p.sensing_range, p.min_robot_distance, p.full_weight_robot_distance,
+        p.min_obstacle_clearance, p.full_weight_obstacle_clearance, boxes.centers, boxes.half_sizes,
+        np.ascontiguousarray(boxes.rotations), world_half_extents(boxes), boxes.aligned,
+        pairs, weights, link_factor, grad_first, grad_second, collision_factor, log_slope, unit,
+    )
     return LinkWeights(
-        pairs=np.stack([first, second], axis=1),
+        pairs=pairs[:count],
         weights=weights,
-        link_factor=link_factor,
-        link_factor_grad_first=grad_first,
-        link_factor_grad_second=grad_second,
+        link_factor=link_factor[:count],
+        link_factor_grad_first=grad_first[:count],
+        link_factor_grad_second=grad_second[:count],
         collision_factor=collision_factor,
-        collision_log_slope=log_slope,
-        unit=unit,
+        collision_log_slope=log_slope[:count],
+        unit=unit[:count],
     )
 
 
@@ -269,13 +367,15 @@ def weighted_laplacian(weights: np.ndarray) -> np.ndarray:
     return np.diag(weights.sum(axis=1)) - weights
 
 
+def _fiedler_sign(vector: np.ndarray) -> np.ndarray:
+    """The eigenvector with its largest-magnitude entry positive."""
+    return -vector if vector[np.argmax(np.abs(vector))] < 0 else vector
+
+
 def fiedler_pair(laplacian: np.ndarray) -> tuple[float, np.ndarray]:
     """lambda2 and its unit eigenvector (sign: largest-magnitude entry positive)."""
     eigenvalues, eigenvectors = np.linalg.eigh(laplacian)
-    vector = eigenvectors[:, 1]
-    if vector[np.argmax(np.abs(vector))] < 0:
-        vector = -vector
-    return float(eigenvalues[1]), vector
+    return float(eigenvalues[1]), _fiedler_sign(eigenvectors[:, 1])
 
 
 @dataclass(frozen=True)
@@ -284,16 +384,28 @@ class ConnectivityState:
 
     links: the weights and their derivative data.
     laplacian: (N, N) weighted Laplacian.
+    eigenvalues: (N,) its spectrum, ascending; eigenvectors: (N, N) as columns.
     lambda2: second-smallest eigenvalue of the Laplacian (weight units).
-    fiedler: (N,) its unit-norm eigenvector.
-    lambda2_gradient: (N, 3) dlambda2/dq_i, 1/m.
+    fiedler: (N,) its unit-norm eigenvector (largest-magnitude entry positive).
+    lambda2_gradient: (N, 3) dlambda2/dq_i, 1/m (computed on first use).
     """
 
     links: LinkWeights
     laplacian: np.ndarray
-    lambda2: float
-    fiedler: np.ndarray
-    lambda2_gradient: np.ndarray
+    eigenvalues: np.ndarray
+    eigenvectors: np.ndarray
+
+    @property
+    def lambda2(self) -> float:
+        return float(self.eigenvalues[1])
+
+    @functools.cached_property
+    def fiedler(self) -> np.ndarray:
+        return _fiedler_sign(self.eigenvectors[:, 1])
+
+    @functools.cached_property
+    def lambda2_gradient(self) -> np.ndarray:
+        return self.links.lambda2_gradient(self.fiedler)
 
     @property
     def weights(self) -> np.ndarray:
@@ -305,11 +417,12 @@ class ConnectivityState:
 
 
 def connectivity_state(positions: np.ndarray, boxes: Boxes | None, params: ConnectivityParams) -> ConnectivityState:
-    """Weights, Laplacian, exact lambda2 / Fiedler vector (one eigh) and dlambda2/dq."""
+    """Weights, Laplacian and its eigendecomposition (one eigh); lambda2, the
+    Fiedler vector and dlambda2/dq derive from them when read."""
     links = link_weights(positions, boxes, params)
     laplacian = weighted_laplacian(links.weights)
-    lambda2, fiedler = fiedler_pair(laplacian)
-    return ConnectivityState(links, laplacian, lambda2, fiedler, links.lambda2_gradient(fiedler))
+    eigenvalues, eigenvectors = np.linalg.eigh(laplacian)
+    return ConnectivityState(links, laplacian, eigenvalues, eigenvectors)
 
 
 def generalized_connectivity_force(

@@ -1,10 +1,10 @@
-"""Closest-point frames on several paths at once (one numpy pass for all travelers).
+"""Closest-point frames on several paths at once (one compiled pass for all travelers).
 
 :meth:`SplinePath.closest_frame` answers for one path; a team has up to one
 path per robot and asks every control tick, so the per-call overhead of
 numpy dominates. :class:`PathBatch` stacks the piecewise-cubic tables of R
 paths (built once per set of paths) and projects robot r onto path r for all
-r in one pass, with the same algorithm and the same numbers as
+r in one compiled loop, with the same algorithm and the same numbers as
 ``SplinePath.closest_frame`` (nearest table node, then Newton on
 c'(u).(c(u) - q) inside that node's bracket, arc length by Gauss-Legendre).
 
@@ -22,6 +22,7 @@ import numpy as np
 
 from controllers.connectivity import paths as _paths
 from controllers.connectivity.paths import SplinePath
+from sim.compiled import kernel
 
 _GAP = 1.0  # global-parameter gap between two paths
 
@@ -72,47 +73,89 @@ class PathBatch:
     def __len__(self) -> int:
         return len(self.paths)
 
-    def _evaluate(self, u: np.ndarray, owner: np.ndarray):
-        """Position, c', c'' (..., 3) at global parameters u (...) of paths ``owner`` (...)."""
-        span = np.searchsorted(self.breaks, u, side="right") - 1
-        span = np.clip(span, self.first_span[owner], self.last_span[owner])
-        a, b, c, d = (coefficient[span] for coefficient in self.coefficients)
-        x = (u - self.breaks[span])[..., None]
-        position = ((a * x + b) * x + c) * x + d
-        first = (3.0 * a * x + 2.0 * b) * x + c
-        second = 6.0 * a * x + 2.0 * b
-        return position, first, second
-
     def closest_frame(self, points) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Robot r at ``points[r]`` (R, 3) projected on path r: arc lengths (R,),
         closest points (R, 3), unit tangents (R, 3), curvature vectors (R, 3),
         distances (R,) - as ``SplinePath.closest_frame`` row by row."""
-        points = np.asarray(points, dtype=float).reshape(len(self), 3)
-        owner = np.arange(len(self))
-        # Nearest table node of each robot's own path.
-        sq = np.sum((self.p_padded - points[:, None, :]) ** 2, axis=-1)
-        k = np.argmin(sq, axis=1)
-        base = self.table_start
-        last = self.table_size - 1
-        lo = self.u_table[base + np.maximum(k - 1, 0)]
-        hi = self.u_table[base + np.minimum(k + 1, last)]
-        u = self.u_table[base + k]
-        for _ in range(_paths._NEWTON_STEPS):
-            position, d1, d2 = self._evaluate(u, owner)
-            diff = position - points
-            gradient = np.sum(d1 * diff, axis=1)
-            hessian = np.sum(d2 * diff, axis=1) + np.sum(d1 * d1, axis=1)
-            step = np.where(hessian > 1e-12, gradient / np.where(hessian > 1e-12, hessian, 1.0), 0.0)
-            u = np.clip(u - step, lo, hi)
-        closest, d1, d2 = self._evaluate(u, owner)
-        speed = np.linalg.norm(d1, axis=-1, keepdims=True)
-        tangent = d1 / speed
-        curvature = (d2 - np.sum(d2 * tangent, axis=-1, keepdims=True) * tangent) / speed**2
-        # Arc length of u: table node below it plus a Gauss-Legendre integral.
-        node = np.searchsorted(self.u_table, u, side="right") - 1
-        node = np.clip(node, base, base + last - 1)
-        u0 = self.u_table[node]
-        nodes = u0[:, None] + (u - u0)[:, None] * _paths._GL_X
-        node_speed = np.linalg.norm(self._evaluate(nodes, owner[:, None])[1], axis=-1)
-        arc = self.s_table[node] + (u - u0) * (node_speed @ _paths._GL_W)
-        return arc, closest, tangent, curvature, np.linalg.norm(points - closest, axis=1)
+        points = np.ascontiguousarray(points, dtype=float).reshape(len(self), 3)
+        r = len(self)
+        arc_base, arc_span, distance = np.empty(r), np.empty(r), np.empty(r)
+        node_speed = np.empty((r, len(_paths._GL_X)))
+        closest, tangent, curvature = np.empty((r, 3)), np.empty((r, 3)), np.empty((r, 3))
+        _closest_frame_kernel(points, self.breaks, self.coefficients, self.first_span, self.last_span,
+                              self.table_start, self.table_size, self.u_table, self.s_table, self.p_padded,
+                              _paths._NEWTON_STEPS, _paths._GL_X, arc_base, arc_span, node_speed,
+                              closest, tangent, curvature, distance)
+        # Gauss-Legendre sum with numpy's matmul, as SplinePath.arc_length: the same figures to the bit.
+        arc = arc_base + arc_span * (node_speed @ _paths._GL_W)
+        return arc, closest, tangent, curvature, distance
+
+
+@kernel
+def _evaluate(breaks, coefficients, first_span, last_span, u, out_position, out_first, out_second):
+    """Position, c', c'' (3,) of the path owning spans [first_span, last_span] at global parameter u."""
+    span = np.searchsorted(breaks, u, side="right") - 1
+    span = min(max(span, first_span), last_span)
+    x = u - breaks[span]
+    for i in range(3):
+        a, b, c, d = coefficients[0, span, i], coefficients[1, span, i], coefficients[2, span, i], coefficients[3, span, i]
+        out_position[i] = ((a * x + b) * x + c) * x + d
+        out_first[i] = (3.0 * a * x + 2.0 * b) * x + c
+        out_second[i] = 6.0 * a * x + 2.0 * b
+
+
+@kernel
+def _closest_frame_kernel(points, breaks, coefficients, first_span, last_span, table_start, table_size, u_table,
+                          s_table, p_padded, newton_steps, gl_x, arc_base_out, arc_span_out, node_speed_out,
+                          closest_out, tangent_out, curvature_out, distance_out):
+    """SplinePath.project_parameter / derivatives_at_parameter / arc_length, robot r on path r."""
+    position, d1, d2 = np.empty(3), np.empty(3), np.empty(3)
+    for r in range(points.shape[0]):
+        q = points[r]
+        # Nearest table node of the robot's own path, then Newton on c'(u).(c(u) - q) inside its bracket.
+        nearest, nearest_sq = 0, np.inf
+        for k in range(table_size[r]):
+            sq = 0.0
+            for i in range(3):
+                gap = p_padded[r, k, i] - q[i]
+                sq += gap * gap
+            if sq < nearest_sq:
+                nearest, nearest_sq = k, sq
+        base, last = table_start[r], table_size[r] - 1
+        lo = u_table[base + max(nearest - 1, 0)]
+        hi = u_table[base + min(nearest + 1, last)]
+        u = u_table[base + nearest]
+        for _ in range(newton_steps):
+            _evaluate(breaks, coefficients, first_span[r], last_span[r], u, position, d1, d2)
+            gradient, curvature_term, speed_sq = 0.0, 0.0, 0.0
+            for i in range(3):
+                diff = position[i] - q[i]
+                gradient += d1[i] * diff
+                curvature_term += d2[i] * diff
+                speed_sq += d1[i] * d1[i]
+            hessian = curvature_term + speed_sq
+            step = gradient / hessian if hessian > 1e-12 else 0.0
+            u = min(max(u - step, lo), hi)
+        _evaluate(breaks, coefficients, first_span[r], last_span[r], u, position, d1, d2)
+        speed = np.sqrt(d1[0] * d1[0] + d1[1] * d1[1] + d1[2] * d1[2])
+        along = 0.0
+        for i in range(3):
+            tangent_out[r, i] = d1[i] / speed
+            along += d2[i] * tangent_out[r, i]
+        distance_sq = 0.0
+        for i in range(3):
+            curvature_out[r, i] = (d2[i] - along * tangent_out[r, i]) / speed**2
+            closest_out[r, i] = position[i]
+            gap = q[i] - position[i]
+            distance_sq += gap * gap
+        distance_out[r] = np.sqrt(distance_sq)
+        # Arc length of u: table node below it plus a Gauss-Legendre integral of the speed
+        # (the speeds at the nodes; the weighted sum is the caller's).
+        node = np.searchsorted(u_table, u, side="right") - 1
+        node = min(max(node, base), base + last - 1)
+        u0 = u_table[node]
+        for g in range(gl_x.shape[0]):
+            _evaluate(breaks, coefficients, first_span[r], last_span[r], u0 + (u - u0) * gl_x[g], position, d1, d2)
+            node_speed_out[r, g] = np.sqrt(d1[0] * d1[0] + d1[1] * d1[1] + d1[2] * d1[2])
+        arc_base_out[r] = s_table[node]
+        arc_span_out[r] = u - u0

@@ -39,7 +39,9 @@ estimates, Theta, rho, distances: plots and the recording), ``robot_scalars``
 ``link_weights`` (W: link colours in the video), ``robot_colors`` (prime
 traveler highlighted), ``paths`` (planned paths gamma_i), ``markers`` and
 ``marker_colors`` (current targets), ``events`` (role changes and visits),
-``overlay`` (one line burned into the video).
+``overlay`` (one line burned into the video). Built only on ticks whose
+observation has ``info_wanted`` (an observer reads them); role changes and
+visits wait in ``events`` until then.
 
 Deviations from the paper
 -------------------------
@@ -95,7 +97,7 @@ from controllers.connectivity.mission import (
     target_queues,
 )
 from controllers.connectivity.potential import guarded_potential_slope
-from controllers.connectivity.roles import Role
+from controllers.connectivity.roles import ANCHOR_CODE, CONNECTOR_CODE, PRIME_CODE, SECONDARY_CODE, Role
 from controllers.connectivity.smooth_spectrum import smooth_lambda2_gradient
 from sim.config import ConfigError
 from sim.geometry import point_clearance
@@ -247,8 +249,8 @@ class ConnectedStrategy:
                 lambda2_used = np.maximum(np.minimum(estimate.lambda2, bound), floor)
                 f_lambda = generalized_connectivity_force(links, lambda2_used, estimate.fiedler, c)
         elif p.spectrum_smoothing > 0:
-            values, vectors = np.linalg.eigh(state.laplacian)
-            smooth, gradient = smooth_lambda2_gradient(state.links, values, vectors, p.spectrum_smoothing)
+            smooth, gradient = smooth_lambda2_gradient(state.links, state.eigenvalues, state.eigenvectors,
+                                                       p.spectrum_smoothing)
             f_lambda = -guarded_potential_slope(smooth, c) * gradient
         else:
             f_lambda = generalized_connectivity_force(state.links, state.lambda2, state.fiedler, c)
@@ -271,8 +273,10 @@ class ConnectedStrategy:
             if not out.skipped and len(out.visits) == self.targets_total:
                 self.completion_time = max((visit.completion_time for visit in out.visits), default=t)
         self.last = out
-        commands = Commands(q.copy(), v.copy(), acceleration, np.zeros(len(q)),
-                            self._info(out, state, estimate, f_lambda, tick, robot_distance, obstacle_distance))
+        info = {}
+        if observation.info_wanted:  # figures and decorations only for observers that read them
+            info = self._info(out, state, estimate, f_lambda, tick, robot_distance, obstacle_distance)
+        commands = Commands(q.copy(), v.copy(), acceleration, np.zeros(len(q)), info)
         self.q, self.v = q_next, v_next
         return commands
 
@@ -280,7 +284,7 @@ class ConnectedStrategy:
     def _note_changes(self, t: float, out: ExplorationStep) -> None:
         for i in np.flatnonzero(out.roles != self.roles):
             self._events.append(f"t = {t:.2f} s: {self.names[i]} becomes {ROLE_NAMES[Role(int(out.roles[i]))]}")
-            if out.roles[i] == Role.PRIME_TRAVELER:
+            if out.roles[i] == PRIME_CODE:
                 self.stats.elections += 1
         for visit in out.visits[self._visits_seen:]:
             self._events.append(f"t = {t:.2f} s: {self.names[visit.target.robot]} visited its target "
@@ -307,16 +311,16 @@ class ConnectedStrategy:
 
     def _info(self, out: ExplorationStep, state, estimate, f_lambda, tick, robot_distance, obstacle_distance) -> dict:
         roles = out.roles
-        secondary = roles == Role.SECONDARY_TRAVELER
-        others = roles != Role.PRIME_TRAVELER
+        secondary = roles == SECONDARY_CODE
+        others = roles != PRIME_CODE
         nan = float("nan")
         scalars = {
             **tick,
             "lambda2_estimate_mean": float(np.mean(estimate.lambda2)) if estimate is not None else nan,
             "prime_traveler": float(out.prime),
             "secondary_travelers": float(secondary.sum()),
-            "anchors": float(np.sum(roles == Role.ANCHOR)),
-            "connectors": float(np.sum(roles == Role.CONNECTOR)),
+            "anchors": float(np.sum(roles == ANCHOR_CODE)),
+            "connectors": float(np.sum(roles == CONNECTOR_CODE)),
             "prime_efficiency": out.prime_efficiency,
             "prime_efficiency_estimate_mean": float(out.efficiency_estimate[others].mean()) if others.any() else nan,
             "alignment_mean": float(np.nanmean(out.alignment[secondary])) if secondary.any() else nan,

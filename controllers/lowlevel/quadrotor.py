@@ -1,7 +1,10 @@
 """Quadrotor low-level control: geometric SE(3) tracking and motor mixing.
 
-Pure numpy, never imports MuJoCo; batched over all N quadrotors of a team (all
-share one :class:`QuadrotorParams`, since they come from one robot file).
+Pure math, never imports MuJoCo; batched over all N quadrotors of a team (all
+share one :class:`QuadrotorParams`, since they come from one robot file). The
+controller and the mixer are compiled kernels (numba, cached on disk, see
+:mod:`sim.compiled`): at N <= 35 numpy's per-call overhead cost ~20x
+their arithmetic.
 
 Frames and conventions
 ----------------------
@@ -55,11 +58,12 @@ the range, so steps 2 and 3 rarely bite.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
 
-_E3 = np.array([0.0, 0.0, 1.0])
+from sim.compiled import kernel
 
 
 @dataclass(frozen=True)
@@ -91,6 +95,17 @@ class QuadrotorParams:
         """A (4, 4): [T (N), tau_x, tau_y, tau_z (N m, body frame)] = A @ f (N)."""
         r = np.asarray(self.rotor_positions, dtype=float)
         return np.stack([np.ones(4), r[:, 1], -r[:, 0], np.asarray(self.rotor_drag, dtype=float)])
+
+    @functools.cached_property
+    def mixer_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+        """Inverse allocation (4, 4), thrust_min (4,), thrust_max (4,), and the
+        collective thrust range (N) the rotors give with no torque at all."""
+        a_inv = np.linalg.inv(self.allocation)
+        per_newton = a_inv[:, 0]  # rotor thrusts for 1 N of collective thrust
+        assert np.all(per_newton > 0), "centre of mass outside the rotor polygon"
+        lo = np.ascontiguousarray(self.thrust_min, dtype=float)
+        hi = np.ascontiguousarray(self.thrust_max, dtype=float)
+        return a_inv, lo, hi, float(np.max(lo / per_newton)), float(np.min(hi / per_newton))
 
     @property
     def hover_thrust(self) -> float:
@@ -205,27 +220,99 @@ def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
     )
 
 
-def _vee(m: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) skew-symmetric -> (N, 3)."""
-    return np.stack([m[:, 2, 1], m[:, 0, 2], m[:, 1, 0]], axis=-1)
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _bounded_force(force: np.ndarray, params: QuadrotorParams, gains: QuadrotorGains) -> np.ndarray:
-    """Clamp the desired force (N, 3), N, world frame, to the tilt / thrust envelope."""
-    weight = params.mass * params.gravity
-    fz = np.clip(force[:, 2], gains.min_thrust_ratio * weight, gains.max_thrust_ratio * weight)
-    horizontal = force[:, :2]
-    h_norm = np.linalg.norm(horizontal, axis=1)
-    h_max = fz * np.tan(gains.max_tilt)
-    scale = np.where(h_norm > h_max, h_max / np.maximum(h_norm, 1e-12), 1.0)
-    bounded = np.column_stack([horizontal * scale[:, None], fz])
-    norm = np.linalg.norm(bounded, axis=1)
-    limit = gains.max_thrust_ratio * weight
-    return bounded * np.minimum(1.0, limit / norm)[:, None]
+@kernel
+def _geometric_control_kernel(position, velocity, quaternion, omega, ref_position, ref_velocity,
+                              ref_acceleration, heading_cos, heading_sin, jerk, yaw_rate, use_jerk, use_yaw_rate,
+                              mass, gravity, inertia, kx, kv, kr, kw, tan_tilt, min_thrust_ratio,
+                              max_thrust_ratio, thrust_out, torque_out):
+    """Per robot: Lee et al. (2010) eqs. 15-16 with the bounds of :func:`geometric_control`."""
+    weight = mass * gravity
+    rot = np.empty((3, 3))
+    rot_d = np.empty((3, 3))
+    rt_rd = np.empty((3, 3))
+    force = np.empty(3)
+    omega_d = np.empty(3)
+    omega_ref = np.empty(3)
+    ang = np.empty(3)
+    for n in range(position.shape[0]):
+        # Rotation matrix of the normalised quaternion (body -> world).
+        w, x, y, z = quaternion[n, 0], quaternion[n, 1], quaternion[n, 2], quaternion[n, 3]
+        norm = np.sqrt(w * w + x * x + y * y + z * z)
+        w, x, y, z = w / norm, x / norm, y / norm, z / norm
+        rot[0, 0] = 1 - 2 * (y * y + z * z)
+        rot[0, 1] = 2 * (x * y - w * z)
+        rot[0, 2] = 2 * (x * z + w * y)
+        rot[1, 0] = 2 * (x * y + w * z)
+        rot[1, 1] = 1 - 2 * (x * x + z * z)
+        rot[1, 2] = 2 * (y * z - w * x)
+        rot[2, 0] = 2 * (x * z - w * y)
+        rot[2, 1] = 2 * (y * z + w * x)
+        rot[2, 2] = 1 - 2 * (x * x + y * y)
+        # Desired force, then the tilt / thrust envelope.
+        for i in range(3):
+            e_x = position[n, i] - ref_position[n, i]
+            e_v = velocity[n, i] - ref_velocity[n, i]
+            force[i] = mass * (-kx * e_x - kv * e_v + ref_acceleration[n, i] + (gravity if i == 2 else 0.0))
+        fz = min(max(force[2], min_thrust_ratio * weight), max_thrust_ratio * weight)
+        h_norm = np.sqrt(force[0] * force[0] + force[1] * force[1])
+        h_max = fz * tan_tilt
+        scale = h_max / max(h_norm, 1e-12) if h_norm > h_max else 1.0
+        force[0] *= scale
+        force[1] *= scale
+        force[2] = fz
+        f_norm = np.sqrt(force[0] * force[0] + force[1] * force[1] + force[2] * force[2])
+        shrink = min(1.0, max_thrust_ratio * weight / f_norm)
+        for i in range(3):
+            force[i] *= shrink
+        f_norm = np.sqrt(force[0] * force[0] + force[1] * force[1] + force[2] * force[2])
+        b3x, b3y, b3z = force[0] / f_norm, force[1] / f_norm, force[2] / f_norm
+        c1x, c1y = heading_cos[n], heading_sin[n]
+        # b2_d = unit(b3_d x b1_c) with b1_c = (c1x, c1y, 0); b1_d = b2_d x b3_d.
+        b2x, b2y, b2z = b3y * 0.0 - b3z * c1y, b3z * c1x - b3x * 0.0, b3x * c1y - b3y * c1x
+        b2_norm = np.sqrt(b2x * b2x + b2y * b2y + b2z * b2z)
+        b2x, b2y, b2z = b2x / b2_norm, b2y / b2_norm, b2z / b2_norm
+        b1x, b1y, b1z = b2y * b3z - b2z * b3y, b2z * b3x - b2x * b3z, b2x * b3y - b2y * b3x
+        rot_d[0, 0], rot_d[1, 0], rot_d[2, 0] = b1x, b1y, b1z
+        rot_d[0, 1], rot_d[1, 1], rot_d[2, 1] = b2x, b2y, b2z
+        rot_d[0, 2], rot_d[1, 2], rot_d[2, 2] = b3x, b3y, b3z
+        thrust_out[n] = force[0] * rot[0, 2] + force[1] * rot[1, 2] + force[2] * rot[2, 2]
+        # Desired body rates from differential flatness (zero without jerk / yaw rate).
+        omega_d[0] = omega_d[1] = omega_d[2] = 0.0
+        if use_jerk:
+            jx, jy, jz = jerk[n, 0], jerk[n, 1], jerk[n, 2]
+            # Dot products summed as numpy's einsum does, (x + z) + y.
+            along = (b3x * jx + b3z * jz) + b3y * jy
+            gain = mass / f_norm
+            hx, hy, hz = gain * (jx - along * b3x), gain * (jy - along * b3y), gain * (jz - along * b3z)
+            omega_d[0] = -((hx * b2x + hz * b2z) + hy * b2y)
+            omega_d[1] = (hx * b1x + hz * b1z) + hy * b1y
+        if use_yaw_rate:
+            omega_d[2] = yaw_rate[n] * b3z
+        for i in range(3):
+            for k in range(3):
+                rt_rd[i, k] = rot[0, i] * rot_d[0, k] + rot[1, i] * rot_d[1, k] + rot[2, i] * rot_d[2, k]
+        for i in range(3):  # summed in the order of numpy's einsum, (0 + 2) + 1: the same figures to the bit
+            omega_ref[i] = (rt_rd[i, 0] * omega_d[0] + rt_rd[i, 2] * omega_d[2]) + rt_rd[i, 1] * omega_d[1]
+        # e_R = 0.5 vee(R_d^T R - R^T R_d), e_W = Omega - R^T R_d Omega_d.
+        e_r0 = 0.5 * (rt_rd[1, 2] - rt_rd[2, 1])
+        e_r1 = 0.5 * (rt_rd[2, 0] - rt_rd[0, 2])
+        e_r2 = 0.5 * (rt_rd[0, 1] - rt_rd[1, 0])
+        w0, w1, w2 = omega[n, 0], omega[n, 1], omega[n, 2]
+        ang[0] = -kr[0] * e_r0 - kw[0] * (w0 - omega_ref[0])
+        ang[1] = -kr[1] * e_r1 - kw[1] * (w1 - omega_ref[1])
+        ang[2] = -kr[2] * e_r2 - kw[2] * (w2 - omega_ref[2])
+        # Feedforward: Omega x J Omega - J (Omega^ R^T R_d Omega_d); Omega_d_dot taken as 0.
+        ang[0] -= w1 * omega_ref[2] - w2 * omega_ref[1]
+        ang[1] -= w2 * omega_ref[0] - w0 * omega_ref[2]
+        ang[2] -= w0 * omega_ref[1] - w1 * omega_ref[0]
+        jw0 = inertia[0, 0] * w0 + inertia[0, 1] * w1 + inertia[0, 2] * w2
+        jw1 = inertia[1, 0] * w0 + inertia[1, 1] * w1 + inertia[1, 2] * w2
+        jw2 = inertia[2, 0] * w0 + inertia[2, 1] * w1 + inertia[2, 2] * w2
+        for i in range(3):
+            torque_out[n, i] = inertia[i, 0] * ang[0] + inertia[i, 1] * ang[1] + inertia[i, 2] * ang[2]
+        torque_out[n, 0] += w1 * jw2 - w2 * jw1
+        torque_out[n, 1] += w2 * jw0 - w0 * jw2
+        torque_out[n, 2] += w0 * jw1 - w1 * jw0
 
 
 def geometric_control(
@@ -239,68 +326,68 @@ def geometric_control(
     Geometric tracking on SE(3) (Lee et al. 2010, eqs. 15-16), gains normalised
     by mass and inertia. The thrust is the desired force projected on the
     current body z axis, so a tilted robot does not climb while it turns.
+
+    The desired force is clamped to the envelope: upward component within
+    [min_thrust_ratio, max_thrust_ratio] m g, tilt <= max_tilt (horizontal
+    part scaled down), magnitude <= max_thrust_ratio m g. The heading turns
+    toward the reference yaw at most max_yaw_error ahead of the current
+    heading, so the attitude error stays where e_R is near-linear (near a
+    half-turn it vanishes and would couple yaw into roll/pitch).
     """
     n = len(state.position)
     assert len(reference.position) == n, (len(reference.position), n)
-    m, g = params.mass, params.gravity
-    inertia = np.asarray(params.inertia, dtype=float)
-    rot = quaternion_to_matrix(state.quaternion)  # body -> world
-
-    e_x = state.position - reference.position
-    e_v = state.velocity - reference.velocity
-    force = m * (-gains.kx * e_x - gains.kv * e_v + reference.acceleration + g * _E3)
-    force = _bounded_force(force, params, gains)
-
-    b3_d = _unit(force)
-    # Heading: turn toward the reference yaw at most max_yaw_error ahead of the
-    # current heading, so the attitude error stays where e_R is near-linear
-    # (near a half-turn it vanishes and would couple yaw into roll/pitch).
-    heading = np.arctan2(rot[:, 1, 0], rot[:, 0, 0])
+    thrust = np.empty(n)
+    torque = np.empty((n, 3))
+    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+    jerk = reference.jerk if reference.jerk is not None else np.zeros((n, 3))
+    yaw_rate = reference.yaw_rate if reference.yaw_rate is not None else np.zeros(n)
+    # The commanded heading's trigonometry stays numpy's (its vectorised sin/cos/arctan2 differ from
+    # libm's in the last bit; keeping them keeps trajectories bit-identical to the numpy controller).
+    q = np.asarray(state.quaternion, dtype=float)
+    # as quaternion_to_matrix (np.linalg.norm's own sum, without its checks), two entries only
+    w, x, y, z = (q / np.sqrt(np.add.reduce(q * q, axis=1, keepdims=True))).T
+    heading = np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
     yaw_error = np.angle(np.exp(1j * (reference.yaw - heading)))
     yaw_cmd = heading + np.clip(yaw_error, -gains.max_yaw_error, gains.max_yaw_error)
-    b1_c = np.column_stack([np.cos(yaw_cmd), np.sin(yaw_cmd), np.zeros(n)])
-    b2_d = _unit(np.cross(b3_d, b1_c))
-    b1_d = np.cross(b2_d, b3_d)
-    rot_d = np.stack([b1_d, b2_d, b3_d], axis=-1)  # columns are desired body axes
-
-    thrust = np.einsum("ni,ni->n", force, rot[:, :, 2])
-
-    # Desired body rates from differential flatness (zero without jerk / yaw rate).
-    omega_d = np.zeros((n, 3))
-    if reference.jerk is not None:
-        f_norm = np.linalg.norm(force, axis=1)
-        jerk = reference.jerk
-        h = (m / f_norm)[:, None] * (jerk - np.einsum("ni,ni->n", b3_d, jerk)[:, None] * b3_d)
-        omega_d[:, 0] = -np.einsum("ni,ni->n", h, b2_d)
-        omega_d[:, 1] = np.einsum("ni,ni->n", h, b1_d)
-    if reference.yaw_rate is not None:
-        omega_d[:, 2] = reference.yaw_rate * b3_d[:, 2]
-
-    rt_rd = np.einsum("nji,njk->nik", rot, rot_d)  # R^T R_d
-    e_r = 0.5 * _vee(np.swapaxes(rt_rd, 1, 2) - rt_rd)  # 0.5 vee(R_d^T R - R^T R_d)
-    omega_ref = np.einsum("nij,nj->ni", rt_rd, omega_d)  # R^T R_d Omega_d
-    omega = state.angular_velocity
-    e_w = omega - omega_ref
-
-    ang_acc = -np.asarray(gains.kr) * e_r - np.asarray(gains.kw) * e_w
-    # Feedforward: Omega x J Omega - J (Omega^ R^T R_d Omega_d); Omega_d_dot taken as 0.
-    j_omega = omega @ inertia.T
-    torque = (
-        (ang_acc - np.cross(omega, omega_ref)) @ inertia.T
-        + np.cross(omega, j_omega)
+    _geometric_control_kernel(
+        f64(state.position), f64(state.velocity), f64(state.quaternion), f64(state.angular_velocity),
+        f64(reference.position), f64(reference.velocity), f64(reference.acceleration), np.cos(yaw_cmd),
+        np.sin(yaw_cmd), f64(jerk), f64(yaw_rate), reference.jerk is not None, reference.yaw_rate is not None,
+        float(params.mass), float(params.gravity), f64(params.inertia), float(gains.kx), float(gains.kv),
+        f64(gains.kr), f64(gains.kw), float(np.tan(gains.max_tilt)), float(gains.min_thrust_ratio),
+        float(gains.max_thrust_ratio), thrust, torque,
     )
-    assert thrust.shape == (n,) and torque.shape == (n, 3)
     return thrust, torque
 
 
-def _max_scale(base: np.ndarray, step: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Largest s in [0, 1] per row with lo <= base + s step <= hi (base inside).
+@kernel
+def _max_scale(base, step, lo, hi):
+    """Largest s in [0, 1] with lo <= base + s step <= hi for the 4 rotors (base inside)."""
+    scale = np.inf
+    for r in range(4):
+        if step[r] > 1e-12:
+            scale = min(scale, (hi[r] - base[r]) / step[r])
+        elif step[r] < -1e-12:
+            scale = min(scale, (lo[r] - base[r]) / step[r])
+    return min(max(scale, 0.0), 1.0)
 
-    base, step: (N, 4); lo, hi: (4,). Returns (N,).
-    """
-    up = np.divide(hi - base, step, out=np.full_like(step, np.inf), where=step > 1e-12)
-    down = np.divide(lo - base, step, out=np.full_like(step, np.inf), where=step < -1e-12)
-    return np.clip(np.minimum(up, down).min(axis=1), 0.0, 1.0)
+
+@kernel
+def _mix_kernel(thrust, torque, a_inv, lo, hi, t_lo, t_hi, rotor):
+    base = np.empty(4)
+    step = np.empty(4)
+    for n in range(thrust.shape[0]):
+        collective = min(max(thrust[n], t_lo), t_hi)
+        for r in range(4):
+            base[r] = collective * a_inv[r, 0]
+            step[r] = torque[n, 0] * a_inv[r, 1] + torque[n, 1] * a_inv[r, 2]
+        scale = _max_scale(base, step, lo, hi)
+        for r in range(4):
+            base[r] = base[r] + scale * step[r]
+            step[r] = torque[n, 2] * a_inv[r, 3]
+        scale = _max_scale(base, step, lo, hi)
+        for r in range(4):
+            rotor[n, r] = min(max(base[r] + scale * step[r], lo[r]), hi[r])  # clip: round-off only
 
 
 def mix(params: QuadrotorParams, thrust: np.ndarray, torque: np.ndarray) -> np.ndarray:
@@ -310,28 +397,14 @@ def mix(params: QuadrotorParams, thrust: np.ndarray, torque: np.ndarray) -> np.n
     Priority when saturated: collective thrust, then roll/pitch (scaled as a
     vector), then yaw (see the module docstring).
     """
-    thrust = np.asarray(thrust, dtype=float)
-    torque = np.asarray(torque, dtype=float)
+    thrust = np.ascontiguousarray(thrust, dtype=float)
+    torque = np.ascontiguousarray(torque, dtype=float)
     n = len(thrust)
     assert thrust.shape == (n,), thrust.shape
     assert torque.shape == (n, 3), torque.shape
-    lo = np.asarray(params.thrust_min, dtype=float)
-    hi = np.asarray(params.thrust_max, dtype=float)
-    a_inv = np.linalg.inv(params.allocation)  # (4, 4)
-
-    per_newton = a_inv[:, 0]  # rotor thrusts for 1 N of collective thrust
-    assert np.all(per_newton > 0), "centre of mass outside the rotor polygon"
-    t_lo = np.max(lo / per_newton)
-    t_hi = np.min(hi / per_newton)
-    base = np.clip(thrust, t_lo, t_hi)[:, None] * per_newton
-
-    roll_pitch = torque[:, :2] @ a_inv[:, 1:3].T
-    base = base + _max_scale(base, roll_pitch, lo, hi)[:, None] * roll_pitch
-
-    yaw = torque[:, 2:3] * a_inv[:, 3]
-    rotor = base + _max_scale(base, yaw, lo, hi)[:, None] * yaw
-    rotor = np.clip(rotor, lo, hi)  # round-off only
-    assert rotor.shape == (n, 4)
+    a_inv, lo, hi, t_lo, t_hi = params.mixer_tables
+    rotor = np.empty((n, 4))
+    _mix_kernel(thrust, torque, a_inv, lo, hi, t_lo, t_hi, rotor)
     return rotor
 
 

@@ -1,0 +1,172 @@
+"""The core's speed: the full control stack against bare physics of the same world.
+
+For each row one simulation is built and warmed up, then measured in blocks
+of ``BLOCK_TICKS`` control ticks. Before each block, a copy of the world's
+MjData (the current state) is stepped bare for the block's ``mj_step`` calls;
+then the block runs the full tick (sensing, strategy, low-level control,
+physics) and the metric observers a headless ``tether run`` has. Both are
+timed with this thread's CPU time, interleaved, so the ratio
+
+    full tick / bare mj_step of the same world (1.0 = nothing but physics)
+
+survives a shared, busy machine. The real-time factor is simulated seconds
+per wall second of the full ticks; the stage shares come from the loop's own
+``timing`` (metrics.json's block). Then: seed 000's plan time for 2- and
+4-robot teams (bench/bench_intermittent.py's measurement) and ``--video``'s
+real-time factor against headless.
+
+    make bench            # or: .venv/bin/python bench/bench_core.py [--seconds S] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import sim  # noqa: E402,F401  (GL backend before mujoco)
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+from sim.estimation_observer import EstimationMetrics  # noqa: E402
+from sim.loop import TIMED_STAGES, Simulation, run  # noqa: E402
+from sim.observers import LinkMetrics, TrackingMetrics  # noqa: E402
+from sim.scenario import load  # noqa: E402
+
+BLOCK_TICKS = 20  # ticks per interleaved block (the open-loop bare copy is reset to the world each block)
+ESTIMATOR = 'strategy.lambda2_source="estimator"'
+
+# (label, scenario, overrides)
+ROWS = (
+    ("hover", "hover", []),
+    ("connected-office 10", "connected-office", ["robots.0.count=10"]),
+    ("connected-office 20", "connected-office", ["robots.0.count=20"]),
+    ("connected-office 35", "connected-office", ["robots.0.count=35"]),
+    ("connected-office 10 estimator", "connected-office", ["robots.0.count=10", ESTIMATOR]),
+    ("connected-office 20 estimator", "connected-office", ["robots.0.count=20", ESTIMATOR]),
+    ("connected-office 35 estimator", "connected-office", ["robots.0.count=35", ESTIMATOR]),
+    ("connected-town 10", "connected-town", ["robots.0.count=10"]),
+    ("intermittent-8", "intermittent-8", []),
+)
+
+
+def measure(scenario_name: str, overrides: list[str], seconds: float, warmup_s: float) -> dict:
+    """Ratio, real-time factor and stage shares of one scenario (see the module docstring)."""
+    simulation = Simulation(load(scenario_name, overrides))
+    observers = [EstimationMetrics(), TrackingMetrics(simulation.world.robot_kinds), LinkMetrics()]
+    for _ in range(int(round(warmup_s / simulation.dt))):
+        simulation.tick(info_wanted=False)
+    model, world_data = simulation.world.model, simulation.world.data
+    bare_data = mujoco.MjData(model)
+    timing_before = dict(simulation.timing)
+    ticks = max(BLOCK_TICKS, int(round(seconds / simulation.dt)))
+    bare_cpu = full_cpu = full_wall = 0.0
+    done = 0
+    while done < ticks:
+        block = min(BLOCK_TICKS, ticks - done)
+        mujoco.mj_copyData(bare_data, model, world_data)
+        start = time.thread_time()
+        for _ in range(block * simulation.substeps):
+            mujoco.mj_step(model, bare_data)
+        bare_cpu += time.thread_time() - start
+        start_wall, start = time.perf_counter(), time.thread_time()
+        for _ in range(block):
+            frame, healthy = simulation.tick(info_wanted=False)
+            observed = time.perf_counter()
+            for observer in observers:
+                observer.on_tick(frame)
+            simulation.timing["observers"] += time.perf_counter() - observed
+            if not healthy:
+                raise RuntimeError(f"{scenario_name} {overrides}: physics diverged")
+        full_cpu += time.thread_time() - start
+        full_wall += time.perf_counter() - start_wall
+        done += block
+    spent = {stage: simulation.timing[stage] - timing_before[stage] for stage in TIMED_STAGES}
+    total = sum(spent.values())
+    return {
+        "bare_steps_per_s": ticks * simulation.substeps / bare_cpu,
+        "real_time_factor": ticks * simulation.dt / full_wall,
+        "ratio": full_cpu / bare_cpu,
+        "shares": {stage: spent[stage] / total for stage in TIMED_STAGES},
+    }
+
+
+def plan_times(plans: int) -> list[str]:
+    """Seed 000's plan time per team size, from bench/bench_intermittent.py's own measurement."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import bench_intermittent as intermittent
+
+    from controllers.intermittent.params import IntermittentParams
+    from controllers.intermittent.planner import PlannerParams
+
+    _, boxes, bounds, motion = intermittent.workspace()
+    strategy = IntermittentParams()
+    params = PlannerParams(n_sample=strategy.n_sample, n_uniform=strategy.n_uniform,
+                           u_max=strategy.speed_mps * strategy.step_s, comm_range=0.2 - strategy.link_margin_m,
+                           delta=strategy.delta_m2, sensor_height=intermittent.SENSOR_HEIGHT_M,
+                           robot_radius=intermittent.CLEARANCE_M)
+    lines = []
+    for size in (2, 4):
+        rows = intermittent.bench_team(size, plans, params, boxes, bounds, motion, seed=size)
+        found = sum(1 for r in rows if r[0])
+        wall = np.array([r[1] for r in rows])
+        lines.append(f"| {size} robots | {found}/{len(rows)} | {wall.mean():.2f} | {wall.max():.2f} |")
+    return lines
+
+
+def video_factor(seconds: float) -> tuple[float, float]:
+    """Real-time factors of ``tether run hover`` headless and with ``--video`` (each in a fresh process
+    would add imports; here both in this one, one after the other)."""
+    scenario = load("hover", duration_s=seconds)
+    with tempfile.TemporaryDirectory() as out:
+        headless = run(scenario, out).metrics["real_time_factor"]
+        video = run(scenario, out, video=True).metrics["real_time_factor"]
+    return headless, video
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=2.0, help="simulated seconds measured per row")
+    parser.add_argument("--warmup", type=float, default=0.5, help="simulated seconds run before measuring")
+    parser.add_argument("--plans", type=int, default=4, help="seed 000 plans per team size")
+    parser.add_argument("--rows", nargs="*", help="only rows whose label contains one of these")
+    parser.add_argument("--quick", action="store_true", help="core rows only: no planner, no video")
+    args = parser.parse_args()
+
+    load_average = os.getloadavg()
+    print(f"machine: {os.cpu_count()} cores, load average {load_average[0]:.2f} {load_average[1]:.2f} "
+          f"{load_average[2]:.2f} (uptime); {args.seconds:g} s simulated per row after {args.warmup:g} s")
+    print("ratio = full tick / bare mj_step of the same world (thread CPU time, interleaved blocks)")
+    print()
+    stages = " | ".join(TIMED_STAGES)
+    print(f"| row | bare steps/s | real-time factor | ratio | {stages} |")
+    print("| --- | --- | --- | --- | " + " | ".join("---" for _ in TIMED_STAGES) + " |")
+    for label, name, overrides in ROWS:
+        if args.rows and not any(key in label for key in args.rows):
+            continue
+        row = measure(name, overrides, args.seconds, args.warmup)
+        shares = " | ".join(f"{row['shares'][stage]:.0%}" for stage in TIMED_STAGES)
+        print(f"| {label} | {row['bare_steps_per_s']:.0f} | {row['real_time_factor']:.2f} | "
+              f"{row['ratio']:.2f} | {shares} |", flush=True)
+    if args.quick:
+        return
+    print()
+    print("seed 000 planner (bench/bench_intermittent.py, default n_sample)")
+    print("| team | plans found | plan time mean (s) | max (s) |")
+    print("| --- | --- | --- | --- |")
+    for line in plan_times(args.plans):
+        print(line, flush=True)
+    print()
+    headless, video = video_factor(2 * args.seconds)
+    print(f"hover, {2 * args.seconds:g} s: real-time factor headless {headless:.2f}, --video {video:.2f} "
+          f"(video / headless {video / headless:.2f})")
+
+
+if __name__ == "__main__":
+    main()
