@@ -43,6 +43,12 @@ STRATEGIES: dict[str, StrategySpec] = {
         "controllers.baselines.random_meeting:RandomMeetingStrategy",
         "seed 000 baseline: the same teams and schedule, geodesic paths to random meeting points",
     ),
+    "connected_tracking": StrategySpec(
+        "controllers.tracking.params:ConnectedTrackingParams",
+        "controllers.tracking.strategy:ConnectedTrackingStrategy",
+        "seed 001's connected controller on seed 000's task: explorers visit viewpoints of the EKF's most "
+        "uncertain targets while the team keeps lambda2 > 0; every reading fused at once",
+    ),
     "connected": StrategySpec(
         "controllers.connectivity.connected_params:ConnectedParams",
         "controllers.connectivity.strategy:ConnectedStrategy",
