@@ -54,22 +54,33 @@ def _parser() -> argparse.ArgumentParser:
 
     sub.add_parser("scenarios", help="list built-in scenarios")
 
-    compare = sub.add_parser("compare", help="seed 000's Table I: intermittent vs its two baselines over seeds "
-                             "(resumable; see sim/compare.py)")
-    compare.add_argument("--scenarios", nargs="+", default=["intermittent-4", "intermittent-8"], metavar="NAME",
-                         help="scenarios to compare on (default: intermittent-4 intermittent-8)")
-    compare.add_argument("--methods", nargs="+", default=["all_time", "random_meeting", "intermittent"],
-                         metavar="KIND", help="strategy kinds (default: all_time random_meeting intermittent)")
-    compare.add_argument("--seeds", type=int, default=10, help="number of seeds per method (default 10)")
-    compare.add_argument("--first-seed", type=int, default=0, help="first seed (default 0)")
-    compare.add_argument("--duration", type=float, default=300.0, metavar="S",
-                         help="simulated seconds per trial (default 300)")
-    compare.add_argument("--jobs", type=int, default=1, help="trials run in parallel processes (default 1)")
-    compare.add_argument("--out", default="runs/compare", metavar="DIR",
-                         help="folder of trials.jsonl, table.md, table.png (default runs/compare)")
-    compare.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                         help="override a scenario value in every trial (repeatable)")
-    compare.add_argument("--no-run", action="store_true", help="only print the table of the trials already run")
+    sweep = sub.add_parser("sweep", help="run many headless trials (a built-in sweep or a TOML file), resumable",
+                           description="Run a sweep's trials on a local process pool or a Ray cluster; every "
+                                       "finished trial is stored at once in DIR/trials/ (see docs/sweeps.md). "
+                                       "Rerun the same command to resume.")
+    sweep.add_argument("sweep", help="built-in sweep name (see 'tether sweeps') or a TOML file")
+    sweep.add_argument("--out", default=None, metavar="DIR", help="results folder (one sweep per folder; required)")
+    sweep.add_argument("--workers", default=None, metavar="N",
+                       help="processes of the local pool (default: the machine's cores)")
+    sweep.add_argument("--ray", default=None, metavar="auto|ADDRESS",
+                       help="run the trials as tasks on an existing Ray cluster instead of the local pool")
+    sweep.add_argument("--retry-failed", action="store_true",
+                       help="also rerun the trials whose latest row failed (diverged or raised)")
+    sweep.add_argument("--video", action="append", default=[], metavar="TRIAL",
+                       help="also write video.mp4 for this trial (index or id; repeatable)")
+    sweep.add_argument("--rrd", action="append", default=[], metavar="TRIAL",
+                       help="also write run.rrd for this trial (index or id; repeatable)")
+    sweep.add_argument("--list", action="store_true", help="print the trials (index, id, parameters) and exit")
+    sweep.add_argument("--no-report", action="store_true", help="do not write the report at the end")
+
+    sub.add_parser("sweeps", help="list built-in sweeps")
+
+    report = sub.add_parser("report", help="figures and tables of a sweep's results (no simulation)")
+    report.add_argument("dir", metavar="DIR", help="a sweep's results folder (or a results .parquet file)")
+    report.add_argument("--x", default=None, metavar="KEY", help="generic plot: swept key or metric on x")
+    report.add_argument("--y", default=None, metavar="METRIC", help="generic plot: metric on y")
+    report.add_argument("--hue", default=None, metavar="KEY", help="generic plot: one line per value of KEY")
+    report.add_argument("--out", default=None, metavar="DIR", help="where the report goes (default: DIR)")
     return parser
 
 
@@ -229,15 +240,77 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_compare(args: argparse.Namespace) -> int:
-    from sim.compare import main as compare_main
+def cmd_sweep(args: argparse.Namespace) -> int:
+    import os
 
-    return compare_main(args)
+    from sim.sweep import ProcessPool, RayCluster, ResultsFolder, load_sweep, run_sweep
+
+    engine = None
+    try:
+        sweep = load_sweep(args.sweep, video=args.video, rrd=args.rrd)
+        if args.list:
+            for trial in sweep.trials:
+                swept = ", ".join(f"{k}={v}" for k, v in trial.swept)
+                print(f"{trial.index:5d}  {trial.trial_id}  seed {trial.seed}  {swept}")
+            return 0
+        if args.out is None:
+            raise ConfigError("--out", "is required: the folder the results go to")
+        if args.ray is not None and args.workers is not None:
+            raise ConfigError("--workers", "sizes the local pool; with --ray the cluster decides")
+        workers = int(_number(args.workers, "--workers", int, minimum=1)) if args.workers else os.cpu_count() or 1
+        folder = ResultsFolder(args.out)
+        folder.check(sweep)  # before connecting to anything or creating the folder
+        engine = RayCluster(args.ray) if args.ray is not None else ProcessPool(workers)
+        folder.claim(sweep)
+    except ConfigError as err:
+        if engine is not None:
+            engine.close()
+        return _fail(str(err))
+    outcome = run_sweep(sweep, folder.out, engine, retry_failed=args.retry_failed)
+    report_note = ""
+    if not args.no_report and outcome.results is not None:
+        from sim.report import write_report
+
+        files = write_report(folder.out)
+        report_note = f"; report {files[0].parent / 'report.md'}" if files else ""
+    where = f"table {outcome.results}" if outcome.results else "no rows yet"
+    print(f"{sweep.name}: {outcome.completed} completed, {outcome.failed} failed, {outcome.not_run} not run "
+          f"of {outcome.total}; {where}{report_note}")
+    if outcome.stopped:
+        print(f"stopped: {outcome.stopped}; run the same command again to resume", file=sys.stderr)
+        return 130 if outcome.stopped == "interrupted" else 1
+    return 0 if outcome.failed == 0 else 1
+
+
+def cmd_sweeps(args: argparse.Namespace) -> int:
+    from sim.sweep import builtin_sweeps
+
+    sweeps = builtin_sweeps()
+    width = max(map(len, sweeps), default=0)
+    for name, description in sweeps.items():
+        print(f"{name:{width}s}  {description}")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from sim.report import write_report
+
+    given = [flag for flag, value in (("--x", args.x), ("--y", args.y)) if value is None]
+    if args.hue is not None and given or len(given) == 1:
+        return _fail(f"{given[0]}: the generic plot needs both --x and --y")
+    try:
+        files = write_report(args.dir, out=args.out, x=args.x, y=args.y, hue=args.hue)
+    except ConfigError as err:
+        return _fail(str(err))
+    for path in files:
+        print(path)
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    handlers = {"run": cmd_run, "tune": cmd_tune, "scenarios": cmd_scenarios, "compare": cmd_compare}
+    handlers = {"run": cmd_run, "tune": cmd_tune, "scenarios": cmd_scenarios, "sweep": cmd_sweep,
+                "sweeps": cmd_sweeps, "report": cmd_report}
     return handlers[args.command](args)
 
 

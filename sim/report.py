@@ -1,0 +1,422 @@
+"""``tether report DIR``: a sweep's figures and tables, from its results table alone.
+
+Sections are chosen by the columns and rows the table holds, so a partial
+table (a sweep still running, or stopped) gives the same report with fewer
+trials, and every cell states its n:
+
+- seed 001's Fig. 9 (``connected`` trials: ``completion_time_s`` against
+  ``n_robots``): four rows of percentile bands, one column per scenario;
+- seed 000's Table I (``e_g_mean_m`` of two or more strategy kinds): mean +-
+  std per method and target count, the paper's numbers beside;
+- seed 000's Sec. IV-A team graphs (``intermittent`` trials of two or more
+  scenarios with the same targets): e_g, lambda-bar, delay against its
+  bound and the t*(t) lag, the paper's figures beside;
+- with ``--x KEY --y METRIC [--hue KEY]``: any metric against any column.
+
+Only rows with status "completed" enter statistics; the trial counts and
+failures head the report. Writes ``report.md`` and PNGs into the folder.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim.config import ConfigError
+
+# Seed 001, Fig. 9: rows (column, axis label).
+FIG9_ROWS = (
+    ("completion_time_s", "completion time (s)"),
+    ("mean_travel_m", "explorers' mean distance (m)"),
+    ("max_stretch_m", "max stretch between explorers (m)"),
+    ("lambda2_mean", "mean lambda2"),
+)
+FIG9_PERCENTILES = (10, 25, 50, 75, 90)
+
+# Seed 000, Table I: (mean, +-) of e_g-bar (m) and lambda-bar (m^2), per target count and method.
+PAPER_TABLE_I = {
+    4: {"all_time": ((1.030, 0.466), (0.226, 0.061)),
+        "random_meeting": ((1.993, 0.566), (0.405, 0.181)),
+        "intermittent": ((0.879, 0.461), (0.167, 0.084))},
+    8: {"all_time": ((2.517, 0.810), (0.563, 0.129)),
+        "random_meeting": ((1.201, 0.570), (0.334, 0.161)),
+        "intermittent": ((0.929, 0.561), (0.177, 0.068))},
+}
+METHOD_ORDER = ("all_time", "random_meeting", "intermittent")  # Table I's column order
+METHOD_LABELS = {"all_time": "all-time", "random_meeting": "heuristic", "intermittent": "intermittent"}
+
+# Seed 000, Sec. IV-A (8 targets): team graph -> (e_g-bar m, lambda-bar m^2, delay bound D_G epochs).
+PAPER_TEAMS = {
+    "intermittent-8": ("G_T^1 (ring, 8 teams of 2)", 0.929, 0.177, 5),
+    "intermittent-8-dense": ("G_T^2 (5 teams)", 1.127, 0.532, 4),
+}
+
+
+def _label(scenario: Any) -> str:
+    """A scenario column value as a short label (a file path as its stem)."""
+    text = str(scenario)
+    return Path(text).stem if ("/" in text or text.endswith(".toml")) else text
+
+
+def _number(value: Any) -> float | None:
+    if isinstance(value, bool) or value is None:
+        return None
+    if isinstance(value, (int, float)) and math.isfinite(value):
+        return float(value)
+    return None
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+# ---------------------------------------------------------------- sections
+
+def trials_section(rows: list[dict], manifest: dict | None) -> list[str]:
+    total = manifest.get("trials") if manifest else None
+    completed = sum(r.get("status") == "completed" for r in rows)
+    failed = [r for r in rows if r.get("status") != "completed"]
+    name = manifest.get("sweep", "") if manifest else ""
+    lines = [f"# Sweep report{': ' + name if name else ''}", ""]
+    if manifest and manifest.get("description"):
+        lines += [manifest["description"], ""]
+    not_run = f", {total - len(rows)} not run" if total is not None else ""
+    lines += [f"Trials: {completed} completed, {len(failed)} failed{not_run}"
+              f"{f' (of {total})' if total is not None else ''}. "
+              "Statistics use completed trials only; n is given per cell.", ""]
+    if failed:
+        lines += ["| trial | seed | status | error |", "| --- | --- | --- | --- |"]
+        for r in failed[:20]:
+            error = str(r.get("error") or "").replace("|", "/").replace("\n", " ")[:160]
+            lines.append(f"| {r.get('trial_id')} | {r.get('seed')} | {r.get('status')} | {error} |")
+        if len(failed) > 20:
+            lines.append(f"| ... {len(failed) - 20} more | | | |")
+        lines.append("")
+    return lines
+
+
+def fig9_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
+    """Seed 001's Fig. 9 from connected trials: percentiles against robot count, one column per scenario."""
+    mine = [r for r in rows if r.get("strategy") == "connected" and _number(r.get("n_robots")) is not None]
+    if not mine:
+        return [], []
+    done = [r for r in mine if r.get("status") == "completed"]
+    scenes = sorted({_label(r["scenario"]) for r in mine})
+    counts = sorted({int(r["n_robots"]) for r in mine})
+    # values[metric][scene][count] -> list; trials[scene][count] -> completed trials in the cell
+    values: dict = {m: defaultdict(lambda: defaultdict(list)) for m, _ in FIG9_ROWS}
+    trials: dict = defaultdict(lambda: defaultdict(int))
+    for r in done:
+        scene, count = _label(r["scenario"]), int(r["n_robots"])
+        trials[scene][count] += 1
+        for metric, _ in FIG9_ROWS:
+            value = _number(r.get(metric))
+            if value is not None:
+                values[metric][scene][count].append(value)
+
+    plt = _plt()
+    fig, axes = plt.subplots(len(FIG9_ROWS), len(scenes), figsize=(3.6 * len(scenes), 2.4 * len(FIG9_ROWS)),
+                             squeeze=False, sharex=True)
+    for col, scene in enumerate(scenes):
+        for row_i, (metric, label) in enumerate(FIG9_ROWS):
+            ax = axes[row_i, col]
+            xs = [c for c in counts if values[metric][scene][c]]
+            if xs:
+                p = np.array([np.percentile(values[metric][scene][c], FIG9_PERCENTILES) for c in xs])
+                ax.fill_between(xs, p[:, 0], p[:, 4], color="#3a78d9", alpha=0.18, lw=0, label="10-90 %")
+                ax.fill_between(xs, p[:, 1], p[:, 3], color="#3a78d9", alpha=0.35, lw=0, label="25-75 %")
+                ax.plot(xs, p[:, 2], "o-", color="#1f4e99", ms=3, label="median")
+                for x in xs:
+                    ax.annotate(f"{len(values[metric][scene][x])}", (x, p[xs.index(x), 2]), fontsize=6,
+                                textcoords="offset points", xytext=(0, 4), ha="center", color="#555")
+            else:
+                ax.text(0.5, 0.5, "no completed trials", ha="center", va="center", transform=ax.transAxes,
+                        fontsize=8, color="#777")
+            ax.grid(alpha=0.3)
+            if col == 0:
+                ax.set_ylabel(label, fontsize=8)
+            if row_i == 0:
+                ax.set_title(scene, fontsize=9)
+            if row_i == len(FIG9_ROWS) - 1:
+                ax.set_xlabel("robots")
+            if row_i == 0 and col == 0 and xs:
+                ax.legend(fontsize=6)
+    fig.suptitle("seed 001 Fig. 9: percentiles over target configurations (numbers: n per point)", fontsize=9)
+    fig.tight_layout()
+    png = out / "fig9.png"
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+
+    lines = ["## Seed 001, Fig. 9 (connected)", "",
+             f"![Fig. 9]({png.name})", "",
+             "Cells: median [25th, 75th percentile] (n completed trials with a value). Completion time counts "
+             "only trials that visited every target before the scenario's cap.", ""]
+    for metric, label in FIG9_ROWS:
+        lines += [f"**{label}**", "", "| robots | " + " | ".join(scenes) + " |",
+                  "| --- |" + " --- |" * len(scenes)]
+        for c in counts:
+            cells = []
+            for scene in scenes:
+                v = values[metric][scene][c]
+                if v:
+                    q25, q50, q75 = np.percentile(v, (25, 50, 75))
+                    cells.append(f"{q50:.3g} [{q25:.3g}, {q75:.3g}] (n={len(v)}/{trials[scene][c]})")
+                else:
+                    cells.append(f"- (n=0/{trials[scene][c]})")
+            lines.append(f"| {c} | " + " | ".join(cells) + " |")
+        lines.append("")
+    trend = []
+    for scene in scenes:
+        xs = [c for c in counts if values["completion_time_s"][scene][c]]
+        if len(xs) >= 2:
+            first, last = (float(np.median(values["completion_time_s"][scene][c])) for c in (xs[0], xs[-1]))
+            medians = [float(np.median(values["completion_time_s"][scene][c])) for c in xs]
+            falling = all(b <= a for a, b in zip(medians, medians[1:]))
+            trend.append(f"- {scene}: median completion {first:.0f} s at {xs[0]} robots -> {last:.0f} s at "
+                         f"{xs[-1]} ({last / first:.2f}x; {'falls at every step' if falling else 'not monotone'}; "
+                         "paper: roughly 0.5x from 10 to 35)")
+    if trend:
+        lines += ["Completion time against robot count:", "", *trend, ""]
+    return lines, [png]
+
+
+def _table1_cells(rows: list[dict]) -> dict:
+    cells: dict = {}
+    groups = defaultdict(list)
+    for r in rows:
+        if r.get("status") == "completed" and _number(r.get("e_g_mean_m")) is not None \
+                and _number(r.get("lambda_bar_mean_m2")) is not None:
+            groups[(int(r.get("n_targets") or 0), r.get("strategy"))].append(r)
+    for key, chosen in groups.items():
+        e_g = np.array([r["e_g_mean_m"] for r in chosen])
+        lam = np.array([r["lambda_bar_mean_m2"] for r in chosen])
+        cells[key] = {
+            "n": len(chosen),
+            "e_g": float(e_g.mean()), "e_g_time_std": float(np.mean([_number(r.get("e_g_std_m")) or 0.0 for r in chosen])),
+            "e_g_seed_std": float(e_g.std()),
+            "lam": float(lam.mean()),
+            "lam_time_std": float(np.mean([_number(r.get("lambda_bar_std_m2")) or 0.0 for r in chosen])),
+            "lam_seed_std": float(lam.std()),
+        }
+    return cells
+
+
+def table1_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
+    """Seed 000's Table I: mean +- std per method and target count, the paper's beside."""
+    with_e_g = [r for r in rows if "e_g_mean_m" in r and r.get("strategy") in METHOD_ORDER]
+    # Only scenarios run with two or more methods compare methods (not, e.g., a teams sweep's graphs).
+    methods_of = defaultdict(set)
+    for r in with_e_g:
+        methods_of[r.get("scenario")].add(r.get("strategy"))
+    with_e_g = [r for r in with_e_g if len(methods_of[r.get("scenario")]) >= 2]
+    if not with_e_g:
+        return [], []
+    cells = _table1_cells(with_e_g)
+    targets = sorted({int(r.get("n_targets") or 0) for r in with_e_g})
+    methods = [m for m in METHOD_ORDER if any(r.get("strategy") == m for r in with_e_g)]
+    lines = ["## Seed 000, Table I", "",
+             "Ours: mean over trials of each run's time average, +- the mean over trials of each run's std "
+             "over time (how the paper reports a run), then the std of the run averages across seeds, and n. "
+             "Paper: Table I.", ""]
+    for n_targets in targets:
+        paper = PAPER_TABLE_I.get(n_targets, {})
+        lines += [f"**{n_targets} targets**", "",
+                  "| | " + " | ".join(f"{METHOD_LABELS[m]} (ours)" for m in methods) + " | "
+                  + " | ".join(f"{METHOD_LABELS[m]} (paper)" for m in methods if m in paper) + " |",
+                  "|" + " --- |" * (1 + len(methods) + sum(m in paper for m in methods))]
+        for name, key, unit, index in (("e_g", "e_g", "m", 0), ("lambda-bar", "lam", "m^2", 1)):
+            ours = []
+            for m in methods:
+                c = cells.get((n_targets, m))
+                ours.append("- (n=0)" if c is None else
+                            f"{c[key]:.3f} ± {c[key + '_time_std']:.3f} (seeds ±{c[key + '_seed_std']:.3f}, n={c['n']})")
+            theirs = [f"{paper[m][index][0]:.3f} ± {paper[m][index][1]:.3f}" for m in methods if m in paper]
+            lines.append(f"| {name} ({unit}) | " + " | ".join(ours) + (" | " + " | ".join(theirs) if theirs else "")
+                         + " |")
+        mine = cells.get((n_targets, "intermittent"))
+        others = [cells.get((n_targets, m)) for m in ("all_time", "random_meeting")]
+        if mine and all(others):
+            beats = all(mine["e_g"] < o["e_g"] and mine["lam"] < o["lam"] for o in others)
+            lines += ["", f"Intermittent beats both baselines on both means: {'yes' if beats else 'no'}."]
+        lines.append("")
+
+    plt = _plt()
+    fig, axes = plt.subplots(2, len(targets), figsize=(4.2 * len(targets), 6), squeeze=False)
+    colors = {"all_time": "#8c8c8c", "random_meeting": "#d98c3a", "intermittent": "#3a78d9"}
+    for col, n_targets in enumerate(targets):
+        paper = PAPER_TABLE_I.get(n_targets, {})
+        for row_i, (key, label, index) in enumerate((("e_g", "e_g-bar (m)", 0), ("lam", "lambda-bar (m^2)", 1))):
+            ax = axes[row_i, col]
+            x = np.arange(len(methods))
+            c = [cells.get((n_targets, m)) for m in methods]
+            ax.bar(x, [v[key] if v else math.nan for v in c], yerr=[v[key + "_seed_std"] if v else 0 for v in c],
+                   color=[colors[m] for m in methods], capsize=4, label="ours (mean, std over seeds)")
+            ax.plot(x, [paper[m][index][0] if m in paper else math.nan for m in methods], "k_", ms=22, mew=2,
+                    label="paper, Table I")
+            for xi, v in zip(x, c):
+                if v:
+                    ax.annotate(f"n={v['n']}", (xi, 0), textcoords="offset points", xytext=(0, 3), ha="center",
+                                fontsize=7)
+            ax.set_xticks(x, [METHOD_LABELS[m] for m in methods])
+            ax.set_ylabel(label)
+            ax.set_title(f"{n_targets} targets", fontsize=9)
+            ax.grid(axis="y", alpha=0.3)
+            if row_i == 0 and col == 0:
+                ax.legend(fontsize=7)
+    fig.tight_layout()
+    png = out / "table1.png"
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    return [*lines[:2], f"![Table I]({png.name})", "", *lines[2:]], [png]
+
+
+def teams_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
+    """Seed 000 Sec. IV-A: the team graphs compared on the same targets."""
+    mine = [r for r in rows if r.get("strategy") == "intermittent" and "e_g_mean_m" in r]
+    by_targets = defaultdict(set)
+    for r in mine:
+        by_targets[r.get("n_targets")].add(_label(r["scenario"]))
+    compared = {n: s for n, s in by_targets.items() if len(s) >= 2}
+    if not compared:
+        return [], []
+    columns = (("e_g_mean_m", "e_g-bar (m)"), ("lambda_bar_mean_m2", "lambda-bar (m^2)"),
+               ("delay_bound_epochs", "delay bound D_G (epochs)"),
+               ("max_delay_epochs_observed", "max observed delay (epochs)"),
+               ("t_star_lag_mean_s", "t - t*(t) mean (s)"), ("t_star_lag_max_s", "t - t*(t) max (s)"))
+    lines = ["## Seed 000, Sec. IV-A: team graphs", "",
+             "Ours: mean ± std over completed trials (n). Paper: 8 targets, one run each.", "",
+             "| scenario | team graph | n | " + " | ".join(label for _, label in columns)
+             + " | paper e_g-bar (m) | paper lambda-bar (m^2) | paper D_G |",
+             "|" + " --- |" * (3 + len(columns) + 3)]
+    stats = {}
+    for n_targets in sorted(compared, key=lambda n: n or 0):
+        for scenario in sorted(compared[n_targets]):
+            chosen = [r for r in mine if _label(r["scenario"]) == scenario and r.get("status") == "completed"]
+            cell = []
+            stats[scenario] = {}
+            for key, _ in columns:
+                v = [x for x in (_number(r.get(key)) for r in chosen) if x is not None]
+                stats[scenario][key] = (float(np.mean(v)), float(np.std(v))) if v else None
+                cell.append(f"{np.mean(v):.3f} ± {np.std(v):.3f}" if v else "-")
+            graph, e_g, lam, bound = PAPER_TEAMS.get(scenario, ("?", None, None, None))
+            paper = [f"{e_g:.3f}" if e_g else "-", f"{lam:.3f}" if lam else "-", str(bound) if bound else "-"]
+            lines.append(f"| {scenario} | {graph} | {len(chosen)} | " + " | ".join(cell) + " | " + " | ".join(paper)
+                         + " |")
+    lines.append("")
+
+    plt = _plt()
+    scenarios = list(stats)
+    fig, axes = plt.subplots(1, 3, figsize=(11, 3.4))
+    for ax, (key, label, paper_index) in zip(axes, (("e_g_mean_m", "e_g-bar (m)", 1),
+                                                    ("lambda_bar_mean_m2", "lambda-bar (m^2)", 2),
+                                                    ("t_star_lag_mean_s", "mean t - t*(t) (s)", None))):
+        x = np.arange(len(scenarios))
+        v = [stats[s][key] or (math.nan, 0.0) for s in scenarios]
+        ax.bar(x, [a for a, _ in v], yerr=[b for _, b in v], color="#3a78d9", capsize=4, label="ours")
+        if paper_index is not None:
+            ax.plot(x, [PAPER_TEAMS.get(s, (None,) * 4)[paper_index] or math.nan for s in scenarios], "k_", ms=22,
+                    mew=2, label="paper")
+            ax.legend(fontsize=7)
+        ax.set_xticks(x, scenarios, fontsize=7)
+        ax.set_ylabel(label)
+        ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    png = out / "teams.png"
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    return [*lines[:2], f"![team graphs]({png.name})", "", *lines[2:]], [png]
+
+
+def generic_section(rows: list[dict], out: Path, x: str, y: str, hue: str | None) -> tuple[list[str], list[Path]]:
+    """Any metric against any column: median and 25-75 % band per x, one line per hue value."""
+    columns = set().union(*(r.keys() for r in rows)) if rows else set()
+    for flag, key in (("--x", x), ("--y", y), ("--hue", hue)):
+        if key is not None and key not in columns:
+            known = ", ".join(sorted(c for c in columns if not c.startswith("_")))
+            raise ConfigError(flag, f"no column {key!r} in the table (columns: {known})")
+    done = [r for r in rows if r.get("status") == "completed" and _number(r.get(y)) is not None]
+    groups: dict = defaultdict(lambda: defaultdict(list))
+    for r in done:
+        groups[_label(r.get(hue)) if hue else ""][r.get(x)].append(float(r[y]))
+    xs_all = sorted({r.get(x) for r in done}, key=lambda v: (isinstance(v, str), v))
+    numeric = all(_number(v) is not None for v in xs_all)
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    lines = [f"## {y} against {x}" + (f" by {hue}" if hue else ""), ""]
+    for name, by_x in sorted(groups.items()):
+        xs = [v for v in xs_all if by_x.get(v)]
+        pos = xs if numeric else [xs_all.index(v) for v in xs]
+        p = np.array([np.percentile(by_x[v], (25, 50, 75)) for v in xs])
+        ax.fill_between(pos, p[:, 0], p[:, 2], alpha=0.25, lw=0)
+        ax.plot(pos, p[:, 1], "o-", ms=3, label=f"{hue}={name} (median, 25-75 %)" if hue else "median, 25-75 %")
+    if not numeric:
+        ax.set_xticks(range(len(xs_all)), [_label(v) for v in xs_all], fontsize=7, rotation=20)
+    if not done:
+        ax.text(0.5, 0.5, "no completed trials", ha="center", va="center", transform=ax.transAxes)
+    ax.set_xlabel(x)
+    ax.set_ylabel(y)
+    ax.grid(alpha=0.3)
+    if groups:
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    safe = "".join(ch if ch.isalnum() or ch in "_-" else "_" for ch in f"{y}_vs_{x}" + (f"_by_{hue}" if hue else ""))
+    png = out / f"plot_{safe}.png"
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    lines += [f"![{y} against {x}]({png.name})", "", f"| {hue or ''} | {x} | n | median | 25 % | 75 % |",
+              "| --- | --- | --- | --- | --- | --- |"]
+    for name, by_x in sorted(groups.items()):
+        for v in xs_all:
+            if by_x.get(v):
+                q25, q50, q75 = np.percentile(by_x[v], (25, 50, 75))
+                lines.append(f"| {name} | {v} | {len(by_x[v])} | {q50:.4g} | {q25:.4g} | {q75:.4g} |")
+    lines.append("")
+    return lines, [png]
+
+
+# ---------------------------------------------------------------- entry point
+
+def write_report(results: str | Path, out: str | Path | None = None, x: str | None = None, y: str | None = None,
+                 hue: str | None = None) -> list[Path]:
+    """Write report.md and the PNGs; returns their paths (report.md first).
+    ConfigError if there is no readable table or a named column is missing."""
+    from sim.sweep import MANIFEST_FILE, read_results
+
+    source = Path(results)
+    table = read_results(source)
+    if table is None:
+        raise ConfigError("DIR", f"{source}: no results (no trials/*.parquet or results.parquet)")
+    rows = table.to_pylist()
+    manifest = None
+    if (source / MANIFEST_FILE).is_file():
+        try:
+            manifest = json.loads((source / MANIFEST_FILE).read_text())
+        except (OSError, ValueError):
+            manifest = None  # the report needs only the table
+    target = Path(out) if out is not None else (source if source.is_dir() else source.parent)
+    target.mkdir(parents=True, exist_ok=True)
+    lines = trials_section(rows, manifest)
+    pngs: list[Path] = []
+    for section in (fig9_section, table1_section, teams_section):
+        text, files = section(rows, target)
+        lines += text
+        pngs += files
+    if x is not None and y is not None:
+        text, files = generic_section(rows, target, x, y, hue)
+        lines += text
+        pngs += files
+    report = target / "report.md"
+    tmp = target / ".report.md.tmp"
+    tmp.write_text("\n".join(lines) + "\n")
+    tmp.replace(report)
+    return [report, *pngs]

@@ -1,0 +1,716 @@
+"""``tether sweep``: many headless trials, on a process pool or a Ray cluster.
+
+A sweep file (TOML; built-ins in ``sim/sweeps/``) names a base scenario, a
+duration, seeds and a grid of ``--set`` overrides::
+
+    description = "what it measures"
+    scenario = "connected-office"     # built-in name or path (relative to the sweep file)
+    duration_s = 400.0                # optional: the scenario's own otherwise
+    seeds = 10                        # 0..9, or an explicit list [1, 2, 5]
+    set = ["strategy.dwell_time_s=3.0"]   # optional: fixed overrides of every trial
+
+    [grid]                            # every key a `--set` key (or "scenario"), a list of values;
+    "robots.0.count" = [10, 20, 35]   # the trials are the product of all lists
+
+    [[zip]]                           # keys tied together: the i-th values go in one trial
+    scenario = ["connected-office", "connected-town"]
+    "strategy.preset" = ["office", "outdoor"]
+
+    [record]                          # optional: these trials (indices or ids) also write
+    video = [0]                       # video.mp4 / run.rrd / plots under DIR/recordings/ID/
+    rrd = []
+
+The trials are the product of seeds, the grid and each zip group. A trial's
+id is a hash of everything that decides its result (scenario, overrides,
+seed, duration), so the same trial has the same id in every sweep.
+
+Results: the driver (the only writer) stores each finished trial at once as
+a one-row Parquet file ``DIR/trials/ID.aN.parquet`` (written to a temporary
+name and renamed, so a file is whole or absent), then, at the end,
+``DIR/results.parquet`` (latest attempt per trial, one row each).
+``DIR/sweep.json`` holds the sweep's definition and its hash: a folder
+holding another sweep's results is refused. A rerun of the same command
+skips every trial that has a row; ``--retry-failed`` reruns the trials whose
+latest row is not "completed" (a new attempt file; the old one stays).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import tomllib
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from itertools import product
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+from sim.config import ConfigError
+
+SWEEP_DIR = Path(__file__).parent / "sweeps"
+FORMAT = "tether-sweep/1"  # sweep.json's format tag: anything else is a foreign folder
+TRIALS_FOLDER = "trials"
+RESULTS_FILE = "results.parquet"
+MANIFEST_FILE = "sweep.json"
+SWEEP_KEYS = {"description", "scenario", "duration_s", "seeds", "set", "grid", "zip", "record"}
+# Columns every row has, before the swept keys and the metrics.
+ROW_KEYS = ("trial_id", "trial_index", "attempt", "scenario", "seed", "duration_s", "overrides", "status",
+            "error", "wall_time_s", "host", "finished_at")
+# Statuses of a trial's row: "completed" and "diverged" come from the run, "error" is an exception.
+FAILED = ("diverged", "error")
+
+
+# ---------------------------------------------------------------- sweep files
+
+@dataclass(frozen=True)
+class Trial:
+    """One headless ``tether run``: base scenario + overrides + seed (+ duration)."""
+
+    index: int  # position in the sweep's expansion order
+    scenario: str  # built-in name or absolute path of the base scenario
+    seed: int
+    duration_s: float | None  # None: the scenario's own duration
+    overrides: tuple[str, ...]  # "key=value" as --set takes them, in application order
+    swept: tuple[tuple[str, Any], ...] = ()  # (grid key, value): the trial's own columns
+    video: bool = False
+    rrd: bool = False
+
+    @property
+    def trial_id(self) -> str:
+        """Hash of what decides the result (not the index, not what is recorded)."""
+        # Sorted: no two overrides set the same key (load_sweep refuses it), so their order
+        # does not change the result, and a sweep file with its keys reordered keeps its ids.
+        identity = {"scenario": self.scenario, "seed": self.seed, "duration_s": self.duration_s,
+                    "overrides": sorted(self.overrides)}
+        return hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class Sweep:
+    name: str
+    description: str
+    definition: dict  # the normalised sweep table (what the hash covers)
+    trials: tuple[Trial, ...] = field(repr=False)
+
+    @property
+    def definition_hash(self) -> str:
+        return hashlib.sha256(json.dumps(self.definition, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def builtin_sweeps() -> dict[str, str]:
+    """Built-in sweep name -> description."""
+    out = {}
+    for path in sorted(SWEEP_DIR.glob("*.toml")):
+        with open(path, "rb") as f:
+            out[path.stem] = tomllib.load(f).get("description", "")
+    return out
+
+
+def _read_sweep_table(name_or_path: str) -> tuple[dict, Path]:
+    builtin = SWEEP_DIR / f"{name_or_path}.toml"
+    path = builtin if builtin.is_file() else Path(name_or_path).expanduser()
+    if not path.is_file():
+        names = ", ".join(builtin_sweeps())
+        raise ConfigError("sweep", f"'{name_or_path}' is neither a built-in sweep ({names}) nor a file")
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f), path
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise ConfigError("sweep", f"{path} is not valid TOML: {err}") from None
+
+
+def _base_scenario(name: Any, sweep_path: Path, key: str) -> str:
+    """A built-in scenario name as is; a file path made absolute (relative to the sweep file)."""
+    from sim.scenario import SCENARIO_DIR
+
+    if not isinstance(name, str) or not name:
+        raise ConfigError(key, f"must be a scenario name or file, got {name!r}")
+    if (SCENARIO_DIR / f"{name}.toml").is_file():
+        return name
+    path = Path(name).expanduser()
+    if not path.is_absolute():
+        path = sweep_path.parent / path
+    return str(path.resolve())
+
+
+def _seeds(value: Any) -> list[int]:
+    if isinstance(value, int) and not isinstance(value, bool):
+        if value < 1:
+            raise ConfigError("seeds", f"must be at least 1 (a count) or a list of seeds, got {value}")
+        return list(range(value))
+    if isinstance(value, list) and value and all(isinstance(s, int) and not isinstance(s, bool) for s in value):
+        if min(value) < 0:
+            raise ConfigError("seeds", f"must be non-negative, got {min(value)}")
+        if len(set(value)) != len(value):
+            raise ConfigError("seeds", "lists a seed twice")
+        return list(value)
+    raise ConfigError("seeds", f"must be a count or a non-empty list of integers, got {value!r}")
+
+
+def _axis(table: Any, where: str) -> list[tuple[str, list]]:
+    """(key, values) pairs of a [grid] or one [[zip]] group."""
+    if not isinstance(table, dict):
+        raise ConfigError(where, "must be a table of key = [values]")
+    axes = []
+    for key, values in table.items():
+        if not isinstance(values, list) or not values:
+            raise ConfigError(f"{where}.{key}", f"must be a non-empty list of values, got {values!r}")
+        axes.append((key, values))
+    return axes
+
+
+def load_sweep(name_or_path: str, video: Iterable[str] = (), rrd: Iterable[str] = ()) -> Sweep:
+    """Read, expand and validate a sweep (ConfigError naming the key on bad input).
+
+    ``video``/``rrd``: trial indices or ids to record, beside the file's [record].
+    Every trial is loaded like ``tether run`` loads a scenario, so a bad key
+    or value is refused before anything runs.
+    """
+    from sim.scenario import load, toml_value
+
+    table, path = _read_sweep_table(name_or_path)
+    unknown = sorted(set(table) - SWEEP_KEYS)
+    if unknown:
+        raise ConfigError(unknown[0], f"unknown sweep key (known: {', '.join(sorted(SWEEP_KEYS))})")
+    if "scenario" not in table:
+        raise ConfigError("scenario", "is required (the base scenario: a built-in name or a file)")
+    base = _base_scenario(table["scenario"], path, "scenario")
+    duration = table.get("duration_s")
+    if duration is not None and (isinstance(duration, bool) or not isinstance(duration, (int, float))
+                                 or not duration > 0 or not math.isfinite(duration)):
+        raise ConfigError("duration_s", f"must be a positive number of seconds, got {duration!r}")
+    seeds = _seeds(table.get("seeds", 1))
+    fixed = table.get("set", [])
+    if not isinstance(fixed, list) or not all(isinstance(s, str) and "=" in s for s in fixed):
+        raise ConfigError("set", f"must be a list of \"key=value\" strings, got {fixed!r}")
+
+    grid = _axis(table.get("grid", {}), "grid")
+    zips = table.get("zip", [])
+    if isinstance(zips, dict):
+        zips = [zips]
+    if not isinstance(zips, list):
+        raise ConfigError("zip", "must be [[zip]] tables")
+    groups: list[list[tuple]] = []  # each: the list of choices, a choice = ((key, value), ...)
+    for key, values in grid:
+        groups.append([((key, v),) for v in values])
+    for i, group in enumerate(zips):
+        axes = _axis(group, f"zip.{i}")
+        if not axes:
+            raise ConfigError(f"zip.{i}", "is empty")
+        lengths = {len(values) for _, values in axes}
+        if len(lengths) != 1:
+            raise ConfigError(f"zip.{i}", f"lists of different lengths {sorted(lengths)}: tied keys need one value each")
+        groups.append([tuple((key, values[j]) for key, values in axes) for j in range(lengths.pop())])
+    keys = [key for group in groups for key, _ in group[0]]
+    twice = sorted({k for k in keys if keys.count(k) > 1})
+    if twice:
+        raise ConfigError(twice[0], "is swept twice (in [grid] and a [[zip]], or in two groups)")
+
+    record = table.get("record", {})
+    if not isinstance(record, dict):
+        raise ConfigError("record", "must be a table: video = [trials], rrd = [trials]")
+    unknown = sorted(set(record) - {"video", "rrd"})
+    if unknown:
+        raise ConfigError(f"record.{unknown[0]}", "unknown key (known: video, rrd)")
+    for kind in record:
+        if not isinstance(record[kind], list):
+            raise ConfigError(f"record.{kind}", f"must be a list of trial indices or ids, got {record[kind]!r}")
+    chosen = {"video": {str(v) for v in (*record.get("video", []), *video)},
+              "rrd": {str(v) for v in (*record.get("rrd", []), *rrd)}}
+    fixed_keys = [assignment.partition("=")[0].strip() for assignment in fixed]
+    both = sorted(set(fixed_keys) & set(keys)) or sorted({k for k in fixed_keys if fixed_keys.count(k) > 1})
+    if both:
+        raise ConfigError(both[0], "is set twice (in set = [...] and swept, or twice in set)")
+    if "seed" in keys:
+        raise ConfigError("seed", "is swept by the top-level seeds = [...], not in [grid] or [[zip]]")
+    if "duration_s" in keys and duration is not None:
+        raise ConfigError("duration_s", "is both swept and set at the top level")
+
+    trials = []
+    for seed, *choices in product(seeds, *groups):
+        swept = tuple(pair for choice in choices for pair in choice)
+        scenario, trial_duration = base, duration
+        overrides = list(fixed)
+        for key, value in swept:
+            if key == "scenario":
+                scenario = _base_scenario(value, path, "grid.scenario")
+            elif key == "duration_s":
+                if isinstance(value, bool) or not isinstance(value, (int, float)):
+                    raise ConfigError("grid.duration_s", f"must be numbers of seconds, got {value!r}")
+                trial_duration = value
+            else:
+                overrides.append(f"{key}={toml_value(value)}")
+        trials.append(Trial(len(trials), scenario, seed, None if trial_duration is None else float(trial_duration),
+                            tuple(overrides), swept))
+    if not trials:
+        raise ConfigError("grid", "expands to no trials")
+
+    seen: dict[str, Trial] = {}
+    validated: set[tuple] = set()
+    for trial in trials:
+        if trial.trial_id in seen:
+            raise ConfigError("grid", f"trials {seen[trial.trial_id].index} and {trial.index} are the same trial")
+        seen[trial.trial_id] = trial
+        # The seed cannot make a scenario invalid (checked non-negative above), so trials that
+        # differ only by seed are validated once: 18 loads instead of 1,800 for fig9.
+        if (trial.scenario, trial.overrides, trial.duration_s) in validated:
+            continue
+        validated.add((trial.scenario, trial.overrides, trial.duration_s))
+        try:
+            load(trial.scenario, list(trial.overrides), seed=trial.seed, duration_s=trial.duration_s)
+        except ConfigError as err:
+            where = ", ".join(f"{k}={v}" for k, v in trial.swept) or "every trial"
+            raise ConfigError(err.field, f"{err.problem} (trial {trial.index}: {where}, seed {trial.seed})") from None
+
+    def pick(kind: str) -> set[int]:
+        out = set()
+        for item in chosen[kind]:
+            if item.isdigit() and int(item) < len(trials):
+                out.add(int(item))
+            elif item in seen:
+                out.add(seen[item].index)
+            else:
+                raise ConfigError(f"record.{kind}", f"no trial {item!r} (an index below {len(trials)} or a trial id)")
+        return out
+
+    record_video, record_rrd = pick("video"), pick("rrd")
+    trials = [Trial(**{**t.__dict__, "video": t.index in record_video, "rrd": t.index in record_rrd})
+              for t in trials]
+    definition = {"scenario": base, "duration_s": duration, "seeds": seeds, "set": fixed,
+                  "grid": {k: v for k, v in grid}, "zip": [dict(_axis(z, "zip")) for z in zips]}
+    return Sweep(path.stem, table.get("description", ""), definition, tuple(trials))
+
+
+# ---------------------------------------------------------------- one trial
+
+def _column_value(value: Any) -> Any:
+    """A metric as a Parquet cell: numbers, strings and booleans as they are,
+    anything else (lists, tables) as JSON text."""
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if hasattr(value, "item"):  # numpy scalars
+        return value.item()
+    return json.dumps(value)
+
+
+def run_trial(trial: Trial, recordings: str | None = None) -> dict:
+    """Run one trial headless and return its row; never raises for a failed run.
+
+    Runs in a pool worker or a Ray task. ``recordings``: folder of
+    ``ID/`` run outputs for trials chosen for video/rrd (headless otherwise).
+    """
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    start = time.perf_counter()
+    row: dict[str, Any] = {
+        "trial_id": trial.trial_id, "trial_index": trial.index, "scenario": trial.scenario, "seed": trial.seed,
+        "duration_s": trial.duration_s, "overrides": json.dumps(list(trial.overrides)),
+        **{key: _column_value(value) for key, value in trial.swept},
+    }
+    metrics: dict[str, Any] = {}
+    try:
+        import sim  # noqa: F401  (GL backend before mujoco)
+        from sim.loop import run
+        from sim.scenario import load
+
+        scenario = load(trial.scenario, list(trial.overrides), seed=trial.seed, duration_s=trial.duration_s)
+        out = None
+        if recordings is not None and (trial.video or trial.rrd):
+            out = Path(recordings) / trial.trial_id
+        result = run(scenario, out, video=trial.video, rrd=trial.rrd)
+        metrics = result.metrics
+        row["status"] = result.status
+        row["error"] = metrics.get("message", "") if result.status != "completed" else ""
+    except Exception as err:  # recorded as a failed trial; the sweep goes on
+        row["status"] = "error"
+        row["error"] = f"{type(err).__name__}: {err}"
+    row["wall_time_s"] = time.perf_counter() - start
+    row["host"] = socket.gethostname()
+    row["finished_at"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    # The run's own wall time (world build + loop) beside the trial's (also loading and imports);
+    # the other metrics that repeat a row key (scenario name, seed, status, message) are left out.
+    if "wall_time_s" in metrics:
+        row["run_wall_time_s"] = metrics["wall_time_s"]
+    for key, value in metrics.items():
+        if key not in row and key != "message":
+            row[key] = _column_value(value)
+    return row
+
+
+# ---------------------------------------------------------------- the results folder
+
+class ResultsFolder:
+    """DIR/sweep.json, DIR/trials/*.parquet and DIR/results.parquet."""
+
+    def __init__(self, out: str | Path):
+        self.out = Path(out)
+        self.trials_dir = self.out / TRIALS_FOLDER
+
+    @property
+    def manifest_path(self) -> Path:
+        return self.out / MANIFEST_FILE
+
+    def read_manifest(self) -> dict | None:
+        """sweep.json, None if absent; ConfigError if unreadable or foreign."""
+        if not self.manifest_path.exists():
+            return None
+        try:
+            manifest = json.loads(self.manifest_path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+            raise ConfigError("--out", f"{self.manifest_path} is unreadable: {err}") from None
+        if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+            raise ConfigError("--out", f"{self.manifest_path} is not a tether sweep file (no format {FORMAT!r})")
+        return manifest
+
+    def check(self, sweep: Sweep) -> None:
+        """Refuse (ConfigError) a folder holding anything but this sweep's
+        results, or an unreadable or foreign row; creates nothing."""
+        if self.out.exists() and not self.out.is_dir():
+            raise ConfigError("--out", f"{self.out} exists and is not a folder")
+        manifest = self.read_manifest()
+        if manifest is None:
+            if self.out.exists() and any(self.out.iterdir()):
+                raise ConfigError("--out", f"{self.out} is not empty and holds no {MANIFEST_FILE}: "
+                                           "choose an empty or new folder")
+            return
+        if manifest.get("definition_hash") != sweep.definition_hash:
+            raise ConfigError("--out", f"{self.out} holds another sweep's results ({manifest.get('sweep')!r}, "
+                                       f"definition {manifest.get('definition_hash')}; this one is "
+                                       f"{sweep.definition_hash}): use another folder")
+        self.latest_status({t.trial_id for t in sweep.trials})
+
+    def claim(self, sweep: Sweep) -> None:
+        """Make DIR this sweep's folder (after :meth:`check`)."""
+        self.check(sweep)
+        if self.read_manifest() is None:
+            self.out.mkdir(parents=True, exist_ok=True)
+            _write_atomic(self.manifest_path, json.dumps({
+                "format": FORMAT, "sweep": sweep.name, "description": sweep.description,
+                "definition_hash": sweep.definition_hash, "definition": sweep.definition,
+                "trials": len(sweep.trials),
+                "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            }, indent=2).encode() + b"\n")
+        self.trials_dir.mkdir(exist_ok=True)
+
+    def trial_files(self) -> list[Path]:
+        if not self.trials_dir.is_dir():
+            return []
+        return sorted(p for p in self.trials_dir.glob("*.parquet") if not p.name.startswith("."))
+
+    def latest_status(self, known_ids: set[str] | None = None) -> dict[str, tuple[int, str]]:
+        """trial id -> (latest attempt, its status); ConfigError on an unreadable or foreign file."""
+        import pyarrow.parquet as pq
+
+        out: dict[str, tuple[int, str]] = {}
+        for path in self.trial_files():
+            try:
+                table = pq.read_table(path, columns=["trial_id", "attempt", "status"])
+            except Exception as err:
+                raise ConfigError("--out", f"{path} is not a readable trial row: {err}") from None
+            for trial_id, attempt, status in zip(*(table.column(c).to_pylist() for c in table.column_names)):
+                if known_ids is not None and trial_id not in known_ids:
+                    raise ConfigError("--out", f"{path} holds trial {trial_id}, which is not in this sweep")
+                if trial_id not in out or attempt > out[trial_id][0]:
+                    out[trial_id] = (attempt, status)
+        return out
+
+    def store(self, row: dict) -> Path:
+        """Write one trial's row at once, atomically (whole file or none)."""
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        path = self.trials_dir / f"{row['trial_id']}.a{row['attempt']}.parquet"
+        tmp = self.trials_dir / f".{path.name}.{os.getpid()}.tmp"
+        pq.write_table(pa.Table.from_pylist([row]), tmp)
+        _fsync_replace(tmp, path)
+        return path
+
+    def consolidate(self) -> Path | None:
+        """results.parquet: the latest attempt of every trial, in sweep order."""
+        import pyarrow.parquet as pq
+
+        table = read_results(self.out)
+        if table is None:
+            return None
+        path = self.out / RESULTS_FILE
+        tmp = self.out / f".{RESULTS_FILE}.{os.getpid()}.tmp"
+        pq.write_table(table, tmp)
+        _fsync_replace(tmp, path)
+        return path
+
+
+def _fsync_replace(tmp: Path, path: Path) -> None:
+    with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_bytes(data)
+    _fsync_replace(tmp, path)
+
+
+def read_results(out: str | Path, all_attempts: bool = False):
+    """The sweep's table (pyarrow.Table; None if there are no rows yet).
+
+    From the per-trial files when DIR/trials exists (the truth while a sweep
+    runs), else from DIR/results.parquet; the latest attempt per trial unless
+    ``all_attempts``. Rows of different strategies have different metric
+    columns: the union is taken, missing cells are null.
+    """
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+
+    folder = ResultsFolder(out)
+    files = folder.trial_files()
+    try:
+        if files:
+            table = pa.concat_tables([pq.read_table(p) for p in files], promote_options="permissive")
+        elif (folder.out / RESULTS_FILE).is_file():
+            table = pq.read_table(folder.out / RESULTS_FILE)
+        elif folder.out.is_file() and folder.out.suffix == ".parquet":
+            table = pq.read_table(folder.out)
+        else:
+            return None
+    except Exception as err:
+        raise ConfigError("results", f"{out}: unreadable results: {err}") from None
+    missing = [c for c in ("trial_id", "attempt", "status") if c not in table.column_names]
+    if missing:
+        raise ConfigError("results", f"{out}: not a tether sweep table (no column {missing[0]!r})")
+    if not all_attempts and table.num_rows:
+        ids = table.column("trial_id").to_pylist()
+        attempts = table.column("attempt").to_pylist()
+        best: dict[str, int] = {}
+        for i, (trial_id, attempt) in enumerate(zip(ids, attempts)):
+            if trial_id not in best or attempt > attempts[best[trial_id]]:
+                best[trial_id] = i
+        table = table.take(sorted(best.values()))
+    if "trial_index" in table.column_names and table.num_rows:
+        table = table.take(pc.sort_indices(table, sort_keys=[("trial_index", "ascending")]))
+    return table
+
+
+# ---------------------------------------------------------------- engines
+
+class SweepStopped(RuntimeError):
+    """An engine cannot go on (e.g. its process pool broke); rows stored so far stay."""
+
+
+class Engine:
+    """Runs trials and yields their rows as they finish (any order)."""
+
+    def run(self, trials: list[Trial], recordings: str) -> Iterable[dict]:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+
+class ProcessPool(Engine):
+    """concurrent.futures on this machine. Workers are started with
+    'forkserver' (a clean process, not a fork of a driver that may have
+    imported MuJoCo or opened an EGL context)."""
+
+    def __init__(self, workers: int):
+        self.workers = workers
+        self.pool = None
+
+    def run(self, trials, recordings):
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+        from multiprocessing import get_context
+
+        from concurrent.futures.process import BrokenProcessPool
+
+        self.pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=get_context("forkserver"))
+        futures = [self.pool.submit(run_trial, trial, recordings) for trial in trials]
+        try:
+            for future in as_completed(futures):
+                yield future.result()
+        except BrokenProcessPool:
+            raise SweepStopped("a worker process died (killed or out of memory); "
+                               "the trials it and the others were running have no row yet") from None
+
+    def close(self):
+        if self.pool is None:
+            return
+        # Queued trials are dropped and running ones stopped now rather than
+        # finished: they have no row, so the next call runs them again.
+        workers = list(getattr(self.pool, "_processes", {}).values())  # no public handle before Python 3.14
+        self.pool.shutdown(wait=False, cancel_futures=True)
+        for process in workers:
+            if process.is_alive():
+                process.terminate()
+        for process in workers:
+            process.join(timeout=10)
+
+
+class RayCluster(Engine):
+    """The same trials as Ray tasks on an existing cluster. Ray retries a task
+    whose worker or node died (``max_retries``); an exception inside a trial
+    is already a row, so it is never retried."""
+
+    MAX_RETRIES = 3
+
+    def __init__(self, address: str):
+        self.address = address
+        try:
+            import ray
+        except ImportError:
+            raise ConfigError("--ray", "Ray is not installed (pip install -e '.[ray]')") from None
+        self.ray = ray
+        _probe_ray_address(address)
+        try:
+            # Workers must import tether: it is installed in the cluster's environment (see docs/sweeps.md).
+            ray.init(address=address, log_to_driver=False, logging_level="ERROR")
+        except (ConnectionError, RuntimeError, ValueError) as err:
+            raise ConfigError("--ray", f"cannot connect to Ray at {address!r}: {str(err).splitlines()[0]}") from None
+
+    def run(self, trials, recordings):
+        ray = self.ray
+        task = ray.remote(num_cpus=1, max_retries=self.MAX_RETRIES)(run_trial)
+        pending = {task.remote(trial, recordings): trial for trial in trials}
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            trial = pending.pop(done[0])
+            try:
+                yield ray.get(done[0])
+            except ray.exceptions.RayError as err:  # worker or node lost more than MAX_RETRIES times
+                row = _error_row(trial, f"{type(err).__name__}: {str(err).splitlines()[0]}")
+                yield row
+
+    def close(self):
+        if self.ray.is_initialized():
+            self.ray.shutdown()
+
+
+def _error_row(trial: Trial, error: str) -> dict:
+    return {"trial_id": trial.trial_id, "trial_index": trial.index, "scenario": trial.scenario, "seed": trial.seed,
+            "duration_s": trial.duration_s, "overrides": json.dumps(list(trial.overrides)),
+            **{k: _column_value(v) for k, v in trial.swept}, "status": "error", "error": error,
+            "wall_time_s": None, "host": None,
+            "finished_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+
+
+def _probe_ray_address(address: str) -> None:
+    """Fail fast (ConfigError) on a host:port nobody listens on: ray.init
+    itself retries an unreachable address for a long time."""
+    if address == "auto":
+        return
+    host_port = address.split("://", 1)[-1]
+    host, sep, port = host_port.rpartition(":")
+    if not sep or not port.isdigit():
+        raise ConfigError("--ray", f"expected 'auto' or HOST:PORT, got {address!r}")
+    try:
+        socket.create_connection((host, int(port)), timeout=3).close()
+    except OSError as err:
+        raise ConfigError("--ray", f"cannot reach Ray at {host}:{port}: {err.strerror or err}") from None
+
+
+@contextmanager
+def local_ray_cluster(num_cpus: int, temp_dir: str | Path | None = None, timeout_s: float = 120.0):
+    """A throwaway single-node Ray cluster (tests, benchmarks): yields its
+    address. ``ray start --block`` in its own process group, so stopping it
+    ends this cluster's processes only (``ray stop`` would end every Ray
+    process of the user on the machine)."""
+    ray_bin = Path(sys.executable).parent / "ray"
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    command = [str(ray_bin), "start", "--head", "--block", f"--port={port}", f"--num-cpus={num_cpus}",
+               "--include-dashboard=false", "--disable-usage-stats"]
+    if temp_dir is not None:
+        command.append(f"--temp-dir={temp_dir}")
+    head = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            if head.poll() is not None:
+                raise RuntimeError(f"ray start exited with {head.returncode}")
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"Ray did not listen on port {port} within {timeout_s:.0f} s") from None
+                time.sleep(0.2)
+        yield f"127.0.0.1:{port}"
+    finally:
+        # SIGTERM lets `ray start --block` end its processes; whatever is left after a
+        # short grace goes with SIGKILL to the group.
+        try:
+            os.killpg(head.pid, signal.SIGTERM)
+            head.wait(timeout=5)
+        except (ProcessLookupError, subprocess.TimeoutExpired):
+            pass
+        try:
+            os.killpg(head.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        head.wait()
+
+
+# ---------------------------------------------------------------- the driver
+
+@dataclass
+class SweepOutcome:
+    total: int
+    completed: int
+    failed: int
+    not_run: int
+    results: Path | None
+    stopped: str = ""  # why the sweep stopped before its end ("" if it did not)
+
+
+def run_sweep(sweep: Sweep, out: str | Path, engine: Engine, retry_failed: bool = False,
+              progress: bool = True, on_row: Callable[[dict], None] | None = None) -> SweepOutcome:
+    """Run the sweep's trials that have no row in ``out`` (and, with
+    ``retry_failed``, those whose latest row failed); store each row as it
+    comes. The folder must have been claimed (:meth:`ResultsFolder.claim`)."""
+    from tqdm import tqdm
+
+    folder = ResultsFolder(out)
+    status = folder.latest_status({t.trial_id for t in sweep.trials})
+    todo = [t for t in sweep.trials
+            if t.trial_id not in status or (retry_failed and status[t.trial_id][1] in FAILED)]
+    completed = sum(s == "completed" for _, s in status.values())
+    failed = sum(s in FAILED for _, s in status.values()) - sum(t.trial_id in status for t in todo)
+    bar = tqdm(total=len(sweep.trials), initial=len(sweep.trials) - len(todo), desc=sweep.name, unit="trial",
+               disable=not progress, file=sys.stderr, dynamic_ncols=True, smoothing=0.1)
+
+    def show() -> None:
+        remaining = len(sweep.trials) - completed - failed
+        bar.set_postfix_str(f"done {completed}, failed {failed}, remaining {remaining}", refresh=False)
+
+    show()
+    stopped = ""
+    try:
+        for row in engine.run(todo, str(folder.out / "recordings")):
+            row["attempt"] = status.get(row["trial_id"], (0, ""))[0] + 1
+            folder.store(row)
+            if row["status"] == "completed":
+                completed += 1
+            else:
+                failed += 1
+            if on_row is not None:
+                on_row(row)
+            show()
+            bar.update(1)
+    except KeyboardInterrupt:
+        stopped = "interrupted"
+    except SweepStopped as err:
+        stopped = str(err)
+    finally:
+        engine.close()
+        bar.close()
+    results = folder.consolidate()
+    return SweepOutcome(len(sweep.trials), completed, failed, len(sweep.trials) - completed - failed, results,
+                        stopped)
