@@ -29,6 +29,7 @@ class RaySensors:
         self.noisy = noisy
         self._groups = obstacle_geomgroup()
         self.rays_cast = 0  # for benchmarks
+        self._off_diagonal: np.ndarray | None = None
 
     def sensor_positions(self) -> np.ndarray:
         return self.world.data.site_xpos[self.world.sensor_site_ids].copy()
@@ -46,19 +47,35 @@ class RaySensors:
         return (geomid >= 0) & (dist >= 0) & (dist < 1.0)
 
     def links(self, positions: np.ndarray) -> Links:
-        """Pairwise distance, line of sight, clearance and adjacency of robots."""
+        """Pairwise distance, line of sight and adjacency of robots (clearance on demand)."""
         n = len(positions)
         diff = positions[None, :, :] - positions[:, None, :]
         distance = np.linalg.norm(diff, axis=-1)
-        in_range = (distance <= self.comm_range) & ~np.eye(n, dtype=bool)
+        in_range = (distance <= self.comm_range) & self._not_self(n)
         los = np.zeros((n, n), dtype=bool)
-        for i in range(n - 1):
-            js = np.nonzero(in_range[i, i + 1 :])[0] + i + 1
-            if len(js):
-                free = ~self._blocked(positions[i], positions[js])
-                los[i, js] = free
-                los[js, i] = free
+        # Every pair i < j in range, grouped by i (row-major): one mj_multiRay per origin robot,
+        # all writing into one buffer, and one comparison for all rays.
+        first, second = np.nonzero(np.triu(in_range, 1))
+        if len(first):
+            vectors = np.ascontiguousarray(positions[second] - positions[first]).reshape(-1)
+            geomid = np.empty(len(first), dtype=np.int32)
+            hit = np.empty(len(first), dtype=np.float64)
+            starts = np.flatnonzero(np.r_[True, first[1:] != first[:-1]])
+            ends = np.r_[starts[1:], len(first)]
+            model, data, groups = self.world.model, self.world.data, self._groups
+            for start, end in zip(starts.tolist(), ends.tolist()):
+                mujoco.mj_multiRay(model, data, positions[first[start]], vectors[3 * start : 3 * end], groups, 1, -1,
+                                   geomid[start:end], hit[start:end], None, end - start, 1.0)
+            self.rays_cast += len(first)
+            free = ~((geomid >= 0) & (hit >= 0) & (hit < 1.0))
+            los[first, second] = free
+            los[second, first] = free
         return Links(distance, los, los & in_range, functools.partial(self._clearance, positions.copy(), in_range))
+
+    def _not_self(self, n: int) -> np.ndarray:
+        if self._off_diagonal is None or len(self._off_diagonal) != n:
+            self._off_diagonal = ~np.eye(n, dtype=bool)
+        return self._off_diagonal
 
     def _clearance(self, positions: np.ndarray, in_range: np.ndarray) -> np.ndarray:
         """(N, N) segment clearance of the pairs in comm range, m; inf elsewhere."""
