@@ -212,3 +212,25 @@ def test_predicted_lambda_max_matches_the_ekf_covariance_update():
     assert readings_needed(np.array([1.0, 0.5, 0.1, 0.05]), 0.2, 0.0) == 2
     assert readings_needed(np.array([1.0, 0.5, 0.495, 0.49]), 0.01, 0.05) == 1
     assert readings_needed(np.array([1.0, 0.5, 0.3, 0.2]), 0.01, 0.05) == 3
+
+
+def test_report_section_of_the_range_sweep(tmp_path):
+    """The paradigms section reads e_g / lambda-bar per method and range from rows alone;
+    Table I leaves trials at a swept range out."""
+    from sim.report import paradigms_section, table1_section
+
+    rows = []
+    for k, method in enumerate(("intermittent", "connected_tracking")):
+        for rng in (0.2, 2.0):
+            for seed in (0, 1):
+                rows.append({"status": "completed", "strategy": method, "sensing.comm_range_m": rng, "seed": seed,
+                             "n_targets": 8, "e_g_mean_m": 1.0 + k + rng + 0.1 * seed,
+                             "lambda_bar_mean_m2": 0.1 * (1 + k) + 0.01 * seed})
+    rows.append({"status": "error", "strategy": "connected_tracking", "sensing.comm_range_m": 0.2, "seed": 2,
+                 "error": "ConfigError: robots: the starting graph is disconnected"})
+    lines, pngs = paradigms_section(rows, tmp_path)
+    text = "\n".join(lines)
+    assert "| intermittent | 1.250 ± 0.050 [1.200, 1.300] (n=2) | 3.050 ± 0.050 [3.000, 3.100] (n=2) |" in text
+    assert "| connected (seed 001) | 0.205 ± 0.005 [0.200, 0.210] (n=2)" in text
+    assert pngs[0].is_file() and pngs[0].stat().st_size > 1000
+    assert table1_section(rows, tmp_path) == ([], [])
