@@ -52,7 +52,8 @@ STRATEGIES: dict[str, StrategySpec] = {
     "connected": StrategySpec(
         "controllers.connectivity.connected_params:ConnectedParams",
         "controllers.connectivity.strategy:ConnectedStrategy",
-        "seed 001: quadrotors track virtual points driven by lambda2-gradient connectivity forces while "
+        "seed 001: quadrotors (or ground robots, in the sensors' plane) track virtual points driven by "
+        "lambda2-gradient connectivity forces while "
         "explorers visit their targets under prime-traveler election",
     ),
 }

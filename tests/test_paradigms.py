@@ -234,3 +234,17 @@ def test_report_section_of_the_range_sweep(tmp_path):
     assert "| connected (seed 001) | 0.205 ± 0.005 [0.200, 0.210] (n=2)" in text
     assert pngs[0].is_file() and pngs[0].stat().st_size > 1000
     assert table1_section(rows, tmp_path) == ([], [])
+
+
+def test_connected_strategy_refuses_a_mixed_team(tmp_path):
+    """Ground robots and quadrotors in one connected team: refused, naming the ground robots."""
+    path = room_scenario(tmp_path, kind="connected", duration=1.0)
+    head, _, rest = path.read_text().partition("[strategy]")
+    robots = "[[robots]]" + rest.split("[[robots]]", 1)[1]
+    quads = '\n[[robots]]\nkind = "quadrotor"\nstarts = [[2.2, 1.0, 1.0], [2.3, 1.0, 1.0]]\n'
+    path.write_text(head + '[strategy]\nkind = "connected"\npreset = "ground"\n\n' + robots.replace("[[targets]]", quads + "\n[[targets]]", 1))
+    from sim.config import ConfigError
+    with pytest.raises(ConfigError) as err:
+        Simulation(load(str(path)))
+    assert err.value.field == "robots"
+    assert "one kind of robot at a time" in err.value.problem and "ground0" in err.value.problem
