@@ -65,13 +65,17 @@ def test_bad_input_through_the_installed_command(tmp_path):
         "tether: error: strategy.delta_m2: must be positive (a variance threshold, m^2), got -1.0"]
 
 
-def test_compare_refuses_bad_input(capsys, tmp_path):
-    for args, expected in ((["--seeds", "0"], "--seeds: must be at least 1"),
-                           (["--jobs", "0"], "--jobs: must be at least 1"),
-                           (["--methods", "magic"], "--methods: unknown method 'magic'"),
-                           (["--scenarios", "nope"], "scenario: 'nope' is neither"),
-                           (["--set", "strategy.n_sample=0"], "strategy.n_sample: must be an integer >= 1")):
-        code = main(["compare", "--out", str(tmp_path / "c"), *args])
+def test_table1_sweep_refuses_bad_input(capsys, tmp_path):
+    """A Table I sweep with a bad method, scenario, override or seed count: exit 2, one line, nothing written."""
+    base = 'scenario = "intermittent-8"\nduration_s = 30.0\n'
+    for body, expected in (('seeds = 0\n', "seeds: must be at least 1"),
+                           ('seeds = 1\n[grid]\n"strategy.kind" = ["intermittent", "magic"]\n',
+                            "strategy.kind: unknown strategy 'magic'"),
+                           ('seeds = 1\n[grid]\nscenario = ["intermittent-8", "nope"]\n', "' is neither a built-in"),
+                           ('seeds = 1\nset = ["strategy.n_sample=0"]\n', "strategy.n_sample: must be an integer >= 1")):
+        sweep = tmp_path / "table.toml"
+        sweep.write_text(base + body)
+        code = main(["sweep", str(sweep), "--out", str(tmp_path / "c")])
         err = capsys.readouterr().err
-        assert code == 2 and expected in err, err
+        assert code == 2 and expected in err and err.count("\n") == 1, err
     assert not (tmp_path / "c").exists()

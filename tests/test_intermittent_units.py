@@ -4,7 +4,6 @@ comparison's bookkeeping. No simulation."""
 
 from __future__ import annotations
 
-import json
 from types import SimpleNamespace
 
 import numpy as np
@@ -145,34 +144,27 @@ def test_estimation_observer_measures_e_g_against_the_truth():
     assert EstimationMetrics().summary() == {}
 
 
-def test_compare_resumes_and_tabulates(tmp_path, monkeypatch):
-    from sim import compare
+def test_table1_report_tabulates_the_methods_beside_the_paper(tmp_path):
+    """`tether report` on a table1-shaped results table (no simulation)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
 
-    calls = []
+    from sim.report import write_report
 
-    def fake_run(trial):
-        calls.append(trial)
-        better = {"intermittent": 0.5, "random_meeting": 1.0, "all_time": 2.0}[trial.method]
-        return {"key": trial.key, "scenario": trial.scenario, "method": trial.method, "seed": trial.seed,
-                "duration_s": trial.duration_s, "overrides": list(trial.overrides), "status": "completed",
-                "e_g_mean_m": better + 0.01 * trial.seed, "e_g_std_m": 0.1, "lambda_bar_mean_m2": better / 4,
-                "lambda_bar_std_m2": 0.01, "trial_wall_s": 0.0}
-
-    monkeypatch.setattr(compare, "run_trial", fake_run)
-    path = tmp_path / "trials.jsonl"
-    trials = compare.trials_for(["intermittent-8"], compare.METHODS, [0, 1], 30.0)
-    rows = compare.run_trials(trials[:4], path)
-    assert len(calls) == 4 and len(rows) == 4
-    with open(path, "a") as f:
-        f.write('{"cut": \n')  # an interrupted write is ignored
-    rows = compare.run_trials(trials, path)
-    assert len(calls) == 6 and len(rows) == 6  # only the two missing trials ran
-    cells = compare.summarize(rows, ["intermittent-8"], compare.METHODS, [0, 1], 30.0)
-    assert cells[("intermittent-8", "intermittent")].e_g == pytest.approx(0.505)
-    assert compare.beats_baselines(cells, "intermittent-8")
-    table = compare.format_table(cells, ["intermittent-8"], list(compare.METHODS), 30.0)
-    assert "0.929 ± 0.561" in table and "lower than all-time in 2/2 seeds" in table
-    assert json.loads(path.read_text().splitlines()[0])["status"] == "completed"
+    rows = []
+    for seed in (0, 1):
+        for method, level in (("intermittent", 0.5), ("random_meeting", 1.0), ("all_time", 2.0)):
+            rows.append({"trial_id": f"{method}{seed}", "trial_index": len(rows), "attempt": 1, "status": "completed",
+                         "error": "", "scenario": "intermittent-8", "strategy.kind": method, "strategy": method,
+                         "seed": seed, "n_targets": 8, "e_g_mean_m": level + 0.01 * seed, "e_g_std_m": 0.1,
+                         "lambda_bar_mean_m2": level / 4, "lambda_bar_std_m2": 0.01})
+    pq.write_table(pa.Table.from_pylist(rows), tmp_path / "results.parquet")
+    write_report(tmp_path)
+    report = (tmp_path / "report.md").read_text()
+    assert "0.505 ± 0.100 (seeds ±0.005, n=2)" in report  # intermittent e_g: mean, time std, seed spread, n
+    assert "0.929 ± 0.561" in report  # the paper's intermittent e_g, 8 targets
+    assert "Intermittent beats both baselines on both means: yes" in report
+    assert "intermittent e_g: lower than all-time in 2/2 seeds, lower than heuristic in 2/2 seeds" in report
 
 
 def test_mirror_reflection_keeps_every_coplanar_reading_and_maps_the_covariance():

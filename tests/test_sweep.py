@@ -245,8 +245,10 @@ def test_report_on_a_fixture_table_writes_figures_and_tables(tmp_path, capsys):
 
 def test_report_names_an_unknown_column(tmp_path, capsys):
     fixture_table(tmp_path)
+    before = folder_state(tmp_path)
     assert main(["report", str(tmp_path), "--x", "n_robots", "--y", "no_such_metric"]) == 2
     assert "--y: no column 'no_such_metric'" in capsys.readouterr().err
+    assert folder_state(tmp_path) == before  # nothing written
 
 
 # ---------------------------------------------------------------- bad input
