@@ -41,7 +41,7 @@ test-all: system-deps $(STAMP)
 	$(PY) -m pytest -q
 
 bench: system-deps $(STAMP)
-	$(PY) bench/bench_foundation.py
+	$(PY) bench/bench_core.py
 
 clean:
 	rm -rf runs .pytest_cache

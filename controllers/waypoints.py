@@ -148,6 +148,8 @@ class WaypointStrategy:
         self._time_s = observation.time_s
         samples = [route.sample(observation.time_s - offset) for route, offset in zip(self.routes, self._offsets)]
         position, velocity, acceleration = (np.array(x) for x in zip(*samples))
-        speed = np.linalg.norm(velocity, axis=1)
-        info = {"scalars": {"reference_speed_max_mps": float(speed.max(initial=0.0))}}
+        info = {}
+        if observation.info_wanted:
+            speed = np.linalg.norm(velocity, axis=1)
+            info = {"scalars": {"reference_speed_max_mps": float(speed.max(initial=0.0))}}
         return Commands(position, velocity, acceleration, np.zeros(len(samples)), info)

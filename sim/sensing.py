@@ -29,7 +29,7 @@ class RaySensors:
         self.noisy = noisy
         self._groups = obstacle_geomgroup()
         self.rays_cast = 0  # for benchmarks
-        self._off_diagonal: np.ndarray | None = None
+        self._masks_n = -1
 
     def sensor_positions(self) -> np.ndarray:
         return self.world.data.site_xpos[self.world.sensor_site_ids].copy()
@@ -51,31 +51,38 @@ class RaySensors:
         n = len(positions)
         diff = positions[None, :, :] - positions[:, None, :]
         distance = np.linalg.norm(diff, axis=-1)
-        in_range = (distance <= self.comm_range) & self._not_self(n)
+        not_self, upper = self._masks(n)
+        in_range = (distance <= self.comm_range) & not_self
         los = np.zeros((n, n), dtype=bool)
         # Every pair i < j in range, grouped by i (row-major): one mj_multiRay per origin robot,
         # all writing into one buffer, and one comparison for all rays.
-        first, second = np.nonzero(np.triu(in_range, 1))
-        if len(first):
-            vectors = np.ascontiguousarray(positions[second] - positions[first]).reshape(-1)
-            geomid = np.empty(len(first), dtype=np.int32)
-            hit = np.empty(len(first), dtype=np.float64)
-            starts = np.flatnonzero(np.r_[True, first[1:] != first[:-1]])
-            ends = np.r_[starts[1:], len(first)]
+        first, second = np.nonzero(in_range & upper)
+        count = len(first)
+        if count:
+            vectors = (positions[second] - positions[first]).reshape(-1)
+            geomid = np.empty(count, dtype=np.int32)
+            hit = np.empty(count, dtype=np.float64)
             model, data, groups = self.world.model, self.world.data, self._groups
-            for start, end in zip(starts.tolist(), ends.tolist()):
-                mujoco.mj_multiRay(model, data, positions[first[start]], vectors[3 * start : 3 * end], groups, 1, -1,
-                                   geomid[start:end], hit[start:end], None, end - start, 1.0)
-            self.rays_cast += len(first)
+            origins = first.tolist()
+            start = 0
+            for end in range(1, count + 1):
+                if end == count or origins[end] != origins[start]:
+                    mujoco.mj_multiRay(model, data, positions[origins[start]], vectors[3 * start : 3 * end], groups,
+                                       1, -1, geomid[start:end], hit[start:end], None, end - start, 1.0)
+                    start = end
+            self.rays_cast += count
             free = ~((geomid >= 0) & (hit >= 0) & (hit < 1.0))
             los[first, second] = free
             los[second, first] = free
         return Links(distance, los, los & in_range, functools.partial(self._clearance, positions.copy(), in_range))
 
-    def _not_self(self, n: int) -> np.ndarray:
-        if self._off_diagonal is None or len(self._off_diagonal) != n:
+    def _masks(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """(N, N) bool: off-diagonal, and strictly upper triangle (built once per team size)."""
+        if self._masks_n != n:
             self._off_diagonal = ~np.eye(n, dtype=bool)
-        return self._off_diagonal
+            self._upper = np.triu(np.ones((n, n), dtype=bool), 1)
+            self._masks_n = n
+        return self._off_diagonal, self._upper
 
     def _clearance(self, positions: np.ndarray, in_range: np.ndarray) -> np.ndarray:
         """(N, N) segment clearance of the pairs in comm range, m; inf elsewhere."""

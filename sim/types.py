@@ -118,6 +118,10 @@ class Strategy(Protocol):
     Optional: a ``finished`` attribute (bool); once it reads True after a
     tick, :func:`sim.loop.run` stops early (e.g. every target visited).
     Optional: ``summary() -> dict``, merged into metrics.json.
+
+    ``step`` may skip building ``Commands.info``'s figures and decorations
+    when ``observation.info_wanted`` is False (no observer reads them this
+    tick); the metrics keys stay.
     """
 
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:

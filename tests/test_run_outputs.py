@@ -42,6 +42,29 @@ def test_metrics_json_has_the_foundation_keys(hover_run):
     assert "rerun" in stdout and "run.rrd" in stdout
 
 
+def test_timing_block_says_where_the_wall_time_went(hover_run):
+    out, _ = hover_run
+    metrics = json.loads((out / "metrics.json").read_text())
+    timing = metrics["timing"]
+    stages = ("physics_s", "sensing_s", "strategy_s", "lowlevel_s", "observers_s")
+    assert set(timing) == {*stages, "setup_s", "closing_s", "stack_to_physics"}
+    assert all(timing[key] > 0 for key in (*stages, "setup_s", "closing_s"))
+    # The stages are parts of the run's wall time, and the ratio is theirs.
+    assert sum(timing[key] for key in (*stages, "setup_s", "closing_s")) <= metrics["wall_time_s"]
+    stack = sum(timing[key] for key in stages if key != "physics_s")
+    assert timing["stack_to_physics"] == pytest.approx(stack / timing["physics_s"])
+
+
+def test_strategy_info_is_built_only_for_observers_that_read_it():
+    from sim.loop import Simulation
+
+    simulation = Simulation(load("hover", duration_s=1.0))
+    frame, _ = simulation.tick(info_wanted=False)
+    assert frame.commands.info == {}
+    frame, _ = simulation.tick()
+    assert "reference_speed_max_mps" in frame.commands.info["scalars"]
+
+
 def test_plots_are_written_as_png(hover_run):
     out, _ = hover_run
     png = out / "plots" / "timeseries.png"

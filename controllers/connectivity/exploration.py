@@ -110,6 +110,7 @@ class ExplorationController:
         self.n_robots = n
         self.role_machine = RoleMachine(n, params.message_latency_ticks, params.election_host)
         self.targets: list[Target | None] = [None] * n
+        self._target_table: tuple[np.ndarray, np.ndarray] | None = None  # built when the targets change
         self.paths: list[SplinePath | None] = [None] * n
         self.estimates = np.zeros(n)  # hat-Lambda_p^i, start-up line 12
         self.dwell = DwellClock(n)
@@ -131,6 +132,7 @@ class ExplorationController:
                 self.skipped.append(target)
                 continue
             self.targets[robot] = target
+            self._target_table = None
             return True
         return False
 
@@ -166,12 +168,15 @@ class ExplorationController:
         p = self.params
         return path_reference(self.paths[robot], position[None], p.cruise_speed, p.braking_distance)
 
-    def _references(self, q: np.ndarray) -> dict[int, PathReference]:
-        """Path references of every robot with a path, batched in one numpy pass."""
+    def _references(self, q: np.ndarray) -> tuple[np.ndarray, PathReference | None]:
+        """Robots with a path (ascending indices) and their path references, one
+        row each: splines batched in one compiled pass, single-point paths alone."""
         p = self.params
-        robots = [i for i in range(self.n_robots) if self.paths[i] is not None]
+        robots = np.array([i for i in range(self.n_robots) if self.paths[i] is not None], dtype=int)
+        if not len(robots):
+            return robots, None
         batched = [i for i in robots if self.paths[i].spline is not None]
-        references = {i: self._reference(i, q[i]) for i in robots if self.paths[i].spline is None}
+        stacked = None
         if batched:
             paths = [self.paths[i] for i in batched]
             if self._batch is None or len(self._batch) != len(paths) or any(
@@ -179,9 +184,32 @@ class ExplorationController:
             ):
                 self._batch = PathBatch(paths)
             stacked = batch_path_reference(self._batch, q[batched], p.cruise_speed, p.braking_distance)
-            for k, i in enumerate(batched):
-                references[i] = stacked.row(k)
-        return references
+            if len(batched) == len(robots):
+                return robots, stacked
+        single = {i: self._reference(i, q[i]) for i in robots if self.paths[i].spline is None}
+        batch_row = {i: k for k, i in enumerate(batched)}
+        rows = [single[i] if i in single else stacked.row(batch_row[i]) for i in robots]
+        return robots, PathReference.stack(rows)
+
+    def _targets_now(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each robot's current target point (N, 3; NaN without one) and dwell time (N,; inf)."""
+        if self._target_table is None:
+            self._target_table = (
+                np.array([t.position if t is not None else np.full(3, np.nan) for t in self.targets]),
+                np.array([t.dwell_time if t is not None else np.inf for t in self.targets]),
+            )
+        points, dwell = self._target_table
+        return points.copy(), dwell
+
+    @staticmethod
+    def _replace_row(references: PathReference, k: int, row: PathReference) -> PathReference:
+        """``references`` with row k replaced by the one-row ``row``."""
+        fields = {}
+        for name in PathReference.__dataclass_fields__:
+            values = getattr(references, name).copy()
+            values[k] = getattr(row, name)[0]
+            fields[name] = values
+        return PathReference(**fields)
 
     # -- one control tick ---------------------------------------------------
 
@@ -218,34 +246,39 @@ class ExplorationController:
             for i in np.flatnonzero((self.role_machine.roles == Role.CONNECTOR) & self.queues.pending()):
                 got_target[i] = self._extract_and_plan(i, q[i])
 
-        references = self._references(q)
-        for i in list(references):
-            secondary = self.role_machine.roles[i] == Role.SECONDARY_TRAVELER
-            if secondary and needs_replanning(references[i], p.replan_distance)[0]:  # Alg. 1 line 17
+        travelers, references = self._references(q)
+        if references is not None:
+            secondary = self.role_machine.roles[travelers] == Role.SECONDARY_TRAVELER
+            for k in np.flatnonzero(secondary & needs_replanning(references, p.replan_distance)):  # Alg. 1 line 17
+                i = int(travelers[k])
                 self._replan(i, q[i])
-                references[i] = self._reference(i, q[i])
+                references = self._replace_row(references, k, self._reference(i, q[i]))
 
-        target_points = np.array([t.position if t is not None else np.full(3, np.nan) for t in self.targets])
+        target_points, dwell_needed = self._targets_now()
         to_target = np.linalg.norm(q - target_points, axis=1)
         near_target = np.nan_to_num(to_target, nan=np.inf) < p.target_radius
         anchors = self.role_machine.roles == Role.ANCHOR
         self.dwell.update(float(time), anchors & near_target)
-        dwell_needed = np.array([t.dwell_time if t is not None else np.inf for t in self.targets])
         task_done = anchors & near_target & (self.dwell.elapsed(float(time)) >= dwell_needed)
         remaining = np.full(n, np.inf)
-        for i, reference in references.items():
-            remaining[i] = reference.remaining[0]
+        if references is not None:
+            remaining[travelers] = references.remaining
 
         changes = self.role_machine.step(self.tick, adjacency, got_target, near_target, task_done, remaining)
         roles = changes.roles
         for i in np.flatnonzero(changes.became_anchor):
             self.paths[i] = None  # lines 13, 20
-            references.pop(i, None)
             self.arrival_time[i] = float(time)
+        if references is not None and changes.became_anchor[travelers].any():
+            keep = ~changes.became_anchor[travelers]
+            travelers = travelers[keep]
+            references = PathReference(*(getattr(references, name)[keep]
+                                         for name in PathReference.__dataclass_fields__))
         self.dwell.update(float(time), (roles == Role.ANCHOR) & near_target)
         for i in np.flatnonzero(changes.became_connector):
             self.visits.append(Visit(self.targets[i], float(self.arrival_time[i]), float(time)))
             self.targets[i] = None
+            self._target_table = None
             self.arrival_time[i] = np.nan
 
         # Algorithm 2.
@@ -253,9 +286,8 @@ class ExplorationController:
         lam = np.full(n, np.nan)
         error = np.full(n, np.nan)
         path_points = np.full((n, 3), np.nan)
-        travelers = np.array(sorted(references), dtype=int)
         if len(travelers):
-            batch = PathReference.stack([references[i] for i in travelers])
+            batch = references
             f_travel = travel_force(q[travelers], v[travelers], batch, p.position_gain, p.velocity_gain, p.virtual_mass,
                                     p.travel_force_limit)
             error[travelers] = tracking_error(q[travelers], v[travelers], batch, p.position_error_weight)
@@ -288,7 +320,7 @@ class ExplorationController:
         self.last_time = float(time)
         prime = self.role_machine.prime
         finished = bool(np.all(roles == Role.CONNECTOR) and len(self.queues) == 0)
-        target_points = np.array([t.position if t is not None else np.full(3, np.nan) for t in self.targets])
+        target_points, _ = self._targets_now()
         return ExplorationStep(
             forces=forces,
             roles=roles,

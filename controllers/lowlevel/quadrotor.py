@@ -222,12 +222,11 @@ def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
 
 @kernel
 def _geometric_control_kernel(position, velocity, quaternion, omega, ref_position, ref_velocity,
-                              ref_acceleration, ref_yaw, jerk, yaw_rate, use_jerk, use_yaw_rate,
-                              mass, gravity, inertia, kx, kv, kr, kw, max_tilt, min_thrust_ratio,
-                              max_thrust_ratio, max_yaw_error, thrust_out, torque_out):
+                              ref_acceleration, heading_cos, heading_sin, jerk, yaw_rate, use_jerk, use_yaw_rate,
+                              mass, gravity, inertia, kx, kv, kr, kw, tan_tilt, min_thrust_ratio,
+                              max_thrust_ratio, thrust_out, torque_out):
     """Per robot: Lee et al. (2010) eqs. 15-16 with the bounds of :func:`geometric_control`."""
     weight = mass * gravity
-    tan_tilt = np.tan(max_tilt)
     rot = np.empty((3, 3))
     rot_d = np.empty((3, 3))
     rt_rd = np.empty((3, 3))
@@ -267,12 +266,7 @@ def _geometric_control_kernel(position, velocity, quaternion, omega, ref_positio
             force[i] *= shrink
         f_norm = np.sqrt(force[0] * force[0] + force[1] * force[1] + force[2] * force[2])
         b3x, b3y, b3z = force[0] / f_norm, force[1] / f_norm, force[2] / f_norm
-        # Heading at most max_yaw_error ahead of the current one (see geometric_control).
-        heading = np.arctan2(rot[1, 0], rot[0, 0])
-        turn = ref_yaw[n] - heading
-        yaw_error = np.arctan2(np.sin(turn), np.cos(turn))
-        yaw_cmd = heading + min(max(yaw_error, -max_yaw_error), max_yaw_error)
-        c1x, c1y = np.cos(yaw_cmd), np.sin(yaw_cmd)
+        c1x, c1y = heading_cos[n], heading_sin[n]
         # b2_d = unit(b3_d x b1_c) with b1_c = (c1x, c1y, 0); b1_d = b2_d x b3_d.
         b2x, b2y, b2z = b3y * 0.0 - b3z * c1y, b3z * c1x - b3x * 0.0, b3x * c1y - b3y * c1x
         b2_norm = np.sqrt(b2x * b2x + b2y * b2y + b2z * b2z)
@@ -286,18 +280,19 @@ def _geometric_control_kernel(position, velocity, quaternion, omega, ref_positio
         omega_d[0] = omega_d[1] = omega_d[2] = 0.0
         if use_jerk:
             jx, jy, jz = jerk[n, 0], jerk[n, 1], jerk[n, 2]
-            along = b3x * jx + b3y * jy + b3z * jz
+            # Dot products summed as numpy's einsum does, (x + z) + y.
+            along = (b3x * jx + b3z * jz) + b3y * jy
             gain = mass / f_norm
             hx, hy, hz = gain * (jx - along * b3x), gain * (jy - along * b3y), gain * (jz - along * b3z)
-            omega_d[0] = -(hx * b2x + hy * b2y + hz * b2z)
-            omega_d[1] = hx * b1x + hy * b1y + hz * b1z
+            omega_d[0] = -((hx * b2x + hz * b2z) + hy * b2y)
+            omega_d[1] = (hx * b1x + hz * b1z) + hy * b1y
         if use_yaw_rate:
             omega_d[2] = yaw_rate[n] * b3z
         for i in range(3):
             for k in range(3):
                 rt_rd[i, k] = rot[0, i] * rot_d[0, k] + rot[1, i] * rot_d[1, k] + rot[2, i] * rot_d[2, k]
-        for i in range(3):
-            omega_ref[i] = rt_rd[i, 0] * omega_d[0] + rt_rd[i, 1] * omega_d[1] + rt_rd[i, 2] * omega_d[2]
+        for i in range(3):  # summed in the order of numpy's einsum, (0 + 2) + 1: the same figures to the bit
+            omega_ref[i] = (rt_rd[i, 0] * omega_d[0] + rt_rd[i, 2] * omega_d[2]) + rt_rd[i, 1] * omega_d[1]
         # e_R = 0.5 vee(R_d^T R - R^T R_d), e_W = Omega - R^T R_d Omega_d.
         e_r0 = 0.5 * (rt_rd[1, 2] - rt_rd[2, 1])
         e_r1 = 0.5 * (rt_rd[2, 0] - rt_rd[0, 2])
@@ -346,13 +341,20 @@ def geometric_control(
     f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
     jerk = reference.jerk if reference.jerk is not None else np.zeros((n, 3))
     yaw_rate = reference.yaw_rate if reference.yaw_rate is not None else np.zeros(n)
+    # The commanded heading's trigonometry stays numpy's (its vectorised sin/cos/arctan2 differ from
+    # libm's in the last bit; keeping them keeps trajectories bit-identical to the numpy controller).
+    q = np.asarray(state.quaternion, dtype=float)
+    w, x, y, z = (q / np.linalg.norm(q, axis=1, keepdims=True)).T  # as quaternion_to_matrix, two entries only
+    heading = np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
+    yaw_error = np.angle(np.exp(1j * (reference.yaw - heading)))
+    yaw_cmd = heading + np.clip(yaw_error, -gains.max_yaw_error, gains.max_yaw_error)
     _geometric_control_kernel(
         f64(state.position), f64(state.velocity), f64(state.quaternion), f64(state.angular_velocity),
-        f64(reference.position), f64(reference.velocity), f64(reference.acceleration), f64(reference.yaw),
-        f64(jerk), f64(yaw_rate), reference.jerk is not None, reference.yaw_rate is not None,
+        f64(reference.position), f64(reference.velocity), f64(reference.acceleration), np.cos(yaw_cmd),
+        np.sin(yaw_cmd), f64(jerk), f64(yaw_rate), reference.jerk is not None, reference.yaw_rate is not None,
         float(params.mass), float(params.gravity), f64(params.inertia), float(gains.kx), float(gains.kv),
-        f64(gains.kr), f64(gains.kw), float(gains.max_tilt), float(gains.min_thrust_ratio),
-        float(gains.max_thrust_ratio), float(gains.max_yaw_error), thrust, torque,
+        f64(gains.kr), f64(gains.kw), float(np.tan(gains.max_tilt)), float(gains.min_thrust_ratio),
+        float(gains.max_thrust_ratio), thrust, torque,
     )
     return thrust, torque
 
