@@ -248,3 +248,22 @@ def test_connected_strategy_refuses_a_mixed_team(tmp_path):
         Simulation(load(str(path)))
     assert err.value.field == "robots"
     assert "one kind of robot at a time" in err.value.problem and "ground0" in err.value.problem
+
+
+def test_retarget_changes_what_the_exploration_layer_steers_to(tmp_path):
+    """ExplorationController.retarget: a traveler's new point and path, an anchor's dwell ended."""
+    path = room_scenario(tmp_path, kind="connected_tracking", duration=3.0)
+    sim = _run(path, 1.5)  # the next tick (t = 1.5 s) takes no reading: the generator re-issues nothing
+    core = sim.strategy.core
+    explorer = core.explorer
+    robot = next(i for i, t in enumerate(explorer.targets) if t is not None and explorer.paths[i] is not None)
+    offsets = np.array([[0.3, 0.0, 0.0], [-0.3, 0.0, 0.0], [0.0, 0.3, 0.0], [0.0, -0.3, 0.0]])
+    candidates = explorer.targets[robot].position + offsets
+    free = core.planner.is_free(candidates, core.planner.clearance)
+    goal = next(c for c, ok in zip(candidates, free) if ok and core.planner.connected(core.q[robot], c))
+    old_path = explorer.paths[robot]
+    explorer.retarget(robot, goal, 5.0, core.q[robot])
+    assert explorer.paths[robot] is not old_path
+    assert np.allclose(explorer.paths[robot].end, goal)
+    frame, _ = sim.tick()
+    assert np.allclose(sim.strategy.core.last.targets[robot], goal)

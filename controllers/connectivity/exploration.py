@@ -160,6 +160,7 @@ class ExplorationController:
             raise ValueError(f"retarget needs a finite position and dwell time >= 0, got {point}, {dwell_time!r}")
         point.setflags(write=False)
         self.targets[robot] = Target(robot, current.index, point, float(dwell_time))
+        self._target_table = None
         if self.paths[robot] is not None and robot_position is not None and not np.array_equal(point, current.position):
             self._replan(robot, np.asarray(robot_position, dtype=float).reshape(3))
         return self.targets[robot]
