@@ -356,6 +356,7 @@ def paradigms_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path
             ax.plot(xs, mean, "o-", color=PARADIGM_COLORS[m], label=METHOD_LABELS[m])
             ax.fill_between(xs, low, high, color=PARADIGM_COLORS[m], alpha=0.15)
         ax.set_xscale("log")
+        ax.minorticks_off()
         ax.set_xticks(ranges, [f"{rng:g}" for rng in ranges])
         ax.set_xlabel("communication range R (m)")
         ax.set_ylabel(label)
