@@ -39,9 +39,11 @@ class WaypointParams:
         require(self.dwell_s >= 0, "dwell_s", f"must be non-negative, got {self.dwell_s}")
 
 
-def min_jerk(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """s, ds/dtau, d2s/dtau2 of the minimum-jerk blend for tau in [0, 1]."""
-    tau = np.clip(tau, 0.0, 1.0)
+def min_jerk(tau: float) -> tuple[float, float, float]:
+    """s, ds/dtau, d2s/dtau2 of the minimum-jerk blend for tau in [0, 1] (clipped there).
+
+    Python floats: the same libm pow and the same figures as numpy's scalars, without their overhead."""
+    tau = min(max(float(tau), 0.0), 1.0)
     s = tau**3 * (10 - 15 * tau + 6 * tau**2)
     ds = 30 * tau**2 * (1 - tau) ** 2
     dds = 60 * tau * (1 - tau) * (1 - 2 * tau)
@@ -59,6 +61,8 @@ class Route:
         self.durations = np.where(lengths > 0, _MIN_JERK_PEAK_RATIO * lengths / speed, 0.0)
         self.dwell = dwell
         self.period = float(np.sum(self.durations + dwell))
+        # Per segment (start, end, duration) as row views and Python floats, for sample's loop.
+        self._segments = list(zip(self.starts, self.ends, self.durations.tolist()))
 
     def progress(self, t: float) -> float:
         """Where on the route time ``t`` falls: ``2k + f`` while resting at
@@ -88,7 +92,7 @@ class Route:
         if len(self.points) == 1 or self.period == 0:
             return self.points[0], np.zeros(3), np.zeros(3)
         t = t % self.period
-        for start, end, duration in zip(self.starts, self.ends, self.durations):
+        for start, end, duration in self._segments:
             if t < self.dwell or duration == 0:
                 if t < self.dwell + duration:
                     return start, np.zeros(3), np.zeros(3)
@@ -96,7 +100,7 @@ class Route:
                 continue
             t -= self.dwell
             if t < duration:
-                s, ds, dds = min_jerk(np.array(t / duration))
+                s, ds, dds = min_jerk(t / duration)
                 delta = end - start
                 return start + s * delta, ds / duration * delta, dds / duration**2 * delta
             t -= duration

@@ -151,9 +151,10 @@ class Simulation:
             self.world.data.mocap_pos[self.world.target_mocap_ids] = positions
         return positions
 
-    def observe(self, read_targets: bool = True) -> Observation:
+    def observe(self, read_targets: bool = True, info_wanted: bool = True) -> Observation:
         """Read the state and sense; target ranges only at reading instants
-        (every ``sensing.period_s``) and when ``read_targets``."""
+        (every ``sensing.period_s``) and when ``read_targets``. ``info_wanted``
+        goes into the observation (see :class:`sim.types.Observation`)."""
         world, data = self.world, self.world.data
         qpos, qvel = data.qpos, data.qvel
         position = qpos[self._position_index]
@@ -169,7 +170,7 @@ class Simulation:
         return Observation(
             time_s=self.time_s, tick=self.tick_count, position=position, velocity=velocity,
             quaternion=quaternion, angular_velocity=angular, sensor_position=sensors,
-            links=self.sensors.links(position), target_ranges=ranges, target_step=step,
+            links=self.sensors.links(position), target_ranges=ranges, target_step=step, info_wanted=info_wanted,
         )
 
     def tick(self, info_wanted: bool = True) -> tuple[Frame, bool]:
@@ -181,9 +182,7 @@ class Simulation:
         Each stage's wall time is added to ``self.timing``."""
         timing = self.timing
         start = time.perf_counter()
-        observation = self.observe()
-        if not info_wanted:
-            observation = dataclasses.replace(observation, info_wanted=False)
+        observation = self.observe(info_wanted=info_wanted)
         sensed = time.perf_counter()
         commands = self.strategy.step(observation)
         planned = time.perf_counter()

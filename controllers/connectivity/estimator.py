@@ -80,6 +80,7 @@ import numpy as np
 import scipy.linalg
 
 from controllers.connectivity.params import FiedlerEstimatorParams
+from sim.compiled import kernel
 
 # Floor for Ave(x^2) when normalising the eigenvector estimate (unit: x^2).
 _MIN_SQUARE_MEAN = 1e-6
@@ -447,22 +448,87 @@ class SubspaceEstimator:
         count = self.substep_count(weights, dt)
         h = dt / count
         transition, inflow = self._flow.matrices(consensus_laplacian, h)
-        x = self.components
         consensus = np.concatenate([self.consensus, self.consensus_integral])  # rows: y (N), then z (N)
-        lx = laplacian @ x  # row i: sum_j W_ij (X_i - X_j), from neighbours' messages
-        inputs = self._inputs(x, lx)
-        for _ in range(count):
-            x = x + h * self._power_rate(x, lx, consensus[:n])
-            lx = laplacian @ x
-            # The consensus input over the substep: mean of its values at both ends (second order).
-            next_inputs = self._inputs(x, lx)
-            consensus = transition @ consensus + inflow @ (0.5 * (inputs + next_inputs))
-            inputs = next_inputs
+        x = _subspace_substeps(np.array(self.components, dtype=float), consensus, laplacian, transition, inflow,
+                               h, count, p.normalisation_gain, p.mean_removal_gain, p.laplacian_gain,
+                               self._gram_index, self._input_left, self._input_right)
         if p.dither > 0:
             x = x + p.dither * np.sqrt(dt) * self._rng.standard_normal((n, k))
         self.components = x
         self.consensus, self.consensus_integral = consensus[:n].copy(), consensus[n:].copy()
         return self.estimate
+
+
+@kernel
+def _subspace_substeps(x, consensus, laplacian, transition, inflow, h, count, normalisation_gain, mean_removal_gain,
+                       laplacian_gain, gram_index, input_left, input_right):
+    """SubspaceEstimator's ``count`` Euler substeps of length ``h`` in one compiled pass: x (N, K) and
+    consensus (2N, D: rows y, then z) advance in place; returns x. Per substep, with the Laplacian L of
+    the weights, the consensus flow (transition (2N, 2N), inflow (2N, N)) and the inputs' columns
+    [X, L X, 1] (``input_left`` * ``input_right``):
+        X <- X + h (k3 X - k1 m - k2 L X - k3 X G),   y, z <- transition [y; z] + inflow (inputs then + now) / 2.
+    Sums run in index order (numpy's BLAS matmul may group them otherwise: round-off differs)."""
+    n, k = x.shape
+    channels = consensus.shape[1]
+    rows = consensus.shape[0]
+    lx = np.empty((n, k))
+    columns = np.empty((n, 2 * k + 1))
+    inputs = np.empty((n, channels))
+    mixed = np.empty((n, channels))
+    updated = np.empty((rows, channels))
+    average = np.empty((n, channels))
+
+    def laplacian_times(x, lx):
+        for i in range(n):
+            for a in range(k):
+                lx[i, a] = 0.0
+            for j in range(n):
+                factor = laplacian[i, j]
+                for a in range(k):
+                    lx[i, a] += factor * x[j, a]
+
+    def consensus_inputs(x, lx, out):
+        for i in range(n):
+            for a in range(k):
+                columns[i, a] = x[i, a]
+                columns[i, k + a] = lx[i, a]
+            columns[i, 2 * k] = 1.0
+            for d in range(channels):
+                out[i, d] = columns[i, input_left[d]] * columns[i, input_right[d]]
+
+    laplacian_times(x, lx)
+    consensus_inputs(x, lx, inputs)
+    rate = np.empty((n, k))
+    for _ in range(count):
+        for i in range(n):
+            for a in range(k):
+                projected = 0.0
+                for b in range(k):
+                    projected += x[i, b] * consensus[i, gram_index[b * k + a]]
+                rate[i, a] = (normalisation_gain * x[i, a] - mean_removal_gain * consensus[i, a]
+                              - laplacian_gain * lx[i, a] - normalisation_gain * projected)
+        for i in range(n):
+            for a in range(k):
+                x[i, a] = x[i, a] + h * rate[i, a]
+        laplacian_times(x, lx)
+        consensus_inputs(x, lx, mixed)  # the next inputs
+        for c in range(n):
+            for d in range(channels):
+                average[c, d] = 0.5 * (inputs[c, d] + mixed[c, d])
+        for r in range(rows):
+            for d in range(channels):
+                updated[r, d] = 0.0
+            for c in range(rows):
+                factor = transition[r, c]
+                for d in range(channels):
+                    updated[r, d] += factor * consensus[c, d]
+            for c in range(n):
+                factor = inflow[r, c]
+                for d in range(channels):
+                    updated[r, d] += factor * average[c, d]
+        consensus[:, :] = updated
+        inputs[:, :] = mixed
+    return x
 
 
 def ritz_connectivity_gradient(links, estimate: SubspaceEstimate, kappa: float) -> tuple[np.ndarray, np.ndarray]:
@@ -475,7 +541,7 @@ def ritz_connectivity_gradient(links, estimate: SubspaceEstimate, kappa: float) 
     coefficients (sign-consistent by construction). ``links`` is a
     graph.LinkWeights (only its ``lambda2_gradient`` is used).
     """
-    from controllers.connectivity.smooth_spectrum import smooth_lambda2
+    from controllers.connectivity.smooth_spectrum import smooth_minimum
 
     n = len(estimate.lambda2)
     smooth = np.zeros(n)
@@ -487,7 +553,7 @@ def ritz_connectivity_gradient(links, estimate: SubspaceEstimate, kappa: float) 
             smooth[i] = estimate.lambda2[i]
             continue
         values = estimate.values[i, valid]
-        s, slope = smooth_lambda2(np.concatenate([[0.0], values]), kappa)
+        s, slope = smooth_minimum(values, kappa)
         smooth[i] = s
         vectors = estimate.components @ estimate.coefficients[i][:, valid] * scale
         terms += [(i, slope[k], vectors[:, k]) for k in np.flatnonzero(slope > 1e-9 * slope.max())]

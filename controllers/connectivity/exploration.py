@@ -51,7 +51,7 @@ import numpy as np
 from controllers.connectivity.exploration_params import ExplorationParams
 from controllers.connectivity.path_batch import PathBatch
 from controllers.connectivity.paths import GridPlanner, NoPathError, SplinePath
-from controllers.connectivity.roles import Role, RoleMachine
+from controllers.connectivity.roles import ANCHOR_CODE, CONNECTOR_CODE, PRIME_CODE, SECONDARY_CODE, RoleMachine
 from controllers.connectivity.targets import DwellClock, Target, TargetQueues, Visit
 from controllers.connectivity.travel import (
     PathReference,
@@ -63,6 +63,7 @@ from controllers.connectivity.travel import (
     force_alignment,
     needs_replanning,
     path_reference,
+    row_norm,
     tracking_error,
     travel_force,
 )
@@ -244,21 +245,21 @@ class ExplorationController:
             has_target = np.array([self._extract_and_plan(i, q[i]) for i in range(n)])
             self.role_machine.start(has_target)
         else:
-            for i in np.flatnonzero((self.role_machine.roles == Role.CONNECTOR) & self.queues.pending()):
+            for i in np.flatnonzero((self.role_machine.roles == CONNECTOR_CODE) & self.queues.pending()):
                 got_target[i] = self._extract_and_plan(i, q[i])
 
         travelers, references = self._references(q)
         if references is not None:
-            secondary = self.role_machine.roles[travelers] == Role.SECONDARY_TRAVELER
+            secondary = self.role_machine.roles[travelers] == SECONDARY_CODE
             for k in np.flatnonzero(secondary & needs_replanning(references, p.replan_distance)):  # Alg. 1 line 17
                 i = int(travelers[k])
                 self._replan(i, q[i])
                 references = self._replace_row(references, k, self._reference(i, q[i]))
 
         target_points, dwell_needed = self._targets_now()
-        to_target = np.linalg.norm(q - target_points, axis=1)
-        near_target = np.nan_to_num(to_target, nan=np.inf) < p.target_radius
-        anchors = self.role_machine.roles == Role.ANCHOR
+        to_target = row_norm(q - target_points)
+        near_target = to_target < p.target_radius  # False where there is no target (NaN)
+        anchors = self.role_machine.roles == ANCHOR_CODE
         self.dwell.update(float(time), anchors & near_target)
         task_done = anchors & near_target & (self.dwell.elapsed(float(time)) >= dwell_needed)
         remaining = np.full(n, np.inf)
@@ -275,7 +276,7 @@ class ExplorationController:
             travelers = travelers[keep]
             references = PathReference(*(getattr(references, name)[keep]
                                          for name in PathReference.__dataclass_fields__))
-        self.dwell.update(float(time), (roles == Role.ANCHOR) & near_target)
+        self.dwell.update(float(time), (roles == ANCHOR_CODE) & near_target)
         for i in np.flatnonzero(changes.became_connector):
             self.visits.append(Visit(self.targets[i], float(self.arrival_time[i]), float(time)))
             self.targets[i] = None
@@ -295,32 +296,32 @@ class ExplorationController:
             # Over the braking stretch the reference slows down (travel.py); the error is
             # weighed against the reference's own speed there, so a traveler held back near
             # its target reads as inefficient, as one held back at cruise speed does.
-            reference_speed = np.linalg.norm(batch.velocity, axis=1)
+            reference_speed = row_norm(batch.velocity)
             scale = p.cruise_speed / np.maximum(reference_speed, _MIN_REFERENCE_FRACTION * p.cruise_speed)
             lam[travelers] = efficiency(error[travelers] * scale, p.efficiency_error_full, p.efficiency_error_zero)
             path_points[travelers] = batch.point
             forces[travelers] = f_travel
-        is_prime = roles == Role.PRIME_TRAVELER
+        is_prime = roles == PRIME_CODE
         self.estimates = consensus_step(
-            self.estimates, adjacency, is_prime, np.nan_to_num(lam), p.consensus_gain, dt
+            self.estimates, adjacency, is_prime, np.where(np.isnan(lam), 0.0, lam), p.consensus_gain, dt
         )
         alignment = np.full(n, np.nan)
         gain = np.full(n, np.nan)
-        secondary = roles == Role.SECONDARY_TRAVELER
+        secondary = roles == SECONDARY_CODE
         alignment[secondary] = force_alignment(f_lambda[secondary], forces[secondary])
         gain[secondary] = adaptive_gain(alignment[secondary], self.estimates[secondary], p.sigma)
         forces[secondary] *= gain[secondary, None]
-        anchored = roles == Role.ANCHOR
+        anchored = roles == ANCHOR_CODE
         if np.any(anchored):
             forces[anchored] = anchor_force(
                 q[anchored], target_points[anchored], p.target_radius, p.anchor_gain, p.anchor_force_limit
             )
-        forces[roles == Role.CONNECTOR] = 0.0
+        forces[roles == CONNECTOR_CODE] = 0.0
 
         self.tick += 1
         self.last_time = float(time)
         prime = self.role_machine.prime
-        finished = bool(np.all(roles == Role.CONNECTOR) and len(self.queues) == 0)
+        finished = bool(np.all(roles == CONNECTOR_CODE) and len(self.queues) == 0)
         target_points, _ = self._targets_now()
         return ExplorationStep(
             forces=forces,
@@ -333,7 +334,7 @@ class ExplorationController:
             gain=gain,
             tracking_error=error,
             path_points=path_points,
-            remaining=np.where(np.isfinite(remaining) & (roles <= Role.SECONDARY_TRAVELER), remaining, np.nan),
+            remaining=np.where(np.isfinite(remaining) & (roles <= SECONDARY_CODE), remaining, np.nan),
             targets=target_points,
             paths=tuple(self.paths),
             visits=tuple(self.visits),

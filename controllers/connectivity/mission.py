@@ -34,7 +34,8 @@ import numpy as np
 from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.graph import ConnectivityState
 from controllers.connectivity.paths import GridPlanner
-from controllers.connectivity.roles import Role
+from controllers.connectivity.roles import PRIME_CODE
+from controllers.connectivity.travel import row_norm
 from controllers.connectivity.targets import TargetQueues
 from sim.compiled import kernel
 from sim.config import ConfigError
@@ -220,14 +221,15 @@ class MissionStatistics:
         stretch = 0.0
         if len(self.explorers) > 1:
             e = q[self.explorers]
-            stretch = float(np.linalg.norm(e[:, None] - e[None], axis=-1).max())
+            offset = e[:, None] - e[None]
+            stretch = float(np.sqrt(np.add.reduce(offset * offset, axis=-1)).max())  # np.linalg.norm's sum
         self.max_stretch = max(self.max_stretch, stretch)
-        self.travel += np.linalg.norm(q_next - q, axis=1)
+        self.travel += row_norm(q_next - q)
         self.min_robot_distance = min(self.min_robot_distance, robot_distance)
         self.min_obstacle_distance = min(self.min_obstacle_distance, float(obstacle_distance.min()))
         self.min_body_distance = min(self.min_body_distance, pairwise_min_distance(body))
         self.min_body_obstacle_distance = min(self.min_body_obstacle_distance, float(body_obstacle_distance.min()))
-        primes = int(np.sum(roles == Role.PRIME_TRAVELER))
+        primes = int(np.sum(roles == PRIME_CODE))
         self.prime_max = max(self.prime_max, primes)
         tick = {"lambda2": state.lambda2, "edges": float(edges), "stretch_m": stretch, "prime_travelers": float(primes)}
         if lambda2_estimate is not None:

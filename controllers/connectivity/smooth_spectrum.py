@@ -34,6 +34,7 @@ import math
 import numpy as np
 
 from controllers.connectivity.graph import LinkWeights
+from sim.compiled import kernel
 
 # Eigenvalue modes whose soft-min weight is below this are left out of the gradient.
 _MIN_WEIGHT = 1e-9
@@ -41,39 +42,29 @@ _NEWTON_STEPS = 50
 _TOLERANCE = 1e-13
 
 
-def _softmin(values: np.ndarray, tau: float) -> tuple[float, np.ndarray]:
-    """-tau log sum exp(-values / tau) and the softmax weights."""
-    shifted = -(values - values.min()) / tau
-    exp = np.exp(shifted)
-    total = exp.sum()
-    return float(values.min() - tau * math.log(total)), exp / total
-
-
-def smooth_lambda2(eigenvalues: np.ndarray, kappa: float) -> tuple[float, np.ndarray]:
-    """s and ds/dlambda_k for k = 2..N (array of N - 1), from all N ascending eigenvalues."""
-    values = np.asarray(eigenvalues, dtype=float)[1:]
-    lowest = float(values[0])
-    if kappa <= 0 or len(values) == 1:
-        slope = np.zeros(len(values))
+@kernel
+def _smooth_lambda2_kernel(values, kappa, slope):
+    """s of the non-zero eigenvalues ``values`` (M,) ascending; ds/dlambda_k into ``slope`` (M,).
+    A safeguarded Newton iteration on g(s) = h(kappa s) - s, h the soft minimum at temperature tau."""
+    count = len(values)
+    lowest = values[0]
+    if kappa <= 0 or count == 1 or lowest <= 0:
+        for k in range(count):
+            slope[k] = 0.0
         slope[0] = 1.0
-        return lowest, slope
-    if lowest <= 0:
-        slope = np.zeros(len(values))
-        slope[0] = 1.0
-        return max(lowest, 0.0), slope
-    # g(s) = h(kappa s) - s is decreasing with a single root in [lowest / (1 + kappa ln(N-1)), lowest].
-    low = lowest / (1.0 + kappa * math.log(len(values)))
+        return max(lowest, 0.0) if kappa > 0 and count > 1 else lowest
+    # g(s) is decreasing with a single root in [lowest / (1 + kappa ln(N-1)), lowest].
+    low = lowest / (1.0 + kappa * math.log(count))
     high = lowest
     s = low
     for _ in range(_NEWTON_STEPS):
         tau = kappa * s
-        h, weights = _softmin(values, tau)
+        h, mean = _softmin(values, tau, slope)
         g = h - s
         if g > 0:
             low = s
         else:
             high = s
-        mean = float(weights @ values)
         derivative = kappa * (h - mean) / tau - 1.0
         step = s - g / derivative
         if g == 0 or abs(step - s) < _TOLERANCE * lowest:
@@ -82,10 +73,39 @@ def smooth_lambda2(eigenvalues: np.ndarray, kappa: float) -> tuple[float, np.nda
         s = step if low < step < high else 0.5 * (low + high)
         if high - low < _TOLERANCE * lowest:
             break
-    tau = kappa * s
-    _, weights = _softmin(values, tau)
-    mean = float(weights @ values)
-    return s, weights * s / mean
+    _, mean = _softmin(values, kappa * s, slope)
+    for k in range(count):
+        slope[k] = slope[k] * s / mean
+    return s
+
+
+@kernel
+def _softmin(values, tau, weights):
+    """-tau log sum exp(-values / tau) and the weighted mean of ``values``; the softmax weights into ``weights``."""
+    lowest = values[0]
+    for k in range(len(values)):
+        lowest = min(lowest, values[k])
+    total = 0.0
+    for k in range(len(values)):
+        weights[k] = math.exp(-(values[k] - lowest) / tau)
+        total += weights[k]
+    mean = 0.0
+    for k in range(len(values)):
+        weights[k] = weights[k] / total
+        mean += weights[k] * values[k]
+    return lowest - tau * math.log(total), mean
+
+
+def smooth_lambda2(eigenvalues: np.ndarray, kappa: float) -> tuple[float, np.ndarray]:
+    """s and ds/dlambda_k for k = 2..N (array of N - 1), from all N ascending eigenvalues (compiled)."""
+    return smooth_minimum(np.asarray(eigenvalues, dtype=float)[1:], kappa)
+
+
+def smooth_minimum(values: np.ndarray, kappa: float) -> tuple[float, np.ndarray]:
+    """``smooth_lambda2`` from the non-zero eigenvalues lambda_2..lambda_N (M,) alone."""
+    values = np.ascontiguousarray(values, dtype=float)
+    slope = np.empty(len(values))
+    return float(_smooth_lambda2_kernel(values, float(kappa), slope)), slope
 
 
 def smooth_lambda2_gradient(links: LinkWeights, eigenvalues: np.ndarray, eigenvectors: np.ndarray,

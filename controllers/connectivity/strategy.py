@@ -111,7 +111,7 @@ from controllers.connectivity.mission import (
     target_queues,
 )
 from controllers.connectivity.potential import guarded_potential_slope
-from controllers.connectivity.roles import Role
+from controllers.connectivity.roles import ANCHOR_CODE, CONNECTOR_CODE, PRIME_CODE, SECONDARY_CODE, Role
 from controllers.connectivity.smooth_spectrum import smooth_lambda2_gradient
 from sim.config import ConfigError
 from sim.geometry import boxes_reaching, point_clearance
@@ -313,7 +313,7 @@ class ConnectedStrategy:
     def _note_changes(self, t: float, out: ExplorationStep) -> None:
         for i in np.flatnonzero(out.roles != self.roles):
             self._events.append(f"t = {t:.2f} s: {self.names[i]} becomes {ROLE_NAMES[Role(int(out.roles[i]))]}")
-            if out.roles[i] == Role.PRIME_TRAVELER:
+            if out.roles[i] == PRIME_CODE:
                 self.stats.elections += 1
         for visit in out.visits[self._visits_seen:]:
             self._events.append(f"t = {t:.2f} s: {self.names[visit.target.robot]} visited its target "
@@ -332,16 +332,16 @@ class ConnectedStrategy:
 
     def _info(self, out: ExplorationStep, state, estimate, f_lambda, tick, robot_distance, obstacle_distance) -> dict:
         roles = out.roles
-        secondary = roles == Role.SECONDARY_TRAVELER
-        others = roles != Role.PRIME_TRAVELER
+        secondary = roles == SECONDARY_CODE
+        others = roles != PRIME_CODE
         nan = float("nan")
         scalars = {
             **tick,
             "lambda2_estimate_mean": float(np.mean(estimate.lambda2)) if estimate is not None else nan,
             "prime_traveler": float(out.prime),
             "secondary_travelers": float(secondary.sum()),
-            "anchors": float(np.sum(roles == Role.ANCHOR)),
-            "connectors": float(np.sum(roles == Role.CONNECTOR)),
+            "anchors": float(np.sum(roles == ANCHOR_CODE)),
+            "connectors": float(np.sum(roles == CONNECTOR_CODE)),
             "prime_efficiency": out.prime_efficiency,
             "prime_efficiency_estimate_mean": float(out.efficiency_estimate[others].mean()) if others.any() else nan,
             "alignment_mean": float(np.nanmean(out.alignment[secondary])) if secondary.any() else nan,

@@ -115,7 +115,8 @@ class DwellClock:
 
     def elapsed(self, time: float) -> np.ndarray:
         """Seconds (N,) of the current uninterrupted stay; 0 when not inside."""
-        return np.where(np.isnan(self._since), 0.0, time - np.nan_to_num(self._since))
+        timed = ~np.isnan(self._since)
+        return np.where(timed, time - np.where(timed, self._since, 0.0), 0.0)
 
 
 def monte_carlo_target_counts(n_robots: int) -> list[int]:

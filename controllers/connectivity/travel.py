@@ -71,6 +71,12 @@ class PathReference:
         )
 
 
+def row_norm(x: np.ndarray, keepdims: bool = False) -> np.ndarray:
+    """Euclidean norm of each row of a float (P, 3) array: np.linalg.norm(x, axis=1)'s very sum
+    (the same bits) without its argument checks, which cost more than the sum at this size."""
+    return np.sqrt(np.add.reduce(x * x, axis=1, keepdims=keepdims))
+
+
 def reference_speed(remaining, cruise_speed: float, braking_distance: float) -> tuple[np.ndarray, np.ndarray]:
     """Speed (P,), m/s, of the virtual point with ``remaining`` (P,) metres to go,
     and its derivative along the path dv/ds (P,), 1/s."""
@@ -118,7 +124,7 @@ def travel_force(
         + position_gain * (reference.point - positions)
     )
     if np.isfinite(max_force):
-        magnitude = np.linalg.norm(force, axis=1, keepdims=True)
+        magnitude = row_norm(force, keepdims=True)
         force *= np.minimum(1.0, max_force / np.maximum(magnitude, 1e-12))
     return force
 
@@ -140,7 +146,7 @@ def anchor_force(positions, targets, radius: float, gain: float, max_force: floa
     """Eqs. (5), (7): f_anchor (P, 3), N = -k_z tan(l pi / (2 R_z)) (q - z) / l,
     magnitude capped at ``max_force``; at ``max_force`` towards z for l >= R_z."""
     offset = np.atleast_2d(positions) - np.atleast_2d(targets)
-    distance = np.linalg.norm(offset, axis=1)
+    distance = row_norm(offset)
     inside = distance < radius
     magnitude = np.where(inside, gain * np.tan(np.where(inside, distance, 0.0) * np.pi / (2.0 * radius)), np.inf)
     magnitude = np.minimum(magnitude, max_force)
@@ -152,8 +158,8 @@ def force_alignment(x, y) -> np.ndarray:
     """Eqs. (8), (10): Theta (P,) = (1 + cos angle(x, y)) / 2 in [0, 1]; 1 if either is zero."""
     x = np.atleast_2d(x)
     y = np.atleast_2d(y)
-    nx = np.linalg.norm(x, axis=1)
-    ny = np.linalg.norm(y, axis=1)
+    nx = row_norm(x)
+    ny = row_norm(y)
     both = (nx > 0) & (ny > 0)
     cosine = np.sum(x * y, axis=1) / np.where(both, nx * ny, 1.0)
     return np.where(both, 0.5 * (1.0 + np.clip(cosine, -1.0, 1.0)), 1.0)
@@ -170,8 +176,8 @@ def efficiency(x, x_full: float, x_zero: float) -> np.ndarray:
 
 def tracking_error(positions, velocities, reference: PathReference, position_weight: float) -> np.ndarray:
     """Eq. (11): e_i (P,) = (1 - alpha_A) ||v_gamma - q'|| + alpha_A ||q_gamma - q||."""
-    velocity_error = np.linalg.norm(reference.velocity - np.atleast_2d(velocities), axis=1)
-    position_error = np.linalg.norm(reference.point - np.atleast_2d(positions), axis=1)
+    velocity_error = row_norm(reference.velocity - np.atleast_2d(velocities))
+    position_error = row_norm(reference.point - np.atleast_2d(positions))
     return (1.0 - position_weight) * velocity_error + position_weight * position_error
 
 

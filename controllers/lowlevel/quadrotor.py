@@ -344,7 +344,8 @@ def geometric_control(
     # The commanded heading's trigonometry stays numpy's (its vectorised sin/cos/arctan2 differ from
     # libm's in the last bit; keeping them keeps trajectories bit-identical to the numpy controller).
     q = np.asarray(state.quaternion, dtype=float)
-    w, x, y, z = (q / np.linalg.norm(q, axis=1, keepdims=True)).T  # as quaternion_to_matrix, two entries only
+    # as quaternion_to_matrix (np.linalg.norm's own sum, without its checks), two entries only
+    w, x, y, z = (q / np.sqrt(np.add.reduce(q * q, axis=1, keepdims=True))).T
     heading = np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
     yaw_error = np.angle(np.exp(1j * (reference.yaw - heading)))
     yaw_cmd = heading + np.clip(yaw_error, -gains.max_yaw_error, gains.max_yaw_error)
