@@ -181,7 +181,7 @@ def test_connected_tracking_refuses_a_disconnected_start(tmp_path, capsys, range
     assert len(lines) == 1 and "Traceback" not in err, err
     assert expected in lines[0], lines[0]
     if range_m == 0.1:
-        assert "ground1" in lines[0] or "robot" in lines[0]
+        assert "ground1, ground2, ground3 cannot reach ground0" in lines[0], lines[0]
     assert not out.exists()
 
 
