@@ -276,3 +276,13 @@ def _segment_clearance_kernel(a, b, centers, half_sizes, rotations, world_half, 
 def segments_free(boxes: Boxes, a: np.ndarray, b: np.ndarray, margin: float = 0.0) -> np.ndarray:
     """Boolean (P,): segment keeps more than ``margin`` from every box."""
     return segment_clearance(boxes, a, b).distance > margin
+
+
+def boxes_reaching(boxes: Boxes, height: float) -> Boxes:
+    """The boxes whose top lies above ``height`` (m): what a planner working in
+    the plane of ground robots' sensors at twice that height must avoid (the
+    floor slab and low decorations drop out, or every move would touch them)."""
+    # Vertical extent of each oriented box: |R[2, :]| . half_sizes.
+    reach = np.einsum("kj,kj->k", np.abs(boxes.rotations[:, 2, :]), boxes.half_sizes)
+    keep = boxes.centers[:, 2] + reach > height
+    return Boxes(boxes.centers[keep], boxes.half_sizes[keep], boxes.rotations[keep])

@@ -43,10 +43,17 @@ STRATEGIES: dict[str, StrategySpec] = {
         "controllers.baselines.random_meeting:RandomMeetingStrategy",
         "Khodayi-mehr et al. 2019, baseline: the same teams and schedule, geodesic paths to random meeting points",
     ),
+    "connected_tracking": StrategySpec(
+        "controllers.tracking.params:ConnectedTrackingParams",
+        "controllers.tracking.strategy:ConnectedTrackingStrategy",
+        "Nestmeyer et al.'s connected controller on Khodayi-mehr et al.'s tracking task: explorers visit viewpoints of the EKF's most "
+        "uncertain targets while the team keeps lambda2 > 0; every reading fused at once",
+    ),
     "connected": StrategySpec(
         "controllers.connectivity.connected_params:ConnectedParams",
         "controllers.connectivity.strategy:ConnectedStrategy",
-        "Nestmeyer et al. 2017: quadrotors track virtual points driven by lambda2-gradient connectivity forces while "
+        "Nestmeyer et al. 2017: quadrotors (or ground robots, in the sensors' plane) track virtual points driven by "
+        "lambda2-gradient connectivity forces while "
         "explorers visit their targets under prime-traveler election",
     ),
 }

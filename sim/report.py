@@ -11,6 +11,10 @@ trials, and every cell states its n:
 - seed 000's Sec. IV-A team graphs (``intermittent`` trials of two or more
   scenarios with the same targets): e_g, lambda-bar, delay against its
   bound and the t*(t) lag, the paper's figures beside;
+- both paradigms against the communication range (issue 12, sweep
+  ``paradigms``: ``e_g_mean_m`` of two or more strategy kinds with a swept
+  ``sensing.comm_range_m``): e_g and lambda-bar per method and range, mean
+  and spread over seeds, a table and a plot (``paradigms.png``);
 - with ``--x KEY --y METRIC [--hue KEY]``: any metric against any column.
 
 Only rows with status "completed" enter statistics; the trial counts and
@@ -48,7 +52,13 @@ PAPER_TABLE_I = {
         "intermittent": ((0.929, 0.561), (0.177, 0.068))},
 }
 METHOD_ORDER = ("all_time", "random_meeting", "intermittent")  # Table I's column order
-METHOD_LABELS = {"all_time": "all-time", "random_meeting": "heuristic", "intermittent": "intermittent"}
+METHOD_LABELS = {"all_time": "all-time", "random_meeting": "heuristic", "intermittent": "intermittent",
+                 "connected_tracking": "connected (seed 001)"}
+# Both paradigms on one task (issue 12): the methods in plotting order, and the swept range column.
+PARADIGM_METHODS = ("all_time", "random_meeting", "intermittent", "connected_tracking")
+PARADIGM_COLORS = {"all_time": "#8c8c8c", "random_meeting": "#d98c3a", "intermittent": "#3a78d9",
+                   "connected_tracking": "#2ca05a"}
+RANGE_COLUMN = "sensing.comm_range_m"
 
 # Seed 000, Sec. IV-A (8 targets): team graph -> (e_g-bar m, lambda-bar m^2, delay bound D_G epochs).
 PAPER_TEAMS = {
@@ -234,7 +244,9 @@ def _paired_wins(rows: list[dict], n_targets: int) -> list[str]:
 
 def table1_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
     """Seed 000's Table I: mean +- std per method and target count, the paper's beside."""
-    with_e_g = [r for r in rows if "e_g_mean_m" in r and r.get("strategy") in METHOD_ORDER]
+    # Trials at a swept communication range belong to the paradigms section, not to Table I.
+    with_e_g = [r for r in rows if "e_g_mean_m" in r and r.get("strategy") in METHOD_ORDER
+                and r.get(RANGE_COLUMN) is None]
     # Only scenarios run with two or more methods compare methods (not, e.g., a teams sweep's graphs).
     methods_of = defaultdict(set)
     for r in with_e_g:
@@ -300,6 +312,62 @@ def table1_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
     fig.savefig(png, dpi=110)
     plt.close(fig)
     return [*lines[:2], f"![Table I]({png.name})", "", *lines[2:]], [png]
+
+
+def paradigms_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
+    """Issue 12: e_g and lambda-bar of every method against the communication range."""
+    chosen = [r for r in rows if r.get("status") == "completed" and _number(r.get(RANGE_COLUMN)) is not None
+              and r.get("strategy") in PARADIGM_METHODS and _number(r.get("e_g_mean_m")) is not None
+              and _number(r.get("lambda_bar_mean_m2")) is not None]
+    methods = [m for m in PARADIGM_METHODS if any(r.get("strategy") == m for r in chosen)]
+    ranges = sorted({float(r[RANGE_COLUMN]) for r in chosen})
+    if len(methods) < 2 or len(ranges) < 2:
+        return [], []
+    cells = {}
+    for m in methods:
+        for rng in ranges:
+            group = [r for r in chosen if r.get("strategy") == m and float(r[RANGE_COLUMN]) == rng]
+            if group:
+                e_g = np.array([float(r["e_g_mean_m"]) for r in group])
+                lam = np.array([float(r["lambda_bar_mean_m2"]) for r in group])
+                cells[(m, rng)] = {"n": len(group), "e_g": e_g, "lam": lam}
+    lines = ["## Both paradigms against the communication range", "",
+             "Per method and range: mean over seeds of each run's time-averaged e_g (m) and lambda-bar (m^2), "
+             "+- their std over seeds, [min, max] over seeds, and n (completed trials).", ""]
+    for key, name in (("e_g", "e_g (m)"), ("lam", "lambda-bar (m^2)")):
+        lines += [f"**{name}**", "", "| method | " + " | ".join(f"R = {rng:g} m" for rng in ranges) + " |",
+                  "|" + " --- |" * (1 + len(ranges))]
+        for m in methods:
+            row = []
+            for rng in ranges:
+                c = cells.get((m, rng))
+                row.append("- (n=0)" if c is None else f"{c[key].mean():.3f} ± {c[key].std():.3f} "
+                           f"[{c[key].min():.3f}, {c[key].max():.3f}] (n={c['n']})")
+            lines.append(f"| {METHOD_LABELS[m]} | " + " | ".join(row) + " |")
+        lines.append("")
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, (key, label) in zip(axes, (("e_g", "e_g, time average (m)"), ("lam", "lambda-bar (m^2)"))):
+        for m in methods:
+            xs = [rng for rng in ranges if (m, rng) in cells]
+            mean = np.array([cells[(m, rng)][key].mean() for rng in xs])
+            low = np.array([cells[(m, rng)][key].min() for rng in xs])
+            high = np.array([cells[(m, rng)][key].max() for rng in xs])
+            ax.plot(xs, mean, "o-", color=PARADIGM_COLORS[m], label=METHOD_LABELS[m])
+            ax.fill_between(xs, low, high, color=PARADIGM_COLORS[m], alpha=0.15)
+        ax.set_xscale("log")
+        ax.minorticks_off()
+        ax.set_xticks(ranges, [f"{rng:g}" for rng in ranges])
+        ax.set_xlabel("communication range R (m)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("mean over seeds; band: min-max over seeds", fontsize=9)
+    fig.tight_layout()
+    png = out / "paradigms.png"
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    return [*lines[:2], f"![paradigms]({png.name})", "", *lines[2:]], [png]
 
 
 def teams_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
@@ -427,7 +495,7 @@ def write_report(results: str | Path, out: str | Path | None = None, x: str | No
     target.mkdir(parents=True, exist_ok=True)
     lines = trials_section(rows, manifest)
     pngs: list[Path] = []
-    for section in (fig9_section, table1_section, teams_section):
+    for section in (fig9_section, table1_section, paradigms_section, teams_section):
         text, files = section(rows, target)
         lines += text
         pngs += files

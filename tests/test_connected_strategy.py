@@ -112,7 +112,6 @@ def test_cli_refuses_bad_connected_input(tmp_path, overrides, expected):
         (["strategy.target_lists=[[[2.0, 5.0, 1.0]]]", 'strategy.targets="fixed"'], "strategy.target_lists.0.0",
          "inside an obstacle"),
         (["strategy.target_counts=[1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1]"], "strategy.target_counts", "lists 11 robots"),
-        (["robots.0.kind=\"ground\""], "robots", "quadrotors only"),
     ],
 )
 def test_refused_set_ups_name_the_field(overrides, field, expected):

@@ -101,8 +101,63 @@ _EXPLORATION_FIELDS = {
 }
 
 
-def preset_values(preset: str) -> dict[str, float]:
-    """Every preset-filled field of ``preset`` ("office" | "outdoor"), strategy key -> value."""
+# The "ground" preset (not in the paper): seed 001's controller on seed 000's
+# e-puck-sized ground robots (body radius 0.036 m, wheel limit 0.154 m/s),
+# virtual points in the plane of the range sensors. Body-scale ranges are
+# fixed; R'_s scales with R_s (office ratio 1.1 / 2.5); forces scale with the
+# cruise speed (seed 000's u_max = 0.1 m/s against the office's 1 m/s) and
+# k_lambda with force x length (R_s), so the barrier holds a pulled link at
+# the same fraction of R_s as in the office. docs/paradigms.md gives the why.
+GROUND_BODY = dict(
+    min_robot_distance_m=0.08,  # R_c: two bodies touch at 0.072 m, plus ~1 cm
+    full_weight_robot_distance_m=0.10,  # R'_c
+    min_obstacle_clearance_m=0.05,  # R_o: body radius 0.036 m plus ~1.4 cm
+    full_weight_obstacle_clearance_m=0.08,  # R'_o = seed 000's clearance_m
+    lambda2_min=0.0,
+    lambda2_null=1.0,
+    virtual_mass_kg=1.0,
+    damping_nspm=2.0,
+    cruise_speed_mps=0.1,  # seed 000's |u| <= 0.1 m per 1 s step
+    position_gain=25.0,
+    velocity_gain=10.0,
+    braking_distance_m=0.2,  # office 2 m at 1 m/s: the same braking time at 0.1 m/s
+    target_radius_m=0.1,  # R_z
+    dwell_time_s=3.0,
+    anchor_gain_n=0.1,  # office 1 N x 0.1 (speed ratio)
+    anchor_force_limit_n=4.0,  # 4 k_v v_cruise, as the office's 40 N
+    travel_force_limit_n=2.0,  # 2 k_v v_cruise, as the office's 20 N
+    position_error_weight=0.0,
+    consensus_gain=1.0,
+    sigma=3.0,
+    grid_resolution_m=0.1,
+    path_clearance_m=0.08,  # R'_o
+    path_min_clearance_m=0.05,  # R_o
+    smoothing_tolerance_m=0.02,
+    efficiency_error_full_ratio=0.1,
+    efficiency_error_zero_ratio=0.6,
+    target_clearance_m=0.1,
+    target_height_min_m=0.0,
+    target_height_max_m=0.5,
+)
+GROUND_DEFAULT_RANGE_M = 0.2  # R_s when the scenario does not give it (seed 000's R)
+
+
+def ground_preset_values(sensing_range: float) -> dict[str, float]:
+    """The "ground" preset for R_s = ``sensing_range`` (m), strategy key -> value."""
+    values = dict(GROUND_BODY)
+    values["sensing_range_m"] = sensing_range
+    values["full_weight_range_m"] = round(0.44 * sensing_range, 12)  # R'_s / R_s of the office preset
+    values["replan_distance_m"] = round(0.4 * sensing_range, 12)  # R_gamma / R_s of the office preset
+    # office: 5 J at R_s = 2.5 m and 1 m/s -> 5 J x (0.1 / 1) x (R_s / 2.5)
+    values["potential_gain_j"] = round(0.2 * sensing_range, 12)
+    return values
+
+
+def preset_values(preset: str, sensing_range: float = math.nan) -> dict[str, float]:
+    """Every preset-filled field of ``preset`` ("office" | "outdoor" | "ground"), strategy key -> value
+    (``sensing_range``: R_s the ground preset scales with, default 0.2 m)."""
+    if preset == "ground":
+        return ground_preset_values(GROUND_DEFAULT_RANGE_M if math.isnan(sensing_range) else sensing_range)
     connectivity = getattr(ConnectivityParams, preset)()
     exploration = getattr(ExplorationParams, preset)()
     out = {key: getattr(connectivity, name) for key, name in _CONNECTIVITY_FIELDS.items()}
@@ -119,7 +174,8 @@ class ConnectedParams:
     # -- general (group headers "# -- NAME, ..." group the fields on the tuning page)
 
     # Table 2 column that fills every field left out: "office" (indoor) or "outdoor" (empty space, town)
-    preset: Literal["office", "outdoor"] = param("office", tunable=False)
+    # "ground": seed 000's e-puck ground robots, ranges scaled from R_s (see GROUND_BODY)
+    preset: Literal["office", "outdoor", "ground"] = param("office", tunable=False)
     # Where lambda2 and the Fiedler vector come from: "exact" (centralised eigh) or
     # "estimator" (decentralised, Yang et al. 2010)
     lambda2_source: Literal["exact", "estimator"] = param("exact", tunable=False)
@@ -154,7 +210,7 @@ class ConnectedParams:
     # R_s: weights vanish at this distance; must equal sensing.comm_range_m
     sensing_range_m: float = param(PRESET, unit="m", min=0.2, max=50.0, tunable=False)
     # R'_s: range factor is 1 up to this distance
-    full_weight_range_m: float = param(PRESET, unit="m", min=0.1, max=50.0)
+    full_weight_range_m: float = param(PRESET, unit="m", min=0.01, max=50.0)
     # R_o: weights vanish when the line of sight passes this close to an obstacle
     min_obstacle_clearance_m: float = param(PRESET, unit="m", min=0.01, max=10.0)
     # R'_o: line-of-sight factor is 1 from this clearance on
@@ -168,7 +224,7 @@ class ConnectedParams:
     # lambda2_null: potential and force vanish above this lambda2
     lambda2_null: float = param(PRESET, min=0.01, max=10.0)
     # k_lambda: scale of the connectivity potential V(lambda2)
-    potential_gain_j: float = param(PRESET, unit="J", min=0.1, max=100.0)
+    potential_gain_j: float = param(PRESET, unit="J", min=0.001, max=100.0)
     # V' is held at its value at lambda2_min + this below it (sampled-data safety; see params.py)
     lambda2_guard: float = param(1e-5, min=1e-9, max=0.1, tunable=False)
     # M: mass of each virtual point
@@ -248,8 +304,9 @@ class ConnectedParams:
     estimator: FiedlerEstimatorParams = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        require(self.preset in ("office", "outdoor"), "preset", f"must be 'office' or 'outdoor', got {self.preset!r}")
-        defaults = preset_values(self.preset)
+        require(self.preset in ("office", "outdoor", "ground"), "preset",
+                f"must be 'office', 'outdoor' or 'ground', got {self.preset!r}")
+        defaults = preset_values(self.preset, self.sensing_range_m)
         for f in fields(self):
             if f.init and isinstance(getattr(self, f.name), float) and math.isnan(getattr(self, f.name)):
                 object.__setattr__(self, f.name, float(defaults[f.name]))

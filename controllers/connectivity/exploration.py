@@ -143,6 +143,29 @@ class ExplorationController:
         except NoPathError:
             pass  # keep following the old path; f_lambda keeps the robot safe meanwhile
 
+    def retarget(self, robot: int, position, dwell_time: float, robot_position=None) -> Target | None:
+        """Online target generators: replace robot ``robot``'s current target
+        z_i (same index k) by ``position`` (3,), m, with ``dwell_time``, s.
+
+        A traveler replans from ``robot_position`` (3,), m (its q_i) to the new
+        point, keeping the old path if none is found; an anchor keeps its
+        place (give it the same position) and only its dwell time changes: a
+        dwell time it has already spent ends its visit on the next tick.
+        Returns the new target, or None when the robot has none.
+        """
+        current = self.targets[robot]
+        if current is None:
+            return None
+        point = np.asarray(position, dtype=float).reshape(3).copy()
+        if not (np.all(np.isfinite(point)) and np.isfinite(dwell_time) and dwell_time >= 0):
+            raise ValueError(f"retarget needs a finite position and dwell time >= 0, got {point}, {dwell_time!r}")
+        point.setflags(write=False)
+        self.targets[robot] = Target(robot, current.index, point, float(dwell_time))
+        self._target_table = None
+        if self.paths[robot] is not None and robot_position is not None and not np.array_equal(point, current.position):
+            self._replan(robot, np.asarray(robot_position, dtype=float).reshape(3))
+        return self.targets[robot]
+
     def _reference(self, robot: int, position: np.ndarray) -> PathReference:
         p = self.params
         return path_reference(self.paths[robot], position[None], p.cruise_speed, p.braking_distance)

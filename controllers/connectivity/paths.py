@@ -97,8 +97,9 @@ class NoPathError(RuntimeError):
 def planning_resolution(lower, upper, preferred: float, max_cells: int = 400_000) -> float:
     """Grid spacing, m: ``preferred`` (R_grid), coarsened so the grid has at most ``max_cells`` cells."""
     span = np.asarray(upper, dtype=float) - np.asarray(lower, dtype=float)
-    if preferred <= 0 or np.any(span <= 0):
-        raise ValueError(f"resolution must be positive and upper > lower, got {preferred!r}, span {span}")
+    if preferred <= 0 or np.any(span < 0) or not np.any(span > 0):
+        raise ValueError(f"resolution must be positive and upper >= lower (> on some axis), got {preferred!r}, "
+                         f"span {span}")
     resolution = float(preferred)
     while np.prod(np.floor(span / resolution) + 1) > max_cells:
         resolution *= 1.1
@@ -376,6 +377,10 @@ class GridPlanner:
     distance of the path from obstacles and bound faces, m; min_clearance:
     fallback distance for narrow passages, m; smoothing_tolerance: how far the
     spline may round corners of the grid path, m.
+
+    Planar scenes (ground robots): ``lower`` and ``upper`` may coincide on an
+    axis; the grid is then one layer at that coordinate, paths stay in it,
+    and that axis's bound faces are not walls (``planar_axes``).
     """
 
     def __init__(
@@ -392,8 +397,11 @@ class GridPlanner:
         self.boxes = boxes
         self.lower = np.asarray(lower, dtype=float).reshape(3)
         self.upper = np.asarray(upper, dtype=float).reshape(3)
-        if np.any(self.upper <= self.lower):
-            raise ValueError(f"upper {self.upper} must exceed lower {self.lower} on every axis")
+        if np.any(self.upper < self.lower) or np.all(self.upper == self.lower):
+            raise ValueError(f"upper {self.upper} must not be below lower {self.lower} and exceed it on some axis")
+        # Axes with lower == upper: a planar grid, whose bound faces on that axis are not walls.
+        self.planar_axes = np.flatnonzero(self.upper == self.lower)
+        self._bounded_axes = np.flatnonzero(self.upper > self.lower)
         min_clearance = clearance if min_clearance is None else min_clearance
         if not 0 <= min_clearance <= clearance:
             raise ValueError(f"min_clearance ({min_clearance}) must lie in [0, clearance ({clearance})]")
@@ -432,7 +440,8 @@ class GridPlanner:
     def bounds_clearance(self, points) -> np.ndarray:
         """Distance (P,) from each point to the nearest bound face (negative outside), m."""
         points = np.atleast_2d(points)
-        return np.minimum(points - self.lower, self.upper - points).min(axis=1)
+        axes = self._bounded_axes
+        return np.minimum(points[:, axes] - self.lower[axes], self.upper[axes] - points[:, axes]).min(axis=1)
 
     def clearance_of(self, points) -> np.ndarray:
         """Distance (P,) to the nearest obstacle or bound face, m."""

@@ -33,6 +33,20 @@ Per control tick (all robots at once):
 The run ends early (``finished``) once every target is visited and every
 robot is a connector again.
 
+Ground robots (seed 000's e-puck bodies; ``preset = "ground"``): the team is
+all ground robots or all quadrotors. On the ground the virtual points live in
+the horizontal plane of the range sensors (z = the sensors' mean height at the
+start): q_i starts at robot i's sensor, every force's z component is dropped
+(planar virtual dynamics), obstacles are the boxes that reach above half that
+height (the floor slab drops out), and the planner's grid is one layer in that
+plane. The body's point-offset wheel controller tracks (q_i, v_i) in x, y.
+
+Target generator: by default the scenario's (``targets``: random or fixed
+lists, Sec. 2.1); a caller may pass ``targets``, a function
+(planner, start points (N, 3), rng) -> TargetQueues, and keep pushing to
+``self.queues`` during the run (online targets, e.g. the EKF's viewpoints of
+``connected_tracking``).
+
 ``commands.info``: ``scalars`` (lambda2, edges, roles, Lambda_p and its
 estimates, Theta, rho, distances: plots and the recording), ``robot_scalars``
 (per robot: role, hat-Lambda_p^i, Lambda_i, Theta_i, rho_i: the recording),
@@ -100,7 +114,7 @@ from controllers.connectivity.potential import guarded_potential_slope
 from controllers.connectivity.roles import ANCHOR_CODE, CONNECTOR_CODE, PRIME_CODE, SECONDARY_CODE, Role
 from controllers.connectivity.smooth_spectrum import smooth_lambda2_gradient
 from sim.config import ConfigError
-from sim.geometry import point_clearance
+from sim.geometry import boxes_reaching, point_clearance
 from sim.types import Commands, Observation, WorldInfo
 
 # Colours (RGBA) of the robots by role in the video (the paper's Fig. 6:
@@ -129,8 +143,9 @@ _WARMUP_STEP_S = 0.01
 class ConnectedStrategy:
     """Seed 001 for a team of quadrotors (see the module docstring)."""
 
-    def __init__(self, params: ConnectedParams):
+    def __init__(self, params: ConnectedParams, targets=None):
         self.params = params
+        self._target_generator = targets
         self.timings = {"lambda2": 0.0, "forces": 0.0}  # s of wall time per stage, for benchmarks
         self._finished = False
 
@@ -141,10 +156,11 @@ class ConnectedStrategy:
         n = world.n_robots
         if n < 2:
             raise ConfigError("robots", f"the connected strategy needs at least 2 robots, got {n}")
-        ground = [name for name, kind in zip(world.robot_names, world.robot_kinds) if kind != "quadrotor"]
-        if ground:
-            raise ConfigError("robots", f"the connected strategy flies quadrotors only; {', '.join(ground)} "
-                              "are ground robots")
+        kinds = set(world.robot_kinds)
+        if len(kinds) > 1:
+            ground = [name for name, kind in zip(world.robot_names, world.robot_kinds) if kind != "quadrotor"]
+            raise ConfigError("robots", f"the connected strategy drives one kind of robot at a time; "
+                              f"{', '.join(ground)} are ground robots among quadrotors")
         if abs(world.comm_range_m - c.sensing_range) > 1e-9:
             raise ConfigError("sensing.comm_range_m", f"must equal R_s = strategy.sensing_range_m "
                               f"({c.sensing_range:g} m) for the connected strategy (one graph for sensing and "
@@ -153,16 +169,29 @@ class ConnectedStrategy:
             raise ConfigError("strategy.election_host", f"must be a robot index below {n}, got {p.election_host}")
         self.world = world
         self.dt = world.control_period_s
-        self.boxes = world.obstacles
         self.names = world.robot_names
-        self.q = np.array(initial.position, dtype=float)
+        self.planar = kinds == {"ground"}
+        bounds = np.array(world.bounds, dtype=float)
+        if self.planar:
+            # Virtual points in the plane of the range sensors (see the module docstring).
+            self.plane_z = float(np.mean(initial.sensor_position[:, 2]))
+            self.boxes = boxes_reaching(world.obstacles, 0.5 * self.plane_z)
+            bounds[:, 2] = self.plane_z
+            self.q = np.array(initial.sensor_position, dtype=float)
+            self.q[:, 2] = self.plane_z
+        else:
+            self.boxes = world.obstacles
+            self.q = np.array(initial.position, dtype=float)
         self.v = np.zeros_like(self.q)
         state = connectivity_state(self.q, self.boxes, c)
         check_start(state, self.q, self.boxes, self.names, p)
 
-        self.planner = shared_planner(self.boxes, world.bounds, p)
+        self.planner = shared_planner(self.boxes, bounds, p)
         # Targets first: they are the first draws of the run's generator.
-        self.queues = target_queues(p, self.planner, self.q, rng)
+        if self._target_generator is None:
+            self.queues = target_queues(p, self.planner, self.q, rng)
+        else:
+            self.queues = self._target_generator(self.planner, self.q.copy(), rng)
         self.targets_total = len(self.queues)
         self.explorers = np.flatnonzero(self.queues.pending())
         self.explorer = ExplorationController(p.exploration, self.planner, self.queues)
@@ -256,15 +285,19 @@ class ConnectedStrategy:
             f_lambda = generalized_connectivity_force(state.links, state.lambda2, state.fiedler, c)
         middle = time.perf_counter()
         out = self.explorer.step(t, q, v, observation.links.adjacency, f_lambda)
-        q_next, v_next = step_virtual_dynamics(q, v, f_lambda + out.forces, self.dt, c)
+        applied = f_lambda + out.forces
+        if self.planar:
+            applied[:, 2] = 0.0  # planar virtual dynamics
+        q_next, v_next = step_virtual_dynamics(q, v, applied, self.dt, c)
         acceleration = (v_next - v) / self.dt
         self.timings["lambda2"] += middle - start
         self.timings["forces"] += time.perf_counter() - middle
 
         obstacle_distance = point_clearance(self.boxes, q)
-        body_obstacle_distance = point_clearance(self.boxes, observation.position)
+        body = observation.sensor_position if self.planar else observation.position
+        body_obstacle_distance = point_clearance(self.boxes, body)
         robot_distance = pairwise_min_distance(q)
-        tick = self.stats.record(state, q, q_next, out.roles, obstacle_distance, observation.position,
+        tick = self.stats.record(state, q, q_next, out.roles, obstacle_distance, body,
                                  body_obstacle_distance, robot_distance,
                                  None if estimate is None else estimate.lambda2)
         self._note_changes(t, out)

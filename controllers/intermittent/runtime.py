@@ -8,13 +8,11 @@ this module holds what they share:
 - :class:`PlanningWorld` - the static workspace as the planners see it:
   obstacle boxes that reach the sensor height (the floor slab is dropped, or
   every move would collide with it), plane bounds and the sensor height.
-- :func:`measurement_records` - an Observation's range readings as
-  :class:`estimation.beliefs.RangeMeasurement` records, per robot.
 - :class:`TimedPath` - a planned :class:`RobotPath` (integer steps) executed
   from a sim-time offset: the reference position and velocity a ground robot
   tracks (|v| <= u_max per step).
-- :class:`EstimateSeries` - lambda_max(C_g(t)) per step and the
-  ``info`` entries (estimate, covariance blocks) observers use.
+- (in :mod:`controllers.task`, shared with ``connected_tracking``) the
+  readings as records, the prior, the time base, :class:`EstimateSeries`.
 - colours and the visual ``info`` keys (``robot_colors``, ``paths``,
   ``meeting_points``, ``target_estimates``, ``target_covariances``).
 
@@ -32,10 +30,10 @@ import numpy as np
 from controllers.intermittent.params import IntermittentParams
 from controllers.intermittent.planner import PlannerParams, RobotPath
 from controllers.intermittent.planner_geometry import points_free
-from estimation.beliefs import RangeMeasurement
-from estimation.ekf import PAPER_INITIAL_ESTIMATE, FilterState
+# Seed 000's task as every method sees it (re-exported: the strategies import it from here).
+from controllers.task import EstimateSeries, check_time_base, measurement_records, prior_state  # noqa: F401
 from sim.config import ConfigError
-from sim.geometry import Boxes
+from sim.geometry import Boxes, boxes_reaching
 from sim.types import Commands, Observation, WorldInfo
 
 PATH_HEIGHT_M = 0.01  # drawn paths lie this high above the floor, m
@@ -87,12 +85,7 @@ class PlanningWorld:
     @staticmethod
     def from_world(world: WorldInfo, initial: Observation) -> "PlanningWorld":
         z = float(np.mean(initial.sensor_position[:, 2]))
-        obstacles = world.obstacles
-        # Vertical extent of each oriented box: |R[2, :]| . half_sizes.
-        reach = np.einsum("kj,kj->k", np.abs(obstacles.rotations[:, 2, :]), obstacles.half_sizes)
-        top = obstacles.centers[:, 2] + reach
-        keep = top > 0.5 * z
-        boxes = Boxes(obstacles.centers[keep], obstacles.half_sizes[keep], obstacles.rotations[keep])
+        boxes = boxes_reaching(world.obstacles, 0.5 * z)
         return PlanningWorld(boxes, np.asarray(world.bounds, dtype=float)[:, :2].copy(), z)
 
 
@@ -129,51 +122,6 @@ def team_samples(n_sample: int, team_size: int) -> int:
     robot pair keeps 2-robot (and 1-point formation) plans as they were.
     """
     return int(n_sample) * max(int(team_size), 2) // 2
-
-
-def prior_state(params: IntermittentParams, n_targets: int) -> FilterState:
-    """x^0 and C(0) = prior_variance I (Sec. IV); the paper's x^0 when not given."""
-    if params.prior_mean:
-        if len(params.prior_mean) != n_targets:
-            raise ConfigError("strategy.prior_mean",
-                              f"has {len(params.prior_mean)} entries for {n_targets} targets")
-        mean = np.array(params.prior_mean, dtype=float)
-    else:
-        if n_targets > len(PAPER_INITIAL_ESTIMATE):
-            raise ConfigError("strategy.prior_mean", f"is required for more than {len(PAPER_INITIAL_ESTIMATE)} targets")
-        mean = PAPER_INITIAL_ESTIMATE[:n_targets]
-    mean = mean.reshape(-1)
-    return FilterState(0, mean, params.prior_variance_m2 * np.eye(mean.size))
-
-
-def check_time_base(world: WorldInfo, params: IntermittentParams) -> None:
-    """The strategies need the target model and a whole number of control ticks per step."""
-    if world.n_targets == 0:
-        raise ConfigError("targets", "the seed 000 strategies need at least one target")
-    if getattr(world, "target_motion", None) is None:
-        raise ConfigError("targets", "the simulator did not provide the target model")
-    if abs(world.target_motion.dt - params.step_s) > 1e-9:
-        raise ConfigError("strategy.step_s",
-                          f"must equal target_motion.step_s ({world.target_motion.dt} s), got {params.step_s}")
-    if abs(world.sensing_period_s - params.step_s) > 1e-9:
-        raise ConfigError("strategy.step_s",
-                          f"must equal sensing.period_s ({world.sensing_period_s} s), got {params.step_s}")
-    ratio = params.step_s / world.control_period_s
-    if abs(ratio - round(ratio)) > 1e-6:
-        raise ConfigError("strategy.step_s", f"must be a whole multiple of physics.control_period_s, got {params.step_s}")
-    if any(kind != "ground" for kind in world.robot_kinds):
-        raise ConfigError("robots", "the seed 000 strategies drive ground robots only")
-
-
-def measurement_records(observation: Observation, step: int) -> list[list[RangeMeasurement]]:
-    """Per robot, its readings of this step (one record per visible target)."""
-    ranges = observation.target_ranges
-    out: list[list[RangeMeasurement]] = []
-    for robot in range(len(ranges)):
-        sensor = tuple(float(v) for v in observation.sensor_position[robot])
-        seen = np.flatnonzero(np.isfinite(ranges[robot]))
-        out.append([RangeMeasurement(step, robot, sensor, int(a), float(max(ranges[robot, a], 0.0))) for a in seen])
-    return out
 
 
 @dataclass
@@ -239,48 +187,6 @@ def shifted(path: RobotPath, steps: int) -> RobotPath:
 def lifted(points: np.ndarray, z: float = PATH_HEIGHT_M) -> np.ndarray:
     points = np.asarray(points, dtype=float)
     return np.concatenate([points, np.full(points.shape[:-1] + (1,), z)], axis=-1)
-
-
-@dataclass
-class EstimateSeries:
-    """lambda_max of the global covariance per step, and the latest estimate.
-
-    ``info`` entries (for observers): ``target_estimate`` (M, 3) m and
-    ``target_estimate_step`` (the step it refers to), ``target_estimates``
-    (the same, for drawing) and ``target_covariances`` (M, 3, 3) m^2.
-    """
-
-    steps: list[int] = field(default_factory=list)
-    lambda_max: list[float] = field(default_factory=list)
-    last: FilterState | None = None
-    _info: dict = field(default_factory=dict)
-
-    def record(self, state: FilterState) -> float:
-        value = float(np.linalg.eigvalsh(state.covariance)[-1])
-        self.steps.append(state.step)
-        self.lambda_max.append(value)
-        self.last = state
-        m = state.n_targets
-        mean = state.mean.reshape(m, 3)
-        idx = np.arange(m)
-        self._info = {
-            "target_estimate": mean,
-            "target_estimate_step": state.step,
-            "target_estimates": mean,
-            "target_covariances": state.covariance.reshape(m, 3, m, 3)[idx, :, idx, :],
-        }
-        return value
-
-    def info(self) -> dict:
-        """The entries of the latest recorded state (the same objects until the next)."""
-        return self._info
-
-    def summary(self) -> dict:
-        """lambda-bar of eq. (13b): mean and population std over steps >= 1."""
-        values = np.array([v for s, v in zip(self.steps, self.lambda_max) if s >= 1])
-        if values.size == 0:
-            return {"lambda_bar_mean_m2": None, "lambda_bar_std_m2": None}
-        return {"lambda_bar_mean_m2": float(values.mean()), "lambda_bar_std_m2": float(values.std())}
 
 
 def commands_from_plane(observation: Observation, positions: np.ndarray, velocities: np.ndarray):

@@ -1,0 +1,131 @@
+"""``connected_tracking``: seed 001's continuous connectivity on seed 000's tracking task.
+
+The fourth method for seed 000's task (DESIGN.md, "Both paradigms on one
+task"). The robots run seed 001's controller whole - virtual dynamics
+M v' = f_B + f_lambda + f, the sensor-based lambda2 force (range R_s = the
+communication range, line-of-sight clearance R_o, inter-robot distance R_c),
+roles and the prime-traveler election by flooding, travel and anchor forces -
+through :class:`controllers.connectivity.strategy.ConnectedStrategy` on the
+ground robots (planar virtual points at the sensors' height, the ``ground``
+preset). Only its target generator differs: the team's EKF
+(:class:`controllers.tracking.generator.EKFTargetGenerator`), whose
+explorers are sent to viewpoints of the most uncertain targets.
+
+Estimation. The team is connected at every tick (lambda2 > lambda2_min is the
+controller's invariant), so every reading is fused the tick it is taken into
+one network-wide EKF: the belief is the global one, t*(t) = t, no delay. The
+readings, the EKF (:class:`estimation.beliefs.Belief`), the prior and the
+e_g / lambda-bar metrics are those of the three seed 000 methods
+(:mod:`controllers.task`).
+
+Explorers and connectors: ``explorers`` robots (default 2 of 8) explore, the
+rest connect (docs/paradigms.md says why). The run never finishes early:
+tracking lasts the scenario's duration.
+
+Bad input: a communication range at which the start configuration's graph
+G^lambda is disconnected is refused (ConfigError naming the robots, exit 2),
+as is a range the ground preset cannot use (R_s <= R_c).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from controllers.connectivity.connected_params import ConnectedParams
+from controllers.connectivity.strategy import ConnectedStrategy
+from controllers.task import EstimateSeries, check_time_base, measurement_records, prior_state
+from controllers.tracking.generator import EKFTargetGenerator, spread_robots
+from controllers.tracking.params import ConnectedTrackingParams
+from estimation.beliefs import Belief
+from sim.config import ConfigError
+from sim.types import Commands, Observation, WorldInfo
+
+
+def controller_params(params: ConnectedTrackingParams, comm_range: float) -> ConnectedParams:
+    """Seed 001's parameters on the ground robots: the ``ground`` preset at R_s =
+    ``comm_range`` (m) and v_cruise = seed 000's speed limit."""
+    try:
+        return ConnectedParams(preset="ground", sensing_range_m=float(comm_range),
+                               cruise_speed_mps=params.speed_mps, lambda2_source="exact")
+    except ValueError as err:
+        raise ConfigError("sensing.comm_range_m", f"{comm_range:g} m is unusable for connected_tracking: "
+                          f"{str(err).partition(': ')[2] or err}") from None
+
+
+class ConnectedTrackingStrategy:
+    kind = "connected_tracking"
+
+    def __init__(self, params: ConnectedTrackingParams):
+        self.params = params
+
+    def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
+        params = self.params
+        check_time_base(world, params)
+        n = world.n_robots
+        if params.explorers >= n:
+            raise ConfigError("strategy.explorers", f"must leave at least one connector: below the team size {n}, "
+                              f"got {params.explorers}")
+        self.world = world
+        self.step_s = params.step_s
+        self.motion = world.target_motion
+        self.prior = prior_state(params, world.n_targets)
+        self.plane_z = float(np.mean(initial.sensor_position[:, 2]))
+        self.belief = Belief(self.motion, self.prior, self.plane_z if params.resolve_mirror else None)
+        self.series = EstimateSeries()
+        self.last_step: int | None = None
+        self.readings_fused = 0
+        self.generator: EKFTargetGenerator | None = None
+        self.core = ConnectedStrategy(controller_params(params, world.comm_range_m), targets=self._first_targets)
+        self.core.reset(world, initial, rng)
+        self._scalars = {"lambda_max_m2": float(np.linalg.eigvalsh(self.prior.covariance)[-1]), "t_star_s": 0.0,
+                         "t_star_lag_s": 0.0}
+
+    def _first_targets(self, planner, starts: np.ndarray, rng: np.random.Generator):
+        """The controller's target generator at start-up (its queues)."""
+        explorers = spread_robots(starts, self.params.explorers)
+        self.generator = EKFTargetGenerator(self.params, planner, self.core.boxes, self.core.plane_z, self.motion,
+                                            explorers, self.world.target_range_m, self.core.params.exploration.cruise_speed)
+        return self.generator.first_targets(len(starts), starts, self.prior)
+
+    @property
+    def finished(self) -> bool:
+        return False  # tracking lasts the scenario's duration
+
+    def step(self, observation: Observation) -> Commands:
+        fresh = observation.target_ranges is not None
+        if fresh:
+            step = observation.target_step
+            t = observation.time_s
+            if abs(t - step * self.step_s) > 1e-6 or (self.last_step is not None and step != self.last_step + 1):
+                raise ConfigError("strategy.step_s", f"must equal sensing.period_s (reading of step {step} at "
+                                  f"t = {t:.3f} s)")
+            records = [r for robot in measurement_records(observation, step) for r in robot]
+            self.readings_fused += self.belief.receive(records)
+            self.last_step = step
+            self._scalars["lambda_max_m2"] = self.series.record(self.belief.estimate(step))
+            self._scalars["t_star_s"] = step * self.step_s  # always connected: t*(t) = t
+        estimate = self.series.last if self.series.last is not None else self.prior
+        core = self.core
+        self.generator.update(estimate, core.q, core.explorer, core.queues, fresh)
+        commands = core.step(observation)
+        info = commands.info
+        scalars = info.get("scalars")
+        if isinstance(scalars, dict):
+            scalars.update(self._scalars)
+        info.update(self.series.info())
+        return commands
+
+    def summary(self) -> dict:
+        core = self.core.summary()
+        for key in ("completion_time_s", "targets_total", "targets_visited", "targets_skipped"):
+            core.pop(key, None)
+        return {
+            **self.series.summary(),
+            **core,
+            "viewpoints_visited": len(self.core.last.visits) if self.core.last is not None else 0,
+            "readings_fused": self.readings_fused,
+            **self.generator.summary(),
+            "t_star_lag_mean_s": 0.0,
+            "t_star_lag_max_s": 0.0,
+            "comm_range_m": self.world.comm_range_m,
+        }
