@@ -23,7 +23,7 @@ Units: m, s; plane positions (x, y) in the world frame; discrete steps are
 from __future__ import annotations
 
 import bisect
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
