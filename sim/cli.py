@@ -1,7 +1,9 @@
 """``tether`` command line: a thin layer over :func:`sim.loop.run`.
 
 Exit codes: 0 completed, 1 diverged, 2 bad input (one line on stderr naming
-the field and the problem; nothing written).
+the field and the problem; nothing written), 130 interrupted (Ctrl-C or
+SIGTERM: the run stops at the next tick and writes its files, status
+"interrupted").
 """
 
 from __future__ import annotations
@@ -15,9 +17,21 @@ from pathlib import Path
 
 from sim.config import ConfigError
 
+EXIT_CODES = {"completed": 0, "diverged": 1, "interrupted": 130}
+EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, with its errors as one line (like every other refusal) and exit 2."""
+
+    def error(self, message: str):
+        _fail(f"{message} (see '{self.prog} --help')")
+        raise SystemExit(EXIT_BAD_INPUT)
+
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="tether", description="Robot teams under communication constraints, on MuJoCo.")
+    parser = _Parser(prog="tether", description="Robot teams under communication constraints, on MuJoCo.")
     sub = parser.add_subparsers(dest="command", required=True)
 
     run = sub.add_parser("run", help="run a scenario headless")
@@ -32,8 +46,10 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--quiet", action="store_true", help="print only the summary line")
     _video_arguments(run, implies_video=True)
     run.add_argument("--rerun-live", action="store_true",
-                     help="also stream to Rerun viewers while running (gRPC server and web viewer on 127.0.0.1; "
+                     help="also stream to Rerun viewers while running (gRPC server and web viewer on --host; "
                           "writes run.rrd too; keeps serving after the run until Ctrl-C)")
+    run.add_argument("--host", default="127.0.0.1",
+                     help="address the --rerun-live servers listen on (default 127.0.0.1: this machine only)")
     run.add_argument("--rerun-port", default="9876", metavar="N", help="gRPC port of --rerun-live (0: any free port)")
     run.add_argument("--rerun-web-port", default="9090", metavar="N",
                      help="web viewer port of --rerun-live (0: any free port)")
@@ -121,8 +137,10 @@ def _port(text: str, flag: str, host: str = "127.0.0.1") -> int:
 
 
 def _fail(message: str) -> int:
-    print(f"tether: error: {message}", file=sys.stderr)
-    return 2
+    """One line on stderr naming the field and the problem; exit 2."""
+    line = " ".join(str(message).split())
+    print(f"tether: error: {line}", file=sys.stderr)
+    return EXIT_BAD_INPUT
 
 
 def _progress(fraction: float) -> None:
@@ -131,43 +149,51 @@ def _progress(fraction: float) -> None:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from sim.scenario import load
+    from sim.validate import check_output_folder
 
-    if args.duration is not None and args.duration <= 0:
-        return _fail(f"--duration: must be positive, got {args.duration}")
     try:
+        if args.out:
+            check_output_folder(args.out)  # first: a folder that cannot be written refuses the run at once
+        if args.duration is not None and not args.duration > 0:
+            raise ConfigError("--duration", f"must be positive, got {args.duration}")
         video_overrides = _video_overrides(args)
         scenario = load(args.scenario, [*args.overrides, *video_overrides], seed=args.seed,
                         duration_s=args.duration)
+        out = Path(args.out) if args.out else Path("runs") / scenario.name
+        check_output_folder(out)
         if args.rerun_live:
-            grpc_port = _port(args.rerun_port, "--rerun-port")
-            web_port = _port(args.rerun_web_port, "--rerun-web-port", host="0.0.0.0")
+            grpc_port = _port(args.rerun_port, "--rerun-port", host=args.host)
+            web_port = _port(args.rerun_web_port, "--rerun-web-port", host=args.host)
     except ConfigError as err:
         return _fail(str(err))
-    out = Path(args.out) if args.out else Path("runs") / scenario.name
-    if out.exists() and not out.is_dir():
-        return _fail(f"--out: {out} exists and is not a folder")
 
     from sim.loop import run
 
     live = None
-    if args.rerun_live:
-        from viz.recording import LiveViewer
-
-        live = LiveViewer(grpc_port=grpc_port, web_port=web_port)
-        print(f"live Rerun web viewer: {live.web_url}", flush=True)
-        print(f"live Rerun gRPC stream: {live.grpc_url}  (native viewer: rerun {live.grpc_url})", flush=True)
     try:
+        if args.rerun_live:
+            from viz.recording import LiveViewer
+
+            live = LiveViewer(host=args.host, grpc_port=grpc_port, web_port=web_port)
+            print(f"live Rerun web viewer: {live.web_url}", flush=True)
+            print(f"live Rerun gRPC stream: {live.grpc_url}  (native viewer: rerun {live.grpc_url})", flush=True)
         result = run(scenario, out, video=args.video or bool(video_overrides), rrd=args.rrd or args.rerun_live,
                      live=live.stream if live else None, progress=None if args.quiet else _progress)
     except ConfigError as err:
         if live:
             live.close()
         return _fail(str(err))
+    except KeyboardInterrupt:  # before the run's own handlers were in place: nothing written
+        if live:
+            live.close()
+        print("\ntether: interrupted before the run started; nothing written", file=sys.stderr)
+        return EXIT_INTERRUPTED
     if not args.quiet:
         print(file=sys.stderr)
     m = result.metrics
+    rate = f"x{m['real_time_factor']:.2f}" if m.get("real_time_factor") is not None else "x-"
     print(f"{m['status']}: {m['scenario']} ({m['strategy']}), seed {m['seed']}, "
-          f"{m['sim_time_s']:.1f} s simulated in {m['wall_time_s']:.1f} s (x{m['real_time_factor']:.2f} real time)")
+          f"{m['sim_time_s']:.1f} s simulated in {m['wall_time_s']:.1f} s ({rate} real time)")
     if m.get("message"):
         print(f"  {m['message']}")
     for name, path in result.files.items():
@@ -176,16 +202,16 @@ def cmd_run(args: argparse.Namespace) -> int:
         viewer = Path(sys.executable).parent / "rerun"
         command = str(viewer) if viewer.exists() else "rerun"
         print(f"  open the recording with: {command} {result.files['recording']}")
-    if live:
+    if live and result.status != "interrupted":
         print(f"still serving the live stream ({live.web_url}); press Ctrl-C to stop", flush=True)
         try:
             while True:
                 time.sleep(3600)
         except KeyboardInterrupt:
             pass
-        finally:
-            live.close()
-    return 0 if result.status == "completed" else 1
+    if live:
+        live.close()
+    return EXIT_CODES[result.status]
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
@@ -238,7 +264,11 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     handlers = {"run": cmd_run, "tune": cmd_tune, "scenarios": cmd_scenarios, "compare": cmd_compare}
-    return handlers[args.command](args)
+    try:
+        return handlers[args.command](args)
+    except KeyboardInterrupt:
+        print("\ntether: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -8,10 +8,10 @@ Observers only read, so video and recording never change the trajectory.
 
 from __future__ import annotations
 
-import dataclasses
 import copy
-import json
-import os
+import dataclasses
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,12 +23,14 @@ import numpy as np
 from sim.actuation import LowLevelControl
 from sim.estimation_observer import EstimationMetrics
 from sim.observers import Frame, LinkMetrics, Observer, TrackingMetrics
+from sim.outputs import ProgressFile, Staging, json_safe, non_finite_fields, write_json
 from sim.registry import strategy_class
 from sim.config import ConfigError
 from sim.scenario import Scenario, StrategyConfig
 from sim.sensing import RaySensors
 from sim.targets import TargetDriver, nominal_path_samples
 from sim.types import Observation, WorldInfo
+from sim.validate import check_output_folder, check_scenario, tick_violation
 from sim.world import World, build_world
 
 _WARNINGS_THAT_DIVERGE = (
@@ -53,7 +55,7 @@ mujoco.set_mju_user_warning(_collect_warning)
 
 @dataclass
 class RunResult:
-    status: str  # "completed" | "diverged"
+    status: str  # "completed" | "diverged" | "interrupted"
     metrics: dict[str, Any]
     out_dir: Path | None
     files: dict[str, str] = field(default_factory=dict)
@@ -78,6 +80,7 @@ class Simulation:
         self.dt = scenario.physics.control_period_s
         self.tick_count = 0
         self.time_s = 0.0
+        self.divergence = ""  # why the last unhealthy tick was unhealthy
         self._next_reading_s = 0.0
         self._warnings = self._warning_count()
         self.info = WorldInfo(
@@ -90,6 +93,7 @@ class Simulation:
         self._move_targets()
         self.control.hover_ctrl()
         mujoco.mj_forward(self.world.model, self.world.data)
+        self._start_height = np.array([self.world.data.qpos[a + 2] for a in self.world.qpos_adr])
         self.strategy = strategy_class(scenario.strategy.kind)(scenario.strategy.params)
         self.strategy.reset(self.info, self.observe(read_targets=False), self.rng)
 
@@ -110,6 +114,8 @@ class Simulation:
                 fresh.reset(self.info, self.observe(read_targets=False), self.rng)
                 self.strategy = fresh
                 how = "restarted"
+        except ConfigError:
+            raise  # already names a scenario field (e.g. sensing.comm_range_m)
         except ValueError as err:
             name, sep, problem = str(err).partition(": ")
             if sep and " " not in name:
@@ -161,18 +167,88 @@ class Simulation:
         self.tick_count += 1
         self.time_s = self.tick_count * self.dt
         self._move_targets()
-        healthy = bool(np.all(np.isfinite(data.qpos)) and np.all(np.isfinite(data.qvel)))
-        warnings = self._warning_count()
-        healthy = healthy and warnings == self._warnings
-        return frame, healthy
+        self.divergence = self._check(commands)
+        return frame, not self.divergence
+
+    def _check(self, commands) -> str:
+        """Why the state after this tick is not sane ("" if it is): non-finite
+        physics, a MuJoCo warning, a robot out of the scene, fallen or tipped
+        over (sim.validate), or the strategy's own invariant (its optional
+        ``violation(commands)``)."""
+        data = self.world.data
+        if not (np.all(np.isfinite(data.qpos)) and np.all(np.isfinite(data.qvel))):
+            return "physics: non-finite state"
+        if self._warning_count() != self._warnings:
+            return "physics: " + (_mujoco_warnings[-1] if _mujoco_warnings else "MuJoCo warning")
+        adr = self.world.qpos_adr[:, None]
+        position, quaternion = data.qpos[adr + np.arange(3)], data.qpos[adr + np.arange(3, 7)]
+        reason = tick_violation(self.world, position, quaternion, self._start_height)
+        if reason:
+            return reason
+        violation = getattr(self.strategy, "violation", None)
+        if callable(violation):
+            return violation(commands) or ""
+        return ""
 
 
-def _write_json(path: Path, payload: dict) -> None:
-    tmp = path.with_suffix(".json.tmp")
-    with open(tmp, "w") as f:
-        json.dump(payload, f, indent=2, sort_keys=False)
-        f.write("\n")
-    os.replace(tmp, path)
+class _Interrupts:
+    """While a run ticks, SIGINT (Ctrl-C) and SIGTERM only set ``requested``
+    (the signal's name): the loop stops at the next tick and closes the run
+    as "interrupted". A second signal raises KeyboardInterrupt at once.
+    Handlers are installed only in the main thread (Python's rule)."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.requested = ""
+        self._previous: dict = {}
+
+    def _handle(self, signum, _frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = signal.Signals(signum).name
+
+    def __enter__(self) -> "_Interrupts":
+        if threading.current_thread() is threading.main_thread():
+            for sig in self.SIGNALS:
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+def _observers(sim: Simulation, folder: Path | None, video: bool, rrd: bool, live: Any,
+               final: Callable[[str], str]) -> tuple[list[Any], dict[str, Any], dict[str, str]]:
+    """The run's observers, writing into ``folder`` (the staging folder);
+    ``final(name)`` is where a file ends up. Returns (observers, named
+    observers, files)."""
+    scenario = sim.scenario
+    estimation = EstimationMetrics()  # first: it adds e_g to the frame's scalars for the observers after it
+    named: dict[str, Any] = {"estimation": estimation, "tracking": TrackingMetrics(sim.world.robot_kinds),
+                             "links": LinkMetrics()}
+    observers: list[Any] = list(named.values())
+    files: dict[str, str] = {}
+    if folder is None:
+        return observers, named, files
+    from viz.plots import PlotRecorder
+
+    named["plots"] = PlotRecorder(sim.world.robot_kinds, folder / "plots", robot_names=sim.world.robot_names)
+    named["progress"] = ProgressFile(folder / "progress.json")
+    observers += [named["plots"], named["progress"]]
+    if video:
+        from viz.video import VideoRecorder
+
+        files["video"] = final("video.mp4")
+        observers.append(VideoRecorder(sim.world, scenario.video, str(folder / "video.mp4"), sim.dt))
+    if rrd or live is not None:
+        from viz.recording import RerunRecorder
+
+        files["recording"] = final("run.rrd")
+        named["recorder"] = RerunRecorder(sim.world, str(folder / "run.rrd"), scenario.name, live_stream=live)
+        observers.append(named["recorder"])
+    return observers, named, files
 
 
 def run(
@@ -185,78 +261,95 @@ def run(
     progress: Callable[[float], None] | None = None,
     extra_observers: Sequence[Observer] = (),
 ) -> RunResult:
-    """Run a scenario headless; write metrics.json (+ video.mp4, run.rrd) to out_dir.
+    """Run a scenario headless; write metrics.json (+ video.mp4, run.rrd, plots/) to out_dir.
 
-    ``extra_observers`` see every tick after the built-in ones and are closed
-    with them. Validation errors (ConfigError) are raised before anything is
-    written.
+    Every input is checked first (ConfigError, nothing built or written:
+    sim.validate). The run writes into a staging folder beside ``out_dir``
+    and moves its files into place when it ends (sim.outputs), so a refused
+    or crashed run leaves earlier results untouched. Status: "completed",
+    "diverged" (physics, a robot out of the scene, fallen or tipped over, or
+    the strategy's invariant; ``message`` says which) or "interrupted"
+    (SIGINT / SIGTERM, stopped at the next tick). ``extra_observers`` see
+    every tick after the built-in ones and are closed with them.
     """
     wall_start = time.perf_counter()
     _mujoco_warnings.clear()
-    sim = Simulation(scenario)
     out = Path(out_dir) if out_dir is not None else None
+    if out is not None:
+        check_output_folder(out)
+    check_scenario(scenario)
+    sim = Simulation(scenario)
     if video:
         from viz.video import resolve_camera
 
         resolve_camera(sim.world.model, scenario.video.camera)  # refuse before writing anything
-    observers: list[Any] = []
-    estimation = EstimationMetrics()  # first: it adds e_g to the frame's scalars for the observers after it
-    tracking = TrackingMetrics(sim.world.robot_kinds)
-    links = LinkMetrics()
-    observers += [estimation, tracking, links]
-    files: dict[str, str] = {}
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        for stale in ("metrics.json", "video.mp4", "run.rrd"):
-            (out / stale).unlink(missing_ok=True)
-        from viz.plots import PlotRecorder
-
-        plots = PlotRecorder(sim.world.robot_kinds, out / "plots", robot_names=sim.world.robot_names)
-        observers.append(plots)
-    if video:
-        from viz.video import VideoRecorder
-
-        files["video"] = str(out / "video.mp4")
-        observers.append(VideoRecorder(sim.world, scenario.video, files["video"], sim.dt))
-    recorder = None
-    if rrd or live is not None:
-        from viz.recording import RerunRecorder
-
-        files["recording"] = str(out / "run.rrd")
-        recorder = RerunRecorder(sim.world, files["recording"], scenario.name, live_stream=live)
-        observers.append(recorder)
+    staging = Staging(out) if out is not None else None
+    try:
+        observers, named, files = _observers(sim, staging.path if staging else None, video, rrd, live,
+                                             staging.final if staging else str)
+    except BaseException:
+        if staging is not None:
+            staging.discard()
+        raise
     observers += list(extra_observers)
+    recorder = named.get("recorder")
 
     n_ticks = int(round(scenario.duration_s / sim.dt))
     status = "completed"
     trajectory = [] if keep_trajectory else None
     message = ""
     try:
-        for _ in range(n_ticks):
-            frame, healthy = sim.tick()
+        with _Interrupts() as interrupts:
+            try:
+                for _ in range(n_ticks):
+                    if interrupts.requested:
+                        status = "interrupted"
+                        message = f"interrupted ({interrupts.requested}) at t = {sim.time_s:.3f} s"
+                        break
+                    frame, healthy = sim.tick()
+                    for observer in observers:
+                        observer.on_tick(frame)
+                    if trajectory is not None:
+                        trajectory.append(frame.observation.position)
+                    if not healthy:
+                        status = "diverged"
+                        message = f"diverged at t = {sim.time_s:.3f} s: {sim.divergence}"
+                        break
+                    if progress is not None and sim.tick_count % 100 == 0:
+                        progress(sim.time_s / scenario.duration_s)
+                    if getattr(sim.strategy, "finished", False):
+                        # The strategy's mission is over (e.g. every target visited): stop early.
+                        if recorder is not None:
+                            recorder.event(sim.time_s, f"strategy finished at t = {sim.time_s:.2f} s",
+                                           tick=sim.tick_count)
+                        break
+            except KeyboardInterrupt:  # a second Ctrl-C, or one before the handlers were in place
+                status = "interrupted"
+                message = f"interrupted (SIGINT) at t = {sim.time_s:.3f} s"
+            if message and recorder is not None:
+                recorder.event(sim.time_s, message, level="ERROR" if status == "diverged" else "WARN",
+                               tick=sim.tick_count)
             for observer in observers:
-                observer.on_tick(frame)
-            if trajectory is not None:
-                trajectory.append(frame.observation.position)
-            if not healthy:
-                status = "diverged"
-                detail = _mujoco_warnings[-1] if _mujoco_warnings else "non-finite state"
-                message = f"physics diverged at t = {sim.time_s:.3f} s: {detail}"
-                if recorder is not None:
-                    recorder.event(sim.time_s, message, level="ERROR", tick=sim.tick_count)
-                break
-            if progress is not None and sim.tick_count % 100 == 0:
-                progress(sim.time_s / scenario.duration_s)
-            if getattr(sim.strategy, "finished", False):
-                # The strategy's mission is over (e.g. every target visited): stop early.
-                if recorder is not None:
-                    recorder.event(sim.time_s, f"strategy finished at t = {sim.time_s:.2f} s", tick=sim.tick_count)
-                break
-    finally:
-        for observer in observers:
-            observer.close(status)
+                observer.close(status)
+            metrics = _metrics(scenario, sim, status, message, time.perf_counter() - wall_start, named)
+            if staging is not None:
+                write_json(staging.path / "metrics.json", metrics)
+                staging.commit()
+    except BaseException:
+        if staging is not None:
+            staging.discard()
+        raise
+    if staging is not None:
+        if named["plots"].files:
+            files["plots"] = staging.final("plots")
+        files["metrics"] = staging.final("metrics.json")
+    return RunResult(status, metrics, out, files, np.array(trajectory) if trajectory is not None else None)
 
-    wall = time.perf_counter() - wall_start
+
+def _metrics(scenario: Scenario, sim: Simulation, status: str, message: str, wall: float,
+             named: dict[str, Any]) -> dict[str, Any]:
+    """The run's metrics.json: the foundation's figures and the strategy's
+    summary; a non-finite figure becomes null and the message names it."""
     metrics: dict[str, Any] = {
         "scenario": scenario.name,
         "strategy": scenario.strategy.kind,
@@ -271,15 +364,15 @@ def run(
         "n_ground_robots": int(len(sim.world.kind_index["ground"])),
         "n_targets": sim.targets.n_targets,
         "control_ticks": sim.tick_count,
-        **tracking.summary(),
-        **links.summary(),
-        **estimation.summary(),
+        **named["tracking"].summary(),
+        **named["links"].summary(),
+        **named["estimation"].summary(),
     }
     summary = getattr(sim.strategy, "summary", None)
     if callable(summary):
         metrics.update(summary())
-    if out is not None:
-        files["plots"] = str(out / "plots")
-        files["metrics"] = str(out / "metrics.json")
-        _write_json(out / "metrics.json", metrics)
-    return RunResult(status, metrics, out, files, np.array(trajectory) if trajectory is not None else None)
+    missing = non_finite_fields(metrics)
+    if missing:
+        note = f"not finite, written as null: {', '.join(missing)}"
+        metrics["message"] = f"{message}; {note}" if message else note
+    return json_safe(metrics)

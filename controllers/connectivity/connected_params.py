@@ -114,6 +114,9 @@ def preset_values(preset: str) -> dict[str, float]:
     return out
 
 
+MAX_TARGETS_PER_ROBOT = 1000  # random targets per robot (drawing them costs time before the run starts)
+
+
 @dataclass(frozen=True)
 class ConnectedParams:
     # Table 2 column that fills every field left out: "office" (indoor) or "outdoor" (empty space, town)
@@ -250,6 +253,8 @@ class ConnectedParams:
                 f"got {self.target_height_max_m:g}")
         require(all(isinstance(c, int) and c >= 0 for c in self.target_counts), "target_counts",
                 f"must be non-negative integers, got {list(self.target_counts)}")
+        require(all(c <= MAX_TARGETS_PER_ROBOT for c in self.target_counts), "target_counts",
+                f"must be at most {MAX_TARGETS_PER_ROBOT} targets per robot, got {max(self.target_counts, default=0)}")
         if self.targets == "fixed":
             require(any(len(route) for route in self.target_lists), "target_lists",
                     "must list at least one target with targets = \"fixed\"")
