@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import socket
 import sys
 import time
@@ -154,8 +155,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         if args.out:
             check_output_folder(args.out)  # first: a folder that cannot be written refuses the run at once
-        if args.duration is not None and not args.duration > 0:
-            raise ConfigError("--duration", f"must be positive, got {args.duration}")
+        if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+            raise ConfigError("--duration", f"must be a positive, finite number of seconds, got {args.duration}")
         video_overrides = _video_overrides(args)
         scenario = load(args.scenario, [*args.overrides, *video_overrides], seed=args.seed,
                         duration_s=args.duration)
@@ -262,7 +263,10 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as stop:  # --help (0) or a usage error (2, one line already printed)
+        return stop.code if isinstance(stop.code, int) else EXIT_BAD_INPUT
     handlers = {"run": cmd_run, "tune": cmd_tune, "scenarios": cmd_scenarios, "compare": cmd_compare}
     try:
         return handlers[args.command](args)

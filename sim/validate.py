@@ -6,8 +6,8 @@ checks what needs the scene: the MJCF parses (MuJoCo's reason kept), robots
 start apart, inside the scene and clear of obstacles, ground robots have a
 floor under them, targets stay inside the scene. ``check_output_folder``
 checks that ``--out`` can be written. Both raise :class:`ConfigError`
-naming the field; neither builds the robots' world nor writes a byte, so a
-sweep can call them on every trial before it runs any.
+naming the field; neither builds the robots' world nor leaves a byte
+behind, so a sweep can call them on every trial before it runs any.
 
 ``tick_violation`` is the per-tick physical sanity check the loop (and the
 tuning page) apply: a robot that leaves the scene, falls or tips over.
@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import tempfile
 from pathlib import Path
 
 import mujoco
@@ -119,7 +120,8 @@ def check_scenario(scenario: Scenario) -> None:
 def check_output_folder(out: str | Path, flag: str = "--out") -> None:
     """ConfigError unless ``out`` can hold a run's files: a folder (or a path
     that can become one) whose parent this process may write (the run's
-    files are written beside it first, then moved in). Writes nothing."""
+    files are written beside it first, then moved in). Leaves nothing
+    behind (it creates and removes one empty probe folder)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ConfigError(flag, f"{out} exists and is not a folder")
@@ -130,8 +132,10 @@ def check_output_folder(out: str | Path, flag: str = "--out") -> None:
         existing = existing.parent
     if not existing.is_dir():
         raise ConfigError(flag, f"{out} lies under {existing}, which is a file, not a folder")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise ConfigError(flag, f"cannot write {out}: {existing} is not writable")
+    try:  # os.access says yes to root everywhere; only trying tells (read-only mounts, /proc)
+        os.rmdir(tempfile.mkdtemp(prefix=".tether-probe-", dir=existing))
+    except OSError as err:
+        raise ConfigError(flag, f"cannot write {out}: {existing}: {err.strerror or err}") from None
 
 
 def tick_violation(world, position: np.ndarray, quaternion: np.ndarray, start_height: np.ndarray) -> str | None:

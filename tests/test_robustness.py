@@ -1,0 +1,326 @@
+"""Nothing crashes, nothing is lost (issue 13): the bad-input catalogue.
+
+Each case runs ``tether run`` in-process against an output folder that holds
+an earlier run's files, and asserts: exit code 2, one line on stderr naming
+the field, no traceback, the folder untouched and nothing written beside it.
+A hypothesis property test mutates a valid scenario file (types, signs,
+NaN/inf, missing and extra keys, huge sizes) and checks that a run always
+exits 0, 1 or 2 without a traceback and never leaves a half-written folder.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import textwrap
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from sim.cli import main
+from sim.scenario import dumps_toml
+from tests.helpers import WALL_SCENE, write_scene, write_scenario
+
+TINY = """
+name = "tiny"
+scene = "scene.xml"
+duration_s = 0.1
+seed = 3
+
+[strategy]
+kind = "waypoints"
+speed_mps = 0.5
+
+[[robots]]
+kind = "quadrotor"
+starts = [[2.0, 2.0, 1.0]]
+
+[[robots]]
+kind = "ground"
+starts = [[3.0, 2.0, 0.0]]
+
+[[targets]]
+path = "circular"
+center = [2.0, 7.0, 1.0]
+radius_m = 0.5
+speed_mps = 0.05
+"""
+
+NO_FLOOR_SCENE = """
+<mujoco model="no_floor">
+  <custom><numeric name="tether_bounds" data="0 0 0 10 10 5"/></custom>
+  <worldbody>
+    <geom name="wall" type="box" size="0.1 3 2" pos="5 5 2" group="0"/>
+  </worldbody>
+</mujoco>
+"""
+
+BROKEN_SCENE = """
+<mujoco model="broken">
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 0.05"
+  </worldbody>
+</mujoco>
+"""
+
+
+def tiny(folder: Path, replace: tuple[str, str] | None = None, extra: str = "", name: str = "tiny.toml") -> Path:
+    """The tiny scenario (its scene beside it), with one text replacement and extra lines."""
+    write_scene(folder)
+    body = textwrap.dedent(TINY)
+    if replace is not None:
+        assert replace[0] in body, replace[0]
+        body = body.replace(*replace)
+    return write_scenario(folder, body + textwrap.dedent(extra), name)
+
+
+def earlier_results(out: Path) -> dict[str, bytes]:
+    """An output folder as an earlier run left it; returns its snapshot."""
+    (out / "plots").mkdir(parents=True)
+    (out / "metrics.json").write_text('{"status": "completed", "earlier": true}\n')
+    (out / "video.mp4").write_bytes(b"earlier video")
+    (out / "run.rrd").write_bytes(b"earlier recording")
+    (out / "plots" / "timeseries.png").write_bytes(b"earlier plot")
+    return snapshot(out)
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def run_cli(argv: list[str], capsys) -> tuple[int, list[str], str]:
+    code = main(argv)
+    captured = capsys.readouterr()
+    return code, captured.err.strip().splitlines(), captured.out
+
+
+def assert_refused(code: int, err: list[str], field: str) -> None:
+    text = "\n".join(err)
+    assert code == 2, text
+    assert len(err) == 1, text
+    assert err[0].startswith("tether: error: "), text
+    assert "Traceback" not in text
+    assert field in err[0], (field, err[0])
+    assert "[0]" not in err[0] and "[1]" not in err[0], err[0]  # one path syntax: robots.0.count
+
+
+def _binary(folder: Path) -> Path:
+    path = folder / "binary.toml"
+    path.write_bytes(bytes(range(256)) * 4)
+    return path
+
+
+# (id, argv builder(folder, out) -> argv, field the message names)
+CASES = [
+    ("duration-inf", lambda f, o: [str(tiny(f)), "--duration", "inf"], "--duration"),
+    ("duration-nan", lambda f, o: [str(tiny(f)), "--duration", "nan"], "--duration"),
+    ("duration-negative", lambda f, o: [str(tiny(f)), "--duration", "-1"], "--duration"),
+    ("duration-zero", lambda f, o: [str(tiny(f)), "--duration", "0"], "--duration"),
+    ("duration-below-a-tick", lambda f, o: [str(tiny(f)), "--duration", "0.001"], "duration_s"),
+    ("duration-huge", lambda f, o: [str(tiny(f)), "--duration", "1e300"], "duration_s"),
+    ("duration-not-a-number", lambda f, o: [str(tiny(f)), "--duration", "long"], "--duration"),
+    ("file-duration-inf", lambda f, o: [str(tiny(f, ("duration_s = 0.1", "duration_s = inf")))], "duration_s"),
+    ("file-duration-nan", lambda f, o: [str(tiny(f, ("duration_s = 0.1", "duration_s = nan")))], "duration_s"),
+    ("file-duration-overflow", lambda f, o: [str(tiny(f, ("duration_s = 0.1", "duration_s = 1e400")))],
+     "duration_s"),
+    ("file-duration-string", lambda f, o: [str(tiny(f, ("duration_s = 0.1", 'duration_s = "long"')))],
+     "duration_s"),
+    ("seed-negative", lambda f, o: [str(tiny(f)), "--seed", "-1"], "seed"),
+    ("seed-too-large", lambda f, o: [str(tiny(f)), "--seed", str(2**64)], "seed"),
+    ("seed-not-an-integer", lambda f, o: [str(tiny(f)), "--seed", "1.5"], "--seed"),
+    ("file-seed-negative", lambda f, o: [str(tiny(f, ("seed = 3", "seed = -1")))], "seed"),
+    ("file-seed-huge", lambda f, o: [str(tiny(f, ("seed = 3", f"seed = {10**30}")))], "seed"),
+    ("file-binary", lambda f, o: [str(_binary(f))], "scenario"),
+    ("file-missing", lambda f, o: [str(f / "nowhere.toml")], "scenario"),
+    ("file-is-a-folder", lambda f, o: [str(f)], "scenario"),
+    ("file-not-toml", lambda f, o: [str(write_scenario(f, "this is = = not toml", "bad.toml"))], "scenario"),
+    ("start-nan", lambda f, o: [str(tiny(f, ("[[2.0, 2.0, 1.0]]", "[[nan, 2.0, 1.0]]")))], "robots.0.starts.0.0"),
+    ("start-inf", lambda f, o: [str(tiny(f, ("[[2.0, 2.0, 1.0]]", "[[2.0, inf, 1.0]]")))], "robots.0.starts.0.1"),
+    ("start-short", lambda f, o: [str(tiny(f, ("[[2.0, 2.0, 1.0]]", "[[2.0, 2.0]]")))], "robots.0.starts.0"),
+    ("start-outside-scene", lambda f, o: [str(tiny(f, ("[[2.0, 2.0, 1.0]]", "[[20.0, 2.0, 1.0]]")))],
+     "robots.0.starts.0"),
+    ("start-in-a-wall", lambda f, o: [str(tiny(f, ("[[2.0, 2.0, 1.0]]", "[[5.0, 5.0, 1.0]]")))],
+     "robots.0.starts.0"),
+    ("starts-overlap", lambda f, o: [str(tiny(f, ("[[2.0, 2.0, 1.0]]", "[[2.0, 2.0, 1.0], [2.1, 2.0, 1.0]]")))],
+     "robots.0.starts.1"),
+    ("ground-starts-overlap", lambda f, o: [str(tiny(f, ("[[3.0, 2.0, 0.0]]", "[[3.0, 2.0, 0.0], [3.0, 2.0, 0.0]]")))],
+     "robots.1.starts.1"),
+    ("count-huge", lambda f, o: [str(tiny(f, ('kind = "ground"\nstarts = [[3.0, 2.0, 0.0]]',
+                                              'kind = "ground"\ncount = 100000\nspawn_center = [3.0, 2.0, 0.0]')))],
+     "robots.1.count"),
+    ("count-zero", lambda f, o: [str(tiny(f)), "--set", "robots.0.count=0"], "robots.0.count"),
+    ("target-center-nan", lambda f, o: [str(tiny(f, ("center = [2.0, 7.0, 1.0]", "center = [2.0, nan, 1.0]")))],
+     "targets.0.center.1"),
+    ("target-speed-nan", lambda f, o: [str(tiny(f, ("speed_mps = 0.05", "speed_mps = nan")))],
+     "targets.0.speed_mps"),
+    ("target-outside-scene", lambda f, o: [str(tiny(f, ("center = [2.0, 7.0, 1.0]", "center = [2.0, 12.0, 1.0]")))],
+     "targets.0"),
+    ("comm-range-inf", lambda f, o: [str(tiny(f, extra="[sensing]\ncomm_range_m = inf\n"))], "sensing.comm_range_m"),
+    ("comm-range-negative", lambda f, o: [str(tiny(f)), "--set", "sensing.comm_range_m=-1"],
+     "sensing.comm_range_m"),
+    ("unknown-key", lambda f, o: [str(tiny(f, extra="colour = 'red'\n"))], "colour"),
+    ("unknown-strategy-key", lambda f, o: [str(tiny(f)), "--set", "strategy.dwell_time_s=1"],
+     "strategy.dwell_time_s"),
+    ("unknown-strategy", lambda f, o: [str(tiny(f)), "--set", "strategy.kind=teleport"], "strategy.kind"),
+    ("no-robots", lambda f, o: [str(write_scenario(f, 'scene = "empty"\nrobots = []\n[strategy]\nkind = "waypoints"\n',
+                                                   "empty.toml"))], "robots"),
+    ("timestep-zero", lambda f, o: [str(tiny(f)), "--set", "physics.timestep_s=0"], "physics.timestep_s"),
+    ("control-period-off-grid", lambda f, o: [str(tiny(f)), "--set", "physics.control_period_s=0.003"],
+     "physics.control_period_s"),
+    ("set-without-value", lambda f, o: [str(tiny(f)), "--set", "duration_s"], "--set"),
+    ("set-no-list-entry", lambda f, o: [str(tiny(f)), "--set", "robots.5.count=1"], "robots.5"),
+    ("scene-missing", lambda f, o: [str(tiny(f, ('scene = "scene.xml"', 'scene = "nowhere.xml"')))], "scene"),
+    ("scene-parse-error", lambda f, o: [str(write_scene(f, BROKEN_SCENE, "broken.xml") and
+                                            tiny(f, ('scene = "scene.xml"', 'scene = "broken.xml"')))],
+     "Error=XML_ERROR"),
+    ("scene-without-floor", lambda f, o: [str(write_scene(f, NO_FLOOR_SCENE, "nofloor.xml") and
+                                              tiny(f, ('scene = "scene.xml"', 'scene = "nofloor.xml"')))],
+     "nothing to stand on"),
+    ("target-counts-huge", lambda f, o: ["connected-empty", "--set", "strategy.target_counts=[100000]"],
+     "strategy.target_counts"),
+    ("video-size-odd", lambda f, o: [str(tiny(f)), "--video-size", "641x480"], "video.width"),
+    ("video-size-garbage", lambda f, o: [str(tiny(f)), "--video-size", "big"], "--video-size"),
+    ("video-fps-nan", lambda f, o: [str(tiny(f)), "--video-fps", "nan"], "video.fps"),
+    ("video-camera-unknown", lambda f, o: [str(tiny(f)), "--video-camera", "nowhere"], "video.camera"),
+    ("rerun-port-too-large", lambda f, o: [str(tiny(f)), "--rerun-live", "--rerun-port", "70000"], "--rerun-port"),
+]
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
+def test_bad_input_is_refused_in_one_line_and_leaves_earlier_results(case, tmp_path, capsys):
+    _, argv, field = case
+    out = tmp_path / "out"
+    before = earlier_results(out)
+    code, err, _ = run_cli(["run", *argv(tmp_path, out), "--out", str(out), "--quiet"], capsys)
+    assert_refused(code, err, field)
+    assert snapshot(out) == before
+    assert not list(tmp_path.glob("out.partial-*"))
+
+
+@pytest.mark.parametrize("where", ["under-a-file", "a-file", "unwritable"])
+def test_an_output_folder_that_cannot_be_written_is_refused_first(where, tmp_path, capsys):
+    (tmp_path / "file").write_text("not a folder")
+    out = {"under-a-file": tmp_path / "file" / "out", "a-file": tmp_path / "file",
+           "unwritable": Path("/proc/tether-out")}[where]
+    # The scenario is broken too: the folder is checked first.
+    code, err, _ = run_cli(["run", str(tmp_path / "nowhere.toml"), "--out", str(out)], capsys)
+    assert_refused(code, err, "--out")
+    assert (tmp_path / "file").read_text() == "not a folder"
+
+
+def test_argparse_errors_are_one_line_too(capsys):
+    code, err, _ = run_cli(["run"], capsys)
+    assert code == 2 and len(err) == 1 and err[0].startswith("tether: error: ")
+
+
+def test_a_reused_folder_holds_one_runs_files(tmp_path, capsys):
+    out = tmp_path / "out"
+    earlier_results(out)
+    (out / "plots" / "timeseries_3.png").write_bytes(b"stale page")
+    (out / "notes.txt").write_text("mine")
+    code, err, _ = run_cli(["run", str(tiny(tmp_path)), "--out", str(out), "--quiet"], capsys)
+    assert code == 0, err
+    names = {str(p.relative_to(out)) for p in out.rglob("*")}
+    assert names == {"metrics.json", "progress.json", "plots", "plots/timeseries.png", "notes.txt"}
+    assert json.loads((out / "metrics.json").read_text())["status"] == "completed"
+    assert not list(tmp_path.glob("out.partial-*"))
+
+
+def test_metrics_are_valid_json_when_a_figure_is_not_finite(tmp_path):
+    from sim.outputs import json_safe, non_finite_fields, write_json
+
+    payload = {"a": float("nan"), "b": [1.0, float("inf")], "c": {"d": -math.inf}, "e": 2}
+    assert non_finite_fields(payload) == ["a", "b.1", "c.d"]
+    write_json(tmp_path / "m.json", payload)
+    assert json.loads((tmp_path / "m.json").read_text(), parse_constant=pytest.fail) == json_safe(payload)
+
+
+def test_a_ground_robot_that_falls_stops_the_run_diverged(tmp_path, capsys):
+    """A floor too small for a robot's route: it drives off the edge; the run stops at once."""
+    # (MuJoCo planes collide everywhere whatever their size: a box is a floor with an edge.)
+    scene = WALL_SCENE.replace('type="plane" size="5 5 0.05" pos="5 5 0"', 'type="box" size="0.3 0.3 0.05" pos="3 2 -0.05"')
+    assert scene != WALL_SCENE
+    write_scene(tmp_path, scene)
+    body = textwrap.dedent(TINY).replace('kind = "waypoints"\nspeed_mps = 0.5',
+                                         'kind = "waypoints"\nground_speed_mps = 0.15\ndwell_s = 0.0\n'
+                                         'routes = [[[2.0, 2.0, 1.0]], [[3.9, 2.0, 0.0]]]')
+    body = body.replace("duration_s = 0.1", "duration_s = 3.0").replace("[[3.0, 2.0, 0.0]]", "[[3.2, 2.0, 0.0]]")
+    path = write_scenario(tmp_path, body, "falls.toml")
+    out = tmp_path / "out"
+    code, _, text = run_cli(["run", str(path), "--out", str(out), "--quiet"], capsys)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert code == 1 and metrics["status"] == "diverged", text
+    assert "ground0" in metrics["message"] and ("fell" in metrics["message"] or "tipped" in metrics["message"])
+    assert metrics["sim_time_s"] < 3.0
+
+
+# ---------------------------------------------------------------- property test
+
+def _valid_table() -> dict:
+    import tomllib
+
+    return tomllib.loads(textwrap.dedent(TINY))
+
+
+def _paths(node, prefix=()) -> list[tuple]:
+    out = []
+    items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else []
+    for key, value in items:
+        out.append(prefix + (key,))
+        out += _paths(value, prefix + (key,))
+    return out
+
+
+VALUES = st.one_of(
+    st.sampled_from([float("nan"), float("inf"), -float("inf"), -1, 0, -1.0, 0.0, 1e308, 10**30, 2**63, True,
+                     "text", "", [], [1.0, 2.0], {"x": 1}, 100000, 1e-9]),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.integers(min_value=-(2**70), max_value=2**70),
+    st.text(max_size=5),
+)
+
+
+@st.composite
+def mutated_tables(draw):
+    table = _valid_table()
+    for _ in range(draw(st.integers(1, 3))):
+        paths = _paths(table)
+        path = draw(st.sampled_from(paths))
+        parent = table
+        for key in path[:-1]:
+            parent = parent[key]
+        action = draw(st.sampled_from(["replace", "replace", "delete", "extra"]))
+        if action == "delete":
+            del parent[path[-1]]
+        elif action == "extra" and isinstance(parent, dict):
+            parent[draw(st.sampled_from(["extra", "count", "end", "start", "radius_m"]))] = draw(VALUES)
+        else:
+            parent[path[-1]] = draw(VALUES)
+    return table
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(table=mutated_tables())
+def test_mutated_scenarios_exit_cleanly_and_never_leave_a_half_written_folder(table, tmp_path_factory, capsys):
+    folder = tmp_path_factory.mktemp("mutant")
+    write_scene(folder)
+    try:
+        text = dumps_toml(table)
+    except TypeError:
+        return  # not expressible as TOML
+    path = folder / "mutant.toml"
+    path.write_text(text)
+    out = folder / "out"
+    code = main(["run", str(path), "--out", str(out), "--duration", "0.05", "--quiet"])
+    err = capsys.readouterr().err
+    assert code in (0, 1, 2), err
+    assert "Traceback" not in err
+    assert not list(folder.glob("out.partial-*"))
+    if code == 2:
+        assert len(err.strip().splitlines()) == 1 and not out.exists(), err
+    else:
+        metrics = json.loads((out / "metrics.json").read_text(), parse_constant=pytest.fail)
+        assert metrics["status"] in ("completed", "diverged")
+
