@@ -12,6 +12,11 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
+import subprocess
+import sys
+import time
 import textwrap
 from pathlib import Path
 
@@ -324,3 +329,85 @@ def test_mutated_scenarios_exit_cleanly_and_never_leave_a_half_written_folder(ta
         metrics = json.loads((out / "metrics.json").read_text(), parse_constant=pytest.fail)
         assert metrics["status"] in ("completed", "diverged")
 
+
+
+# ---------------------------------------------------------------- interruptions (real signals, a real process)
+
+REPO = Path(__file__).resolve().parent.parent
+SIGNAL_ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+
+
+def _start_long_run(tmp_path: Path, *flags: str) -> tuple[subprocess.Popen, Path, Path]:
+    scenario = tiny(tmp_path, ("duration_s = 0.1", "duration_s = 600.0"))
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "sim.cli", "run", str(scenario), "--out", str(out), "--quiet",
+                             "--rrd", *flags], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=SIGNAL_ENV, cwd=REPO)
+    return proc, out, tmp_path / f"out.partial-{proc.pid}"
+
+
+def _wait_for_progress(proc: subprocess.Popen, staging: Path, segments: int = 0, timeout_s: float = 120) -> dict:
+    """The staging folder's progress.json once the run ticks (and ``segments`` recording files are complete)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, proc.communicate()
+        try:
+            progress = json.loads((staging / "progress.json").read_text())
+        except (OSError, ValueError):
+            progress = None
+        parts = sorted((staging / "run.rrd.segments").glob("part-*.rrd"))
+        if progress and progress["tick"] >= 5 and len(parts) > segments:
+            return progress
+        time.sleep(0.2)
+    proc.kill()
+    raise AssertionError("the run never made progress")
+
+
+def _events(path: Path) -> list[str]:
+    from tests.helpers import rrd_chunks, rrd_texts
+
+    return [text for _, text in rrd_texts(rrd_chunks(path)["/events"])]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, pytest.param(signal.SIGTERM, marks=pytest.mark.slow)],
+                         ids=["ctrl-c", "sigterm"])
+def test_an_interrupted_run_closes_cleanly(sig, tmp_path):
+    from rerun.chunk import RrdReader
+
+    flags = ("--video", "--video-size", "160x120", "--video-fps", "10") if sig == signal.SIGINT else ()
+    proc, out, staging = _start_long_run(tmp_path, *flags)
+    _wait_for_progress(proc, staging)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "interrupted" and signal.Signals(sig).name in metrics["message"]
+    assert 0 < metrics["sim_time_s"] < 600
+    assert json.loads((out / "progress.json").read_text())["status"] == "interrupted"
+    assert RrdReader(str(out / "run.rrd")).store()
+    events = _events(out / "run.rrd")
+    assert events[-1] == "run ended: interrupted" and any("interrupted (" in e for e in events)
+    assert not staging.exists() and not (out / "run.rrd.segments").exists()
+    if sig == signal.SIGINT:
+        import imageio.v2 as imageio
+
+        with imageio.get_reader(out / "video.mp4") as video:
+            assert sum(1 for _ in video) >= 1
+
+
+def test_a_killed_run_leaves_readable_progress_and_recording(tmp_path):
+    from rerun.chunk import RrdReader
+
+    out_before = earlier_results(tmp_path / "out")
+    proc, out, staging = _start_long_run(tmp_path)
+    _wait_for_progress(proc, staging, segments=1)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    assert snapshot(out) == out_before  # the earlier results are untouched
+    progress = json.loads((staging / "progress.json").read_text())
+    assert progress["status"] == "running" and progress["tick"] >= 5
+    first = staging / "run.rrd.segments" / "part-00000.rrd"
+    store = RrdReader(str(first)).store()  # complete: footer and all
+    assert store
+    assert "/world/obstacles" in {str(c.entity_path) for c in RrdReader(str(first)).stream()}

@@ -20,7 +20,8 @@ default blueprint (3D view beside time series and the event log) is embedded
 in the file.
 
 The file is written as complete segment files (``run.rrd.segments/``,
-one every ``SEGMENT_PERIOD_S`` of wall time, each with its footer) and
+each with its footer; the first after 1 s of wall time, then ever longer up
+to 30 s) and
 merged into ``run.rrd`` when the run ends; a run killed outright leaves its
 finished segments readable (``RrdReader(...).store()``; open them together
 in the viewer: they share one recording id).
@@ -60,7 +61,10 @@ LINK_COLOR = (40, 190, 60)
 REFERENCE_COLOR = (60, 110, 255)
 FILE_FLUSH_PERIOD = datetime.timedelta(seconds=2)  # run.rrd: rows are batched this long (wall time)
 FILE_FLUSH_BYTES = 8 * 1024 * 1024  # ... or up to this many bytes
-SEGMENT_PERIOD_S = 10.0  # wall s: the recording is written as complete segment files this long each ...
+# The recording is written as complete segment files, the first after SEGMENT_FIRST_S of wall time, each
+# next one twice as long up to SEGMENT_MAX_S (a killed run keeps all but its last few seconds) ...
+SEGMENT_FIRST_S = 1.0
+SEGMENT_MAX_S = 30.0
 SEGMENTS_SUFFIX = ".segments"
 PROPERTIES = "/__properties"  # Rerun's recording properties entity  # ... in run.rrd.segments/, merged into run.rrd when the run ends
 
@@ -208,7 +212,8 @@ class RerunRecorder:
         self.segments.mkdir(parents=True, exist_ok=True)
         self.recording_id = str(uuid.uuid4())
         self._segment_count = 0
-        self._rotate_at = time.monotonic() + SEGMENT_PERIOD_S
+        self._segment_period_s = SEGMENT_FIRST_S
+        self._rotate_at = time.monotonic() + self._segment_period_s
         file_stream = self._segment_stream()
         self.rec = file_stream if live_stream is None else _Tee(file_stream, live_stream)
         self.rows = 0
@@ -243,7 +248,8 @@ class RerunRecorder:
             self.rec = fresh
         old.flush()
         old.disconnect()
-        self._rotate_at = time.monotonic() + SEGMENT_PERIOD_S
+        self._segment_period_s = min(2 * self._segment_period_s, SEGMENT_MAX_S)
+        self._rotate_at = time.monotonic() + self._segment_period_s
 
     def _merge(self) -> None:
         """run.rrd: every segment's chunks in one file; the segments go."""
