@@ -411,3 +411,154 @@ def test_a_killed_run_leaves_readable_progress_and_recording(tmp_path):
     store = RrdReader(str(first)).store()  # complete: footer and all
     assert store
     assert "/world/obstacles" in {str(c.entity_path) for c in RrdReader(str(first)).stream()}
+
+
+# ---------------------------------------------------------------- the tuning page
+
+def _falling_scenario(folder: Path) -> Path:
+    scene = WALL_SCENE.replace('type="plane" size="5 5 0.05" pos="5 5 0"',
+                               'type="box" size="0.3 0.3 0.05" pos="3 2 -0.05"')
+    write_scene(folder, scene)
+    body = textwrap.dedent(TINY).replace('kind = "waypoints"\nspeed_mps = 0.5',
+                                         'kind = "waypoints"\nground_speed_mps = 0.15\ndwell_s = 0.0\n'
+                                         'routes = [[[2.0, 2.0, 1.0]], [[3.9, 2.0, 0.0]]]')
+    body = body.replace("duration_s = 0.1", "duration_s = 3.0").replace("[[3.0, 2.0, 0.0]]", "[[3.2, 2.0, 0.0]]")
+    return write_scenario(folder, body, "falls.toml")
+
+
+@pytest.fixture(scope="module")
+def tuning(tmp_path_factory):
+    """A real tuning server (in this process) on the falling scenario, ticking as fast as it can."""
+    import threading
+
+    from sim.scenario import load
+    from viz.tuning import TuningServer, TuningSession
+
+    folder = tmp_path_factory.mktemp("tune")
+    scenario = load(str(_falling_scenario(folder)), ["video.width=160", "video.height=120"])
+    session = TuningSession(scenario, view_fps=1.0, speed=0.0, save_path=folder / "saved.toml")
+    server = TuningServer(session, "127.0.0.1", 0)
+    thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.1}, daemon=True)
+    thread.start()
+    session.start()
+    yield server
+    server.shutdown()
+    server.server_close()
+    session.stop()
+
+
+def _raw_request(port: int, data: bytes, close_write: bool = True) -> tuple[int, dict]:
+    import socket
+
+    with socket.create_connection(("127.0.0.1", port), timeout=30) as s:
+        s.sendall(data)
+        if close_write:
+            s.shutdown(socket.SHUT_WR)
+        reply = b""
+        while chunk := s.recv(65536):
+            reply += chunk
+    head, _, body = reply.partition(b"\r\n\r\n")
+    return int(head.split()[1]), json.loads(body)
+
+
+MALFORMED = {
+    "length-not-a-number": b"POST /api/params HTTP/1.1\r\nHost: {host}\r\nContent-Length: abc\r\n\r\n{{}}",
+    "length-negative": b"POST /api/params HTTP/1.1\r\nHost: {host}\r\nContent-Length: -5\r\n\r\n{{}}",
+    "body-truncated": b"POST /api/params HTTP/1.1\r\nHost: {host}\r\nContent-Length: 100\r\n\r\n{{\"changes\"",
+    "body-not-json": b"POST /api/control HTTP/1.1\r\nHost: {host}\r\nContent-Length: 5\r\n\r\nhello",
+    "body-not-an-object": b"POST /api/control HTTP/1.1\r\nHost: {host}\r\nContent-Length: 2\r\n\r\n[]",
+    "request-line-garbage": b"HELLO\r\n\r\n",
+    "unknown-action": b"POST /api/control HTTP/1.1\r\nHost: {host}\r\nContent-Length: 19\r\n\r\n{{\"action\": \"fly\"}}",
+}
+
+
+@pytest.mark.parametrize("name", list(MALFORMED))
+def test_tuning_page_answers_malformed_requests_with_400_json(name, tuning, capfd):
+    host = f"127.0.0.1:{tuning.port}".encode()
+    status, body = _raw_request(tuning.port, MALFORMED[name].replace(b"{host}", host).replace(b"{{", b"{")
+                                .replace(b"}}", b"}"))
+    assert status == 400 and body["ok"] is False and body["error"], body
+    assert "Traceback" not in capfd.readouterr().err
+
+
+def test_tuning_page_shows_why_a_run_diverged(tuning):
+    session = tuning.session
+    deadline = time.monotonic() + 120
+    while session.state != "diverged" and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert session.state == "diverged" and session.paused
+    assert session.message.startswith("diverged: ground0 "), session.message
+    status = json.loads(_get(f"http://127.0.0.1:{tuning.port}/api/status"))
+    assert status["state"] == "diverged" and status["message"].startswith("diverged: ")
+
+
+def _get(url: str) -> bytes:
+    import urllib.request
+
+    with urllib.request.urlopen(url, timeout=30) as response:
+        return response.read()
+
+
+def test_a_tuning_change_that_breaks_an_invariant_is_refused_before_it_applies():
+    import dataclasses
+
+    from sim.config import ConfigError
+    from sim.loop import Simulation
+    from sim.scenario import load
+
+    sim = Simulation(load("connected-empty", ["strategy.target_counts=[1]"]))
+    params = sim.scenario.strategy.params
+    frame, healthy = sim.tick()
+    lambda2 = frame.commands.info["scalars"]["lambda2"]
+    assert healthy and sim.strategy.violation(frame.commands) is None
+    assert params.lambda2_min < lambda2
+    with pytest.raises(ConfigError) as refused:  # legal values (min < null, in bounds), but above lambda2 now
+        sim.set_strategy_params(dataclasses.replace(params, lambda2_min=lambda2 + 0.5, lambda2_null=lambda2 + 1.0))
+    assert refused.value.field == "strategy.lambda2_min" and "current lambda2" in refused.value.problem
+    assert sim.scenario.strategy.params == params  # unchanged
+    with pytest.raises(ConfigError) as refused:  # R_s must equal the scenario's comm range: named as it is
+        sim.set_strategy_params(dataclasses.replace(params, sensing_range_m=params.sensing_range_m + 1.0))
+    assert refused.value.field == "sensing.comm_range_m", refused.value
+    frame, healthy = sim.tick()
+    assert healthy, sim.divergence
+
+
+def test_live_rerun_servers_listen_only_where_asked():
+    """Every listening socket of --rerun-live is on 127.0.0.1 (the rerun binary's --bind)."""
+    import socket
+
+    from viz.recording import LiveViewer
+
+    ports = []
+    for _ in range(2):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    live = LiveViewer("127.0.0.1", *ports)
+    try:
+        listening = _listening_addresses(live._server.pid)
+        assert {port for _, port in listening} >= set(ports)
+        assert {host for host, _ in listening} == {"127.0.0.1"}, listening
+    finally:
+        live.close()
+
+
+def _listening_addresses(pid: int) -> set[tuple[str, int]]:
+    """(address, port) of the TCP sockets process ``pid`` listens on (from /proc)."""
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        target = os.readlink(fd)
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    out = set()
+    for table in ("tcp", "tcp6"):
+        for line in Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[3] == "0A" and fields[9] in inodes:  # LISTEN
+                address, port = fields[1].split(":")
+                if table == "tcp":
+                    host = ".".join(str(int(address[i:i + 2], 16)) for i in (6, 4, 2, 0))
+                else:
+                    host = "::" if set(address) == {"0"} else address
+                out.add((host, int(port, 16)))
+    return out

@@ -131,10 +131,23 @@ class LiveViewer:
 
 
 def _rerun_binary() -> str:
-    beside = Path(sys.executable).parent / "rerun"
-    found = str(beside) if beside.exists() else shutil.which("rerun")
+    """The viewer binary itself (rerun-sdk's ``rerun`` script is a Python
+    wrapper that would leave it running when terminated)."""
+    import os
+
+    if os.environ.get("RERUN_CLI_PATH"):
+        return os.environ["RERUN_CLI_PATH"]
+    try:
+        import rerun_cli
+
+        bundled = Path(rerun_cli.__file__).parent / "rerun"
+        if bundled.exists():
+            return str(bundled)
+    except ImportError:
+        pass
+    found = shutil.which("rerun")
     if not found:
-        raise OSError("the rerun binary (from rerun-sdk) is not on PATH")
+        raise OSError("the rerun binary (from rerun-sdk) is not installed")
     return found
 
 

@@ -569,6 +569,8 @@ class _Handler(BaseHTTPRequestHandler):
         """http.server's own refusals (a malformed request line or header) as JSON."""
         try:
             self.close_connection = True
+            if self.request_version == "HTTP/0.9":  # an unparsable request line: answer with headers anyway
+                self.request_version = "HTTP/1.0"
             self._json({"ok": False, "error": message or HTTPStatus(code).phrase}, code)
         except OSError:
             pass
