@@ -194,19 +194,21 @@ class Simulation:
 class _Interrupts:
     """While a run ticks, SIGINT (Ctrl-C) and SIGTERM only set ``requested``
     (the signal's name): the loop stops at the next tick and closes the run
-    as "interrupted". A second signal raises KeyboardInterrupt at once.
+    as "interrupted". A second signal during the ticks stops the tick at
+    once; once the loop is over, signals wait for the files to be closed.
     Handlers are installed only in the main thread (Python's rule)."""
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self):
         self.requested = ""
+        self.closing = False  # once the loop is over, signals wait for the files to be closed
         self._previous: dict = {}
 
     def _handle(self, signum, _frame) -> None:
-        if self.requested:
+        if self.requested and not self.closing:
             raise KeyboardInterrupt
-        self.requested = signal.Signals(signum).name
+        self.requested = self.requested or signal.Signals(signum).name
 
     def __enter__(self) -> "_Interrupts":
         if threading.current_thread() is threading.main_thread():
@@ -326,6 +328,7 @@ def run(
             except KeyboardInterrupt:  # a second Ctrl-C, or one before the handlers were in place
                 status = "interrupted"
                 message = f"interrupted (SIGINT) at t = {sim.time_s:.3f} s"
+            interrupts.closing = True
             if message and recorder is not None:
                 recorder.event(sim.time_s, message, level="ERROR" if status == "diverged" else "WARN",
                                tick=sim.tick_count)
