@@ -94,6 +94,8 @@ class Simulation:
         self.control.hover_ctrl()
         mujoco.mj_forward(self.world.model, self.world.data)
         self._start_height = np.array([self.world.data.qpos[a + 2] for a in self.world.qpos_adr])
+        self._position_index = self.world.qpos_adr[:, None] + np.arange(3)  # (N, 3) into qpos
+        self._quaternion_index = self.world.qpos_adr[:, None] + np.arange(3, 7)  # (N, 4) into qpos
         self.strategy = strategy_class(scenario.strategy.kind)(scenario.strategy.params)
         self.strategy.reset(self.info, self.observe(read_targets=False), self.rng)
 
@@ -180,8 +182,7 @@ class Simulation:
             return "physics: non-finite state"
         if self._warning_count() != self._warnings:
             return "physics: " + (_mujoco_warnings[-1] if _mujoco_warnings else "MuJoCo warning")
-        adr = self.world.qpos_adr[:, None]
-        position, quaternion = data.qpos[adr + np.arange(3)], data.qpos[adr + np.arange(3, 7)]
+        position, quaternion = data.qpos[self._position_index], data.qpos[self._quaternion_index]
         reason = tick_violation(self.world, position, quaternion, self._start_height)
         if reason:
             return reason

@@ -400,7 +400,7 @@ def test_a_killed_run_leaves_readable_progress_and_recording(tmp_path):
     from rerun.chunk import RrdReader
 
     out_before = earlier_results(tmp_path / "out")
-    proc, out, staging = _start_long_run(tmp_path)
+    proc, out, staging = _start_long_run(tmp_path, "--video", "--video-size", "160x120", "--video-fps", "10")
     _wait_for_progress(proc, staging, segments=1)
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=30)
@@ -411,6 +411,19 @@ def test_a_killed_run_leaves_readable_progress_and_recording(tmp_path):
     store = RrdReader(str(first)).store()  # complete: footer and all
     assert store
     assert "/world/obstacles" in {str(c.entity_path) for c in RrdReader(str(first)).stream()}
+    # The encoder is a process of its own: when its input ends it finishes the file.
+    import imageio.v2 as imageio
+
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        try:
+            with imageio.get_reader(staging / "video.mp4") as video:
+                assert sum(1 for _ in video) >= 1
+            break
+        except (OSError, RuntimeError, IndexError):
+            time.sleep(0.5)
+    else:
+        raise AssertionError("the video of the killed run is not readable")
 
 
 # ---------------------------------------------------------------- the tuning page
