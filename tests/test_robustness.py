@@ -185,6 +185,7 @@ CASES = [
      "nothing to stand on"),
     ("target-counts-huge", lambda f, o: ["connected-empty", "--set", "strategy.target_counts=[100000]"],
      "strategy.target_counts"),
+    ("n-sample-huge", lambda f, o: ["intermittent-4", "--set", "strategy.n_sample=1000000000"], "strategy.n_sample"),
     ("video-size-odd", lambda f, o: [str(tiny(f)), "--video-size", "641x480"], "video.width"),
     ("video-size-garbage", lambda f, o: [str(tiny(f)), "--video-size", "big"], "--video-size"),
     ("video-fps-nan", lambda f, o: [str(tiny(f)), "--video-fps", "nan"], "video.fps"),
@@ -213,6 +214,25 @@ def test_an_output_folder_that_cannot_be_written_is_refused_first(where, tmp_pat
     code, err, _ = run_cli(["run", str(tmp_path / "nowhere.toml"), "--out", str(out)], capsys)
     assert_refused(code, err, "--out")
     assert (tmp_path / "file").read_text() == "not a folder"
+
+
+TUNE_CASES = [
+    ("port-not-a-number", ["--port", "abc"], "--port"),
+    ("port-too-large", ["--port", "70000"], "--port"),
+    ("speed-nan", ["--speed", "nan"], "--speed"),
+    ("view-fps-zero", ["--view-fps", "0"], "--view-fps"),
+    ("start-nan", ["--set", "robots.0.starts.0=[nan, 2.0, 1.0]"], "robots.0.starts.0.0"),
+    ("starts-overlap", ["--set", "robots.0.starts.1=[2.0, 2.0, 1.0]"], "robots.0.starts.1"),
+]
+
+
+@pytest.mark.parametrize("case", TUNE_CASES, ids=[c[0] for c in TUNE_CASES])
+def test_tune_refuses_bad_input_before_serving(case, tmp_path, capsys):
+    _, flags, field = case
+    scenario = tiny(tmp_path, ("[[2.0, 2.0, 1.0]]", "[[2.0, 2.0, 1.0], [2.0, 4.0, 1.0]]"))
+    code, err, out = run_cli(["tune", str(scenario), "--port", "0", *flags], capsys)
+    assert_refused(code, err, field)
+    assert "tuning page" not in out
 
 
 def test_argparse_errors_are_one_line_too(capsys):
