@@ -74,7 +74,8 @@ class Staging:
     """The staging folder of a run whose results go to ``out``."""
 
     def __init__(self, out: str | Path):
-        self.out = Path(out)
+        self.shown = Path(out)  # as the user wrote it, for the paths a run reports
+        self.out = self.shown.resolve()  # "." and ".." have no name to put a suffix on
         self.out.parent.mkdir(parents=True, exist_ok=True)
         self.path = self.out.parent / f"{self.out.name}{PARTIAL_SUFFIX}{os.getpid()}"
         if self.path.exists():  # left by an earlier process of the same id
@@ -83,7 +84,7 @@ class Staging:
 
     def final(self, name: str) -> str:
         """Where file ``name`` of the staging folder ends up."""
-        return str(self.out / name)
+        return str(self.shown / name)
 
     def commit(self) -> None:
         """Move the staged files into ``out``, replacing an earlier run's."""
