@@ -278,6 +278,8 @@ def run(
     wall_start = time.perf_counter()
     _mujoco_warnings.clear()
     out = Path(out_dir) if out_dir is not None else None
+    if out is None and (video or rrd or live is not None):
+        raise ConfigError("--out", "a video or a recording needs an output folder")
     if out is not None:
         check_output_folder(out)
     check_scenario(scenario)
@@ -301,6 +303,7 @@ def run(
     status = "completed"
     trajectory = [] if keep_trajectory else None
     message = ""
+    closed = False
     try:
         with _Interrupts() as interrupts:
             try:
@@ -333,13 +336,20 @@ def run(
             if message and recorder is not None:
                 recorder.event(sim.time_s, message, level="ERROR" if status == "diverged" else "WARN",
                                tick=sim.tick_count)
+            closed = True
             for observer in observers:
                 observer.close(status)
             metrics = _metrics(scenario, sim, status, message, time.perf_counter() - wall_start, named)
             if staging is not None:
                 write_json(staging.path / "metrics.json", metrics)
                 staging.commit()
-    except BaseException:
+    except BaseException:  # a bug (or a forced stop): close what is open, keep the earlier results
+        if not closed:
+            for observer in observers:
+                try:
+                    observer.close("failed")
+                except Exception:  # noqa: BLE001 (the first error is the one to report)
+                    pass
         if staging is not None:
             staging.discard()
         raise

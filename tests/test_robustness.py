@@ -253,6 +253,29 @@ def test_a_reused_folder_holds_one_runs_files(tmp_path, capsys):
     assert not list(tmp_path.glob("out.partial-*"))
 
 
+def test_a_run_that_raises_leaves_earlier_results_untouched(tmp_path):
+    from sim.loop import run
+    from sim.scenario import load
+
+    class Raises:  # an observer with a bug, two ticks in
+        ticks = 0
+
+        def on_tick(self, frame):
+            self.ticks += 1
+            if self.ticks == 2:
+                raise RuntimeError("observer bug")
+
+        def close(self, status):
+            pass
+
+    out = tmp_path / "out"
+    before = earlier_results(out)
+    with pytest.raises(RuntimeError, match="observer bug"):
+        run(load(str(tiny(tmp_path))), out, rrd=True, extra_observers=[Raises()])
+    assert snapshot(out) == before
+    assert not list(tmp_path.glob("out.partial-*"))
+
+
 def test_metrics_are_valid_json_when_a_figure_is_not_finite(tmp_path):
     from sim.outputs import json_safe, non_finite_fields, write_json
 
