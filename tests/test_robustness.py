@@ -572,6 +572,10 @@ def test_a_tuning_change_that_breaks_an_invariant_is_refused_before_it_applies()
         sim.set_strategy_params(dataclasses.replace(params, lambda2_min=lambda2 + 0.5, lambda2_null=lambda2 + 1.0))
     assert refused.value.field == "strategy.lambda2_min" and "current lambda2" in refused.value.problem
     assert sim.scenario.strategy.params == params  # unchanged
+    with pytest.raises(ConfigError) as refused:  # the grid is 2.5 m apart: an R_c of 2.6 m has robots inside it
+        sim.set_strategy_params(dataclasses.replace(params, min_robot_distance_m=2.6,
+                                                    full_weight_robot_distance_m=3.0))
+    assert refused.value.field == "strategy.min_robot_distance_m" and "inside" in refused.value.problem
     with pytest.raises(ConfigError) as refused:  # R_s must equal the scenario's comm range: named as it is
         sim.set_strategy_params(dataclasses.replace(params, sensing_range_m=params.sensing_range_m + 1.0))
     assert refused.value.field == "sensing.comm_range_m", refused.value

@@ -193,7 +193,11 @@ class ConnectedStrategy:
                 return False
         if params.message_latency_ticks != self.params.message_latency_ticks:
             return False
-        # A change that would break the invariant at the current state is refused before it applies.
+        # A change that would break the invariants at the current state is refused before it applies.
+        distance = pairwise_min_distance(self.q)
+        if not distance >= params.connectivity.min_robot_distance:
+            raise ValueError(f"min_robot_distance_m: two virtual points are {distance:.3f} m apart now, inside "
+                             f"R_c = {params.min_robot_distance_m:g} m")
         lambda2 = connectivity_state(self.q, self.boxes, params.connectivity).lambda2
         if not lambda2 > params.connectivity.lambda2_min + LAMBDA2_TOLERANCE:
             raise ValueError(f"lambda2_min: must stay below the current lambda2 ({lambda2:.3g}) of the "
