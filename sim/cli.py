@@ -133,6 +133,7 @@ def _port(text: str, flag: str, host: str = "127.0.0.1") -> int:
         try:
             probe.bind((host, port))
         except OSError as err:
+            flag = "--host" if isinstance(err, socket.gaierror) else flag
             raise ConfigError(flag, f"cannot listen on {host}:{port}: {err.strerror}") from None
         return probe.getsockname()[1]
 
@@ -224,8 +225,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
         view_fps = _number(args.view_fps, "--view-fps", minimum=0.1)
         speed = _number(args.speed, "--speed")
         port = int(_number(args.port, "--port", int))
-        if port > 65535:
-            raise ConfigError("--port", f"must be at most 65535, got {port}")
+        _port(args.port, "--port", host=args.host)  # the address can be listened on, before anything is built
     except ConfigError as err:
         return _fail(str(err))
 
@@ -240,7 +240,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
     except ConfigError as err:
         return _fail(str(err))
     except OSError as err:
-        return _fail(f"--port: cannot listen on {args.host}:{port}: {err.strerror or err}")
+        flag = "--host" if isinstance(err, socket.gaierror) else "--port"
+        return _fail(f"{flag}: cannot listen on {args.host}:{port}: {err.strerror or err}")
     except KeyboardInterrupt:
         pass
     return 0

@@ -191,6 +191,7 @@ CASES = [
     ("video-fps-nan", lambda f, o: [str(tiny(f)), "--video-fps", "nan"], "video.fps"),
     ("video-camera-unknown", lambda f, o: [str(tiny(f)), "--video-camera", "nowhere"], "video.camera"),
     ("rerun-port-too-large", lambda f, o: [str(tiny(f)), "--rerun-live", "--rerun-port", "70000"], "--rerun-port"),
+    ("rerun-host-unknown", lambda f, o: [str(tiny(f)), "--rerun-live", "--host", "no-such-host.invalid"], "--host"),
 ]
 
 
@@ -220,6 +221,7 @@ TUNE_CASES = [
     ("port-not-a-number", ["--port", "abc"], "--port"),
     ("port-too-large", ["--port", "70000"], "--port"),
     ("speed-nan", ["--speed", "nan"], "--speed"),
+    ("host-unknown", ["--host", "no-such-host.invalid"], "--host"),
     ("view-fps-zero", ["--view-fps", "0"], "--view-fps"),
     ("start-nan", ["--set", "robots.0.starts.0=[nan, 2.0, 1.0]"], "robots.0.starts.0.0"),
     ("starts-overlap", ["--set", "robots.0.starts.1=[2.0, 2.0, 1.0]"], "robots.0.starts.1"),
