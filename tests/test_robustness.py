@@ -287,23 +287,29 @@ def test_metrics_are_valid_json_when_a_figure_is_not_finite(tmp_path):
     assert json.loads((tmp_path / "m.json").read_text(), parse_constant=pytest.fail) == json_safe(payload)
 
 
-def test_a_ground_robot_that_falls_stops_the_run_diverged(tmp_path, capsys):
-    """A floor too small for a robot's route: it drives off the edge; the run stops at once."""
-    # (MuJoCo planes collide everywhere whatever their size: a box is a floor with an edge.)
-    scene = WALL_SCENE.replace('type="plane" size="5 5 0.05" pos="5 5 0"', 'type="box" size="0.3 0.3 0.05" pos="3 2 -0.05"')
-    assert scene != WALL_SCENE
-    write_scene(tmp_path, scene)
+def _falling_scenario(folder: Path) -> Path:
+    """The tiny scenario on a 0.6 m floor tile whose edge the ground robot starts beside and drives off.
+    (MuJoCo planes collide everywhere whatever their size: a box is a floor with an edge.)"""
+    scene = WALL_SCENE.replace('type="plane" size="5 5 0.05" pos="5 5 0"',
+                               'type="box" size="0.3 0.3 0.05" pos="3 2 -0.05"')
+    write_scene(folder, scene)
     body = textwrap.dedent(TINY).replace('kind = "waypoints"\nspeed_mps = 0.5',
                                          'kind = "waypoints"\nground_speed_mps = 0.15\ndwell_s = 0.0\n'
                                          'routes = [[[2.0, 2.0, 1.0]], [[3.9, 2.0, 0.0]]]')
-    body = body.replace("duration_s = 0.1", "duration_s = 3.0").replace("[[3.0, 2.0, 0.0]]", "[[3.2, 2.0, 0.0]]")
-    path = write_scenario(tmp_path, body, "falls.toml")
-    out = tmp_path / "out"
-    code, _, text = run_cli(["run", str(path), "--out", str(out), "--quiet"], capsys)
-    metrics = json.loads((out / "metrics.json").read_text())
-    assert code == 1 and metrics["status"] == "diverged", text
-    assert "ground0" in metrics["message"] and ("fell" in metrics["message"] or "tipped" in metrics["message"])
-    assert metrics["sim_time_s"] < 3.0
+    body = body.replace("duration_s = 0.1", "duration_s = 3.0").replace("[[3.0, 2.0, 0.0]]", "[[3.29, 2.0, 0.0]]")
+    return write_scenario(folder, body, "falls.toml")
+
+
+def test_a_ground_robot_that_falls_stops_the_run_diverged(tmp_path):
+    """A floor too small for a robot's route: it drives off the edge; the run stops at once.
+    (Exit code 1 for "diverged": tests/test_run_outputs.py.)"""
+    from sim.loop import run
+    from sim.scenario import load
+
+    result = run(load(str(_falling_scenario(tmp_path))))
+    message = result.metrics["message"]
+    assert result.status == "diverged" and "ground0" in message and ("fell" in message or "tipped" in message)
+    assert result.metrics["sim_time_s"] < 3.0
 
 
 # ---------------------------------------------------------------- property test
@@ -472,17 +478,6 @@ def test_a_killed_run_leaves_readable_progress_and_recording(tmp_path):
 
 
 # ---------------------------------------------------------------- the tuning page
-
-def _falling_scenario(folder: Path) -> Path:
-    scene = WALL_SCENE.replace('type="plane" size="5 5 0.05" pos="5 5 0"',
-                               'type="box" size="0.3 0.3 0.05" pos="3 2 -0.05"')
-    write_scene(folder, scene)
-    body = textwrap.dedent(TINY).replace('kind = "waypoints"\nspeed_mps = 0.5',
-                                         'kind = "waypoints"\nground_speed_mps = 0.15\ndwell_s = 0.0\n'
-                                         'routes = [[[2.0, 2.0, 1.0]], [[3.9, 2.0, 0.0]]]')
-    body = body.replace("duration_s = 0.1", "duration_s = 3.0").replace("[[3.0, 2.0, 0.0]]", "[[3.2, 2.0, 0.0]]")
-    return write_scenario(folder, body, "falls.toml")
-
 
 @pytest.fixture(scope="module")
 def tuning(tmp_path_factory):
