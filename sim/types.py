@@ -103,6 +103,11 @@ class Strategy(Protocol):
     Optional: a ``finished`` attribute (bool); once it reads True after a
     tick, :func:`sim.loop.run` stops early (e.g. every target visited).
     Optional: ``summary() -> dict``, merged into metrics.json.
+    Optional: ``violation(commands) -> str | None``, the strategy's own
+    invariant after each tick (None: kept); a reason stops the run
+    "diverged" with it (and pauses the tuning page). ``update_params`` may
+    raise ValueError("field: problem") to refuse a change that would break
+    it at the current state.
     """
 
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
