@@ -357,7 +357,7 @@ def mutated_tables(draw):
     return table
 
 
-@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(table=mutated_tables())
 def test_mutated_scenarios_exit_cleanly_and_never_leave_a_half_written_folder(table, tmp_path_factory, capsys):
     folder = tmp_path_factory.mktemp("mutant")
