@@ -534,6 +534,11 @@ def test_tuning_page_answers_malformed_requests_with_400_json(name, tuning, capf
     assert "Traceback" not in capfd.readouterr().err
 
 
+def test_tuning_page_listens_on_loopback_only(tuning):
+    listening = {(host, port) for host, port in _listening_addresses(os.getpid()) if port == tuning.port}
+    assert listening == {("127.0.0.1", tuning.port)}
+
+
 def test_tuning_page_shows_why_a_run_diverged(tuning):
     session = tuning.session
     deadline = time.monotonic() + 120
@@ -604,7 +609,10 @@ def _listening_addresses(pid: int) -> set[tuple[str, int]]:
     """(address, port) of the TCP sockets process ``pid`` listens on (from /proc)."""
     inodes = set()
     for fd in Path(f"/proc/{pid}/fd").iterdir():
-        target = os.readlink(fd)
+        try:
+            target = os.readlink(fd)
+        except OSError:  # closed while listing
+            continue
         if target.startswith("socket:["):
             inodes.add(target[8:-1])
     out = set()
