@@ -1,13 +1,16 @@
 """``tether`` command line: a thin layer over :func:`sim.loop.run`.
 
-Exit codes: 0 completed or time limit, 1 diverged, 2 bad input (one line on stderr naming
-the field and the problem; nothing written).
+Exit codes: 0 completed or time limit, 1 diverged, 2 bad input (one line on
+stderr naming the field and the problem; nothing written), 130 interrupted
+(Ctrl-C or SIGTERM: the run stops at the next tick and writes its files,
+status "interrupted").
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import socket
 import sys
 import time
@@ -15,9 +18,21 @@ from pathlib import Path
 
 from sim.config import ConfigError
 
+EXIT_CODES = {"completed": 0, "time limit": 0, "diverged": 1, "interrupted": 130}
+EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, with its errors as one line (like every other refusal) and exit 2."""
+
+    def error(self, message: str):
+        _fail(f"{message} (see '{self.prog} --help')")
+        raise SystemExit(EXIT_BAD_INPUT)
+
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="tether", description="Robot teams under communication constraints, on MuJoCo.")
+    parser = _Parser(prog="tether", description="Robot teams under communication constraints, on MuJoCo.")
     sub = parser.add_subparsers(dest="command", required=True)
 
     run = sub.add_parser("run", help="run a scenario headless")
@@ -35,8 +50,10 @@ def _parser() -> argparse.ArgumentParser:
                           "prior are placed in it, each change printed")
     _video_arguments(run, implies_video=True)
     run.add_argument("--rerun-live", action="store_true",
-                     help="also stream to Rerun viewers while running (gRPC server and web viewer on 127.0.0.1; "
+                     help="also stream to Rerun viewers while running (gRPC server and web viewer on --host; "
                           "writes run.rrd too; keeps serving after the run until Ctrl-C)")
+    run.add_argument("--host", default="127.0.0.1",
+                     help="address the --rerun-live servers listen on (default 127.0.0.1: this machine only)")
     run.add_argument("--rerun-port", default="9876", metavar="N", help="gRPC port of --rerun-live (0: any free port)")
     run.add_argument("--rerun-web-port", default="9090", metavar="N",
                      help="web viewer port of --rerun-live (0: any free port)")
@@ -148,21 +165,27 @@ def _port(text: str, flag: str, host: str = "127.0.0.1") -> int:
         try:
             probe.bind((host, port))
         except OSError as err:
+            flag = "--host" if isinstance(err, socket.gaierror) else flag
             raise ConfigError(flag, f"cannot listen on {host}:{port}: {err.strerror}") from None
         return probe.getsockname()[1]
 
 
 def _fail(message: str) -> int:
-    print(f"tether: error: {message}", file=sys.stderr)
-    return 2
+    """One line on stderr naming the field and the problem; exit 2."""
+    line = " ".join(str(message).split())
+    print(f"tether: error: {line}", file=sys.stderr)
+    return EXIT_BAD_INPUT
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     from sim.scenario import load
+    from sim.validate import check_output_folder
 
-    if args.duration is not None and args.duration <= 0:
-        return _fail(f"--duration: must be positive, got {args.duration}")
     try:
+        if args.out:
+            check_output_folder(args.out)  # first: a folder that cannot be written refuses the run at once
+        if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+            raise ConfigError("--duration", f"must be a positive, finite number of seconds, got {args.duration}")
         video_overrides = _video_overrides(args)
         overrides = [*args.overrides, *video_overrides]
         if args.scene is not None:
@@ -172,30 +195,29 @@ def cmd_run(args: argparse.Namespace) -> int:
                                                       duration_s=args.duration)
         else:
             scenario, placement_notes = load(args.scenario, overrides, seed=args.seed, duration_s=args.duration), []
+        out = Path(args.out) if args.out else Path("runs") / scenario.name
+        check_output_folder(out)
         if args.rerun_live:
-            grpc_port = _port(args.rerun_port, "--rerun-port")
-            web_port = _port(args.rerun_web_port, "--rerun-web-port", host="0.0.0.0")
+            grpc_port = _port(args.rerun_port, "--rerun-port", host=args.host)
+            web_port = _port(args.rerun_web_port, "--rerun-web-port", host=args.host)
     except ConfigError as err:
         return _fail(str(err))
     for note in placement_notes:
         print(note, flush=True)
-    out = Path(args.out) if args.out else Path("runs") / scenario.name
-    if out.exists() and not out.is_dir():
-        return _fail(f"--out: {out} exists and is not a folder")
 
     from sim.loop import run
 
     live = None
-    if args.rerun_live:
-        from viz.recording import LiveViewer
-
-        live = LiveViewer(grpc_port=grpc_port, web_port=web_port)
-        print(f"live Rerun web viewer: {live.web_url}", flush=True)
-        print(f"live Rerun gRPC stream: {live.grpc_url}  (native viewer: rerun {live.grpc_url})", flush=True)
     from sim.progress import RunProgress
 
     progress = None if args.quiet else RunProgress(scenario.duration_s)
     try:
+        if args.rerun_live:
+            from viz.recording import LiveViewer
+
+            live = LiveViewer(host=args.host, grpc_port=grpc_port, web_port=web_port)
+            print(f"live Rerun web viewer: {live.web_url}", flush=True)
+            print(f"live Rerun gRPC stream: {live.grpc_url}  (native viewer: rerun {live.grpc_url})", flush=True)
         result = run(scenario, out, video=args.video or bool(video_overrides), rrd=args.rrd or args.rerun_live,
                      live=live.stream if live else None, progress=progress)
     except ConfigError as err:
@@ -204,11 +226,19 @@ def cmd_run(args: argparse.Namespace) -> int:
         if live:
             live.close()
         return _fail(str(err))
+    except KeyboardInterrupt:  # before the run's own handlers were in place: nothing written
+        if progress:
+            progress.close()
+        if live:
+            live.close()
+        print("\ntether: interrupted before the run started; nothing written", file=sys.stderr)
+        return EXIT_INTERRUPTED
     if progress:
         progress.close(result.metrics)
     m = result.metrics
+    rate = f"x{m['real_time_factor']:.2f}" if m.get("real_time_factor") is not None else "x-"
     print(f"{m['status']}: {m['scenario']} ({m['strategy']}), seed {m['seed']}, "
-          f"{m['sim_time_s']:.1f} s simulated in {m['wall_time_s']:.1f} s (x{m['real_time_factor']:.2f} real time)")
+          f"{m['sim_time_s']:.1f} s simulated in {m['wall_time_s']:.1f} s ({rate} real time)")
     if m.get("message") and not args.quiet:  # --quiet: the summary line alone
         print(f"  {m['message']}")
     for name, path in ({} if args.quiet else result.files).items():
@@ -217,16 +247,16 @@ def cmd_run(args: argparse.Namespace) -> int:
         viewer = Path(sys.executable).parent / "rerun"
         command = str(viewer) if viewer.exists() else "rerun"
         print(f"  open the recording with: {command} {result.files['recording']}")
-    if live:
+    if live and result.status != "interrupted":
         print(f"still serving the live stream ({live.web_url}); press Ctrl-C to stop", flush=True)
         try:
             while True:
                 time.sleep(3600)
         except KeyboardInterrupt:
             pass
-        finally:
-            live.close()
-    return 0 if result.status in ("completed", "time limit") else 1
+    if live:
+        live.close()
+    return EXIT_CODES[result.status]
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
@@ -238,8 +268,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
         view_fps = _number(args.view_fps, "--view-fps", minimum=0.1)
         speed = _number(args.speed, "--speed")
         port = int(_number(args.port, "--port", int))
-        if port > 65535:
-            raise ConfigError("--port", f"must be at most 65535, got {port}")
+        _port(args.port, "--port", host=args.host)  # the address can be listened on, before anything is built
     except ConfigError as err:
         return _fail(str(err))
 
@@ -254,7 +283,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
     except ConfigError as err:
         return _fail(str(err))
     except OSError as err:
-        return _fail(f"--port: cannot listen on {args.host}:{port}: {err.strerror or err}")
+        flag = "--host" if isinstance(err, socket.gaierror) else "--port"
+        return _fail(f"{flag}: cannot listen on {args.host}:{port}: {err.strerror or err}")
     except KeyboardInterrupt:
         pass
     return 0
@@ -396,10 +426,17 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as stop:  # --help (0) or a usage error (2, one line already printed)
+        return stop.code if isinstance(stop.code, int) else EXIT_BAD_INPUT
     handlers = {"run": cmd_run, "tune": cmd_tune, "view": cmd_view, "scenarios": cmd_scenarios,
                 "init": cmd_init, "sweep": cmd_sweep, "sweeps": cmd_sweeps, "report": cmd_report}
-    return handlers[args.command](args)
+    try:
+        return handlers[args.command](args)
+    except KeyboardInterrupt:
+        print("\ntether: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -17,10 +17,27 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import io
+import math
+import sys
 import tokenize
 import types
 import typing
 from typing import Any, get_args, get_origin, get_type_hints
+
+
+MAX_INT = 2**63 - 1  # integers beyond int64 are refused wherever they go
+
+
+def _number_text(value: float) -> str:
+    return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf") if math.isinf(value) else repr(value)
+
+
+def allows_infinity(f: dataclasses.Field) -> bool:
+    """Whether a float field may be +-inf: its metadata says ``allow_inf`` or
+    its default is infinite (e.g. an uncapped force limit). NaN never is."""
+    if f.metadata.get("allow_inf"):
+        return True
+    return isinstance(f.default, float) and math.isinf(f.default)
 
 
 class ConfigError(ValueError):
@@ -49,7 +66,9 @@ def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", str(tp))
 
 
-def _convert(value: Any, tp: Any, field: str) -> Any:
+def _convert(value: Any, tp: Any, field: str, allow_inf: bool = False) -> Any:
+    """``value`` as type ``tp``; numbers must be finite (``allow_inf``: +-inf
+    too, for fields whose default is infinite or whose metadata says so)."""
     origin = get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         options = get_args(tp)
@@ -60,7 +79,7 @@ def _convert(value: Any, tp: Any, field: str) -> Any:
             if option is type(None):
                 continue
             try:
-                return _convert(value, option, field)
+                return _convert(value, option, field, allow_inf)
             except ConfigError as err:
                 errors.append(err)
         # Report the most specific failure (deepest field path).
@@ -79,10 +98,18 @@ def _convert(value: Any, tp: Any, field: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(field, f"must be a number, got {value!r}")
-        return float(value)
+        try:
+            number = float(value)
+        except OverflowError:
+            raise ConfigError(field, f"must be a number of at most {sys.float_info.max:.3g}, got {value}") from None
+        if math.isnan(number) or (math.isinf(number) and not allow_inf):
+            raise ConfigError(field, f"must be a finite number, got {_number_text(number)}")
+        return number
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(field, f"must be an integer, got {value!r}")
+        if abs(value) > MAX_INT:
+            raise ConfigError(field, f"must be an integer of at most {MAX_INT} in size, got {value}")
         return value
     if tp is str:
         if not isinstance(value, str):
@@ -93,10 +120,10 @@ def _convert(value: Any, tp: Any, field: str) -> Any:
             raise ConfigError(field, f"must be a list, got {value!r}")
         args = get_args(tp)
         if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_convert(v, args[0], f"{field}[{i}]") for i, v in enumerate(value))
+            return tuple(_convert(v, args[0], f"{field}.{i}", allow_inf) for i, v in enumerate(value))
         if len(value) != len(args):
             raise ConfigError(field, f"must have {len(args)} entries, got {len(value)}")
-        return tuple(_convert(v, a, f"{field}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+        return tuple(_convert(v, a, f"{field}.{i}", allow_inf) for i, (v, a) in enumerate(zip(value, args)))
     if dataclasses.is_dataclass(tp):
         return build(tp, value, field)
     raise TypeError(f"unsupported config type {tp!r} at {field}")
@@ -120,7 +147,7 @@ def build(cls: type, table: Any, field: str = "") -> Any:
         if not f.init:
             continue
         if f.name in table:
-            kwargs[f.name] = _convert(table[f.name], hints[f.name], prefix + f.name)
+            kwargs[f.name] = _convert(table[f.name], hints[f.name], prefix + f.name, allows_infinity(f))
             check_bounds(f, kwargs[f.name], prefix + f.name)
         elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise ConfigError(prefix + f.name, "is required")
@@ -153,15 +180,17 @@ def to_table(obj: Any) -> Any:
 
 
 def param(default: Any = dataclasses.MISSING, *, unit: str = "", min: float | None = None,
-          max: float | None = None, step: float | None = None, tunable: bool = True) -> Any:
+          max: float | None = None, step: float | None = None, tunable: bool = True,
+          allow_inf: bool = False) -> Any:
     """A dataclass field with its unit and inclusive bounds, e.g.
     ``speed_mps: float = param(0.5, unit="m/s", min=0.05, max=3.0)``.
 
     :func:`build` refuses values outside ``[min, max]``; the tuning page draws
     a slider over that range (``step``: slider resolution, default range/100)
-    and leaves out fields with ``tunable=False``.
+    and leaves out fields with ``tunable=False``. Numbers must be finite
+    unless ``allow_inf`` (or the default is infinite).
     """
-    metadata = {"unit": unit, "min": min, "max": max, "step": step, "tunable": tunable}
+    metadata = {"unit": unit, "min": min, "max": max, "step": step, "tunable": tunable, "allow_inf": allow_inf}
     return dataclasses.field(default=default, metadata=metadata)
 
 

@@ -8,10 +8,10 @@ Observers only read, so video and recording never change the trajectory.
 
 from __future__ import annotations
 
-import dataclasses
 import copy
-import json
-import os
+import dataclasses
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,12 +23,14 @@ import numpy as np
 from sim.actuation import LowLevelControl
 from sim.estimation_observer import EstimationMetrics
 from sim.observers import Frame, LinkMetrics, Observer, TrackingMetrics
+from sim.outputs import ProgressFile, Staging, json_safe, non_finite_fields, write_json
 from sim.registry import strategy_class
 from sim.config import ConfigError
 from sim.scenario import Scenario, StrategyConfig
 from sim.sensing import RaySensors
 from sim.targets import TargetDriver, nominal_path_samples
 from sim.types import Observation, WorldInfo
+from sim.validate import check_output_folder, check_scenario, tick_violation
 from sim.world import World, build_world
 
 _WARNINGS_THAT_DIVERGE = tuple(int(w) for w in (
@@ -57,7 +59,7 @@ mujoco.set_mju_user_warning(_collect_warning)
 
 @dataclass
 class RunResult:
-    status: str  # "completed" | "time limit" | "diverged" (see end_of_run)
+    status: str  # "completed" | "time limit" | "diverged" | "interrupted" (see end_of_run)
     metrics: dict[str, Any]
     out_dir: Path | None
     files: dict[str, str] = field(default_factory=dict)
@@ -102,6 +104,7 @@ class Simulation:
         self.dt = scenario.physics.control_period_s
         self.tick_count = 0
         self.time_s = 0.0
+        self.divergence = ""  # why the last unhealthy tick was unhealthy
         self._next_reading_s = 0.0
         self._warning_numbers = self.world.data.warning.number  # (mjNWARNING,) view, updated by mj_step
         self._warnings = self._warning_count()
@@ -123,6 +126,7 @@ class Simulation:
         self._move_targets()
         self.control.hover_ctrl()
         mujoco.mj_forward(self.world.model, self.world.data)
+        self._start_height = np.array([self.world.data.qpos[a + 2] for a in self.world.qpos_adr])
         self.strategy = strategy_class(scenario.strategy.kind)(scenario.strategy.params)
         self.strategy.reset(self.info, self.observe(read_targets=False), self.rng)
 
@@ -143,6 +147,8 @@ class Simulation:
                 fresh.reset(self.info, self.observe(read_targets=False), self.rng)
                 self.strategy = fresh
                 how = "restarted"
+        except ConfigError:
+            raise  # already names a scenario field (e.g. sensing.comm_range_m)
         except ValueError as err:
             name, sep, problem = str(err).partition(": ")
             if sep and " " not in name:
@@ -155,15 +161,6 @@ class Simulation:
         # A live view of the counters, indexed with plain ints: a few hundred ns a tick.
         number = self._warning_numbers
         return int(sum(number[w] for w in _WARNINGS_THAT_DIVERGE))
-
-    def _diverged(self) -> bool:
-        """Non-finite state, or a divergence warning since the last check."""
-        data = self.world.data
-        if not (np.isfinite(data.qpos).all() and np.isfinite(data.qvel).all()):
-            return True
-        count = self._warning_count()
-        diverged, self._warnings = count != self._warnings, count
-        return diverged
 
     def _move_targets(self) -> np.ndarray:
         positions = self.targets.positions(self.time_s)
@@ -195,7 +192,8 @@ class Simulation:
 
     def tick(self, info_wanted: bool = True) -> tuple[Frame, bool]:
         """One control period. Returns the frame (state before the step) and
-        whether the physics stayed finite and warning-free.
+        whether the state after it is sane (``self.divergence`` says why not:
+        :meth:`_check`).
 
         ``info_wanted``: whether an observer reads the strategy's figures and
         decorations (``commands.info``) this tick (see :class:`sim.types.Observation`).
@@ -216,12 +214,33 @@ class Simulation:
         self.tick_count += 1
         self.time_s = self.tick_count * self.dt
         self._move_targets()
-        healthy = not self._diverged()
+        self.divergence = self._check(commands)
         timing["sensing"] += sensed - start
         timing["strategy"] += planned - sensed
         timing["lowlevel"] += controlled - planned
         timing["physics"] += stepped - controlled
-        return frame, healthy
+        return frame, not self.divergence
+
+    def _check(self, commands) -> str:
+        """Why the state after this tick is not sane ("" if it is): non-finite
+        physics, a MuJoCo warning, a robot out of the scene, fallen or tipped
+        over (sim.validate), or the strategy's own invariant (its optional
+        ``violation(commands)``)."""
+        data = self.world.data
+        if not (np.all(np.isfinite(data.qpos)) and np.all(np.isfinite(data.qvel))):
+            return "physics: non-finite state"
+        count = self._warning_count()
+        if count != self._warnings:
+            self._warnings = count
+            return "physics: " + (_mujoco_warnings[-1] if _mujoco_warnings else "MuJoCo warning")
+        position, quaternion = data.qpos[self._position_index], data.qpos[self._quaternion_index]
+        reason = tick_violation(self.world, position, quaternion, self._start_height)
+        if reason:
+            return reason
+        violation = getattr(self.strategy, "violation", None)
+        if callable(violation):
+            return violation(commands) or ""
+        return ""
 
 
 def timing_summary(timing: dict[str, float], setup_s: float, closing_s: float) -> dict[str, float | None]:
@@ -242,12 +261,66 @@ def timing_summary(timing: dict[str, float], setup_s: float, closing_s: float) -
     }
 
 
-def _write_json(path: Path, payload: dict) -> None:
-    tmp = path.with_suffix(".json.tmp")
-    with open(tmp, "w") as f:
-        json.dump(payload, f, indent=2, sort_keys=False)
-        f.write("\n")
-    os.replace(tmp, path)
+class _Interrupts:
+    """While a run ticks, SIGINT (Ctrl-C) and SIGTERM only set ``requested``
+    (the signal's name): the loop stops at the next tick and closes the run
+    as "interrupted". A second signal during the ticks stops the tick at
+    once; once the loop is over, signals wait for the files to be closed.
+    Handlers are installed only in the main thread (Python's rule)."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.requested = ""
+        self.closing = False  # once the loop is over, signals wait for the files to be closed
+        self._previous: dict = {}
+
+    def _handle(self, signum, _frame) -> None:
+        if self.requested and not self.closing:
+            raise KeyboardInterrupt
+        self.requested = self.requested or signal.Signals(signum).name
+
+    def __enter__(self) -> "_Interrupts":
+        if threading.current_thread() is threading.main_thread():
+            for sig in self.SIGNALS:
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+def _observers(sim: Simulation, folder: Path | None, video: bool, rrd: bool, live: Any,
+               final: Callable[[str], str]) -> tuple[list[Any], dict[str, Any], dict[str, str]]:
+    """The run's observers, writing into ``folder`` (the staging folder);
+    ``final(name)`` is where a file ends up. Returns (observers, named
+    observers, files)."""
+    scenario = sim.scenario
+    estimation = EstimationMetrics()  # first: it adds e_g to the frame's scalars for the observers after it
+    named: dict[str, Any] = {"estimation": estimation, "tracking": TrackingMetrics(sim.world.robot_kinds),
+                             "links": LinkMetrics()}
+    observers: list[Any] = list(named.values())
+    files: dict[str, str] = {}
+    if folder is None:
+        return observers, named, files
+    from viz.plots import PlotRecorder
+
+    named["plots"] = PlotRecorder(sim.world.robot_kinds, folder / "plots", robot_names=sim.world.robot_names)
+    named["progress"] = ProgressFile(folder / "progress.json")
+    observers += [named["plots"], named["progress"]]
+    if video:
+        from viz.video import VideoRecorder
+
+        files["video"] = final("video.mp4")
+        observers.append(VideoRecorder(sim.world, scenario.video, str(folder / "video.mp4"), sim.dt))
+    if rrd or live is not None:
+        from viz.recording import RerunRecorder
+
+        files["recording"] = final("run.rrd")
+        named["recorder"] = RerunRecorder(sim.world, str(folder / "run.rrd"), scenario.name, live_stream=live)
+        observers.append(named["recorder"])
+    return observers, named, files
 
 
 def run(
@@ -260,48 +333,42 @@ def run(
     progress: Callable[[Simulation], None] | None = None,
     extra_observers: Sequence[Observer] = (),
 ) -> RunResult:
-    """Run a scenario headless; write metrics.json (+ video.mp4, run.rrd) to out_dir.
+    """Run a scenario headless; write metrics.json (+ video.mp4, run.rrd, plots/) to out_dir.
 
-    ``extra_observers`` see every tick after the built-in ones and are closed
-    with them. ``progress`` is called with the :class:`Simulation` every 100
-    ticks (e.g. :class:`sim.progress.RunProgress`). Validation errors
-    (ConfigError) are raised before anything is written.
+    Every input is checked first (ConfigError, nothing built or written:
+    sim.validate). The run writes into a staging folder beside ``out_dir``
+    and moves its files into place when it ends (sim.outputs), so a refused
+    or crashed run leaves earlier results untouched. Status: "completed" or
+    "time limit" (see :func:`end_of_run`), "diverged" (physics, a robot out
+    of the scene, fallen or tipped over, or the strategy's invariant;
+    ``message`` says which) or "interrupted" (SIGINT / SIGTERM, stopped at
+    the next tick). ``extra_observers`` see every tick after the built-in
+    ones and are closed with them. ``progress`` is called with the
+    :class:`Simulation` every 100 ticks (e.g. :class:`sim.progress.RunProgress`).
     """
     wall_start = time.perf_counter()
     _mujoco_warnings.clear()
-    sim = Simulation(scenario)
     out = Path(out_dir) if out_dir is not None else None
+    if out is None and (video or rrd or live is not None):
+        raise ConfigError("--out", "a video or a recording needs an output folder")
+    if out is not None:
+        check_output_folder(out)
+    check_scenario(scenario)
+    sim = Simulation(scenario)
     if video:
         from viz.video import resolve_camera
 
         resolve_camera(sim.world.model, scenario.video.camera)  # refuse before writing anything
-    observers: list[Any] = []
-    estimation = EstimationMetrics()  # first: it adds e_g to the frame's scalars for the observers after it
-    tracking = TrackingMetrics(sim.world.robot_kinds)
-    links = LinkMetrics()
-    observers += [estimation, tracking, links]
-    files: dict[str, str] = {}
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        for stale in ("metrics.json", "video.mp4", "run.rrd"):
-            (out / stale).unlink(missing_ok=True)
-        from viz.plots import PlotRecorder
-
-        plots = PlotRecorder(sim.world.robot_kinds, out / "plots", robot_names=sim.world.robot_names)
-        observers.append(plots)
-    if video:
-        from viz.video import VideoRecorder
-
-        files["video"] = str(out / "video.mp4")
-        observers.append(VideoRecorder(sim.world, scenario.video, files["video"], sim.dt))
-    recorder = None
-    if rrd or live is not None:
-        from viz.recording import RerunRecorder
-
-        files["recording"] = str(out / "run.rrd")
-        recorder = RerunRecorder(sim.world, files["recording"], scenario.name, live_stream=live)
-        observers.append(recorder)
+    staging = Staging(out) if out is not None else None
+    try:
+        observers, named, files = _observers(sim, staging.path if staging else None, video, rrd, live,
+                                             staging.final if staging else str)
+    except BaseException:
+        if staging is not None:
+            staging.discard()
+        raise
     observers += list(extra_observers)
+    recorder = named.get("recorder")
 
     n_ticks = int(round(scenario.duration_s / sim.dt))
     status = "completed"
@@ -312,40 +379,76 @@ def run(
     always_info = any(reader is None for reader in info_readers)
     timing = sim.timing
     setup_s = time.perf_counter() - wall_start
+    closed = False
     try:
-        for _ in range(n_ticks):
-            info_wanted = always_info or any(reader(sim.time_s) for reader in info_readers)
-            frame, healthy = sim.tick(info_wanted)
-            observed = time.perf_counter()
+        with _Interrupts() as interrupts:
+            try:
+                for _ in range(n_ticks):
+                    if interrupts.requested:
+                        status = "interrupted"
+                        message = f"interrupted ({interrupts.requested}) at t = {sim.time_s:.3f} s"
+                        break
+                    info_wanted = always_info or any(reader(sim.time_s) for reader in info_readers)
+                    frame, healthy = sim.tick(info_wanted)
+                    observed = time.perf_counter()
+                    for observer in observers:
+                        observer.on_tick(frame)
+                    timing["observers"] += time.perf_counter() - observed
+                    if trajectory is not None:
+                        trajectory.append(frame.observation.position)
+                    if not healthy:
+                        status = "diverged"
+                        message = f"diverged at t = {sim.time_s:.3f} s: {sim.divergence}"
+                        break
+                    if progress is not None and sim.tick_count % 100 == 0:
+                        progress(sim)
+                    if getattr(sim.strategy, "finished", False):
+                        # The strategy's mission is over (e.g. every target visited): stop early.
+                        if recorder is not None:
+                            recorder.event(sim.time_s, f"strategy finished at t = {sim.time_s:.2f} s",
+                                           tick=sim.tick_count)
+                        mission_ended = True
+                        break
+            except KeyboardInterrupt:  # a second Ctrl-C, or one before the handlers were in place
+                status = "interrupted"
+                message = f"interrupted (SIGINT) at t = {sim.time_s:.3f} s"
+            if status == "completed":  # ran to its end: the mission's end or the time limit
+                status, message = end_of_run(sim.strategy, mission_ended, scenario.duration_s, sim.time_s)
+            interrupts.closing = True
+            if message and recorder is not None:
+                level = {"diverged": "ERROR", "interrupted": "WARN"}.get(status, "INFO")
+                recorder.event(sim.time_s, message, level=level, tick=sim.tick_count)
+            closed = True
+            closing = time.perf_counter()
             for observer in observers:
-                observer.on_tick(frame)
-            timing["observers"] += time.perf_counter() - observed
-            if trajectory is not None:
-                trajectory.append(frame.observation.position)
-            if not healthy:
-                status = "diverged"
-                detail = _mujoco_warnings[-1] if _mujoco_warnings else "non-finite state"
-                message = f"physics diverged at t = {sim.time_s:.3f} s: {detail}"
-                if recorder is not None:
-                    recorder.event(sim.time_s, message, level="ERROR", tick=sim.tick_count)
-                break
-            if progress is not None and sim.tick_count % 100 == 0:
-                progress(sim)
-            if getattr(sim.strategy, "finished", False):
-                # The strategy's mission is over (e.g. every target visited): stop early.
-                if recorder is not None:
-                    recorder.event(sim.time_s, f"strategy finished at t = {sim.time_s:.2f} s", tick=sim.tick_count)
-                mission_ended = True
-                break
-        if status != "diverged":
-            status, message = end_of_run(sim.strategy, mission_ended, scenario.duration_s, sim.time_s)
-    finally:
-        closing = time.perf_counter()
-        for observer in observers:
-            observer.close(status)
-        closing_s = time.perf_counter() - closing
+                observer.close(status)
+            closing_s = time.perf_counter() - closing
+            metrics = _metrics(scenario, sim, status, message, time.perf_counter() - wall_start, named,
+                               timing_summary(timing, setup_s, closing_s))
+            if staging is not None:
+                write_json(staging.path / "metrics.json", metrics)
+                staging.commit()
+    except BaseException:  # a bug (or a forced stop): close what is open, keep the earlier results
+        if not closed:
+            for observer in observers:
+                try:
+                    observer.close("failed")
+                except Exception:  # noqa: BLE001 (the first error is the one to report)
+                    pass
+        if staging is not None:
+            staging.discard()
+        raise
+    if staging is not None:
+        if named["plots"].files:
+            files["plots"] = staging.final("plots")
+        files["metrics"] = staging.final("metrics.json")
+    return RunResult(status, metrics, out, files, np.array(trajectory) if trajectory is not None else None)
 
-    wall = time.perf_counter() - wall_start
+
+def _metrics(scenario: Scenario, sim: Simulation, status: str, message: str, wall: float,
+             named: dict[str, Any], timing: dict[str, Any]) -> dict[str, Any]:
+    """The run's metrics.json: the foundation's figures and the strategy's
+    summary; a non-finite figure becomes null and the message names it."""
     metrics: dict[str, Any] = {
         "scenario": scenario.name,
         "strategy": scenario.strategy.kind,
@@ -362,16 +465,16 @@ def run(
         # the connected method's points to visit (its targets_to_visit).
         "n_moving_targets": sim.targets.n_targets,
         "control_ticks": sim.tick_count,
-        "timing": timing_summary(timing, setup_s, closing_s),
-        **tracking.summary(),
-        **links.summary(),
-        **estimation.summary(),
+        "timing": timing,
+        **named["tracking"].summary(),
+        **named["links"].summary(),
+        **named["estimation"].summary(),
     }
     summary = getattr(sim.strategy, "summary", None)
     if callable(summary):
         metrics.update(summary())
-    if out is not None:
-        files["plots"] = str(out / "plots")
-        files["metrics"] = str(out / "metrics.json")
-        _write_json(out / "metrics.json", metrics)
-    return RunResult(status, metrics, out, files, np.array(trajectory) if trajectory is not None else None)
+    missing = non_finite_fields(metrics)
+    if missing:
+        note = f"not finite, written as null: {', '.join(missing)}"
+        metrics["message"] = f"{message}; {note}" if message else note
+    return json_safe(metrics)

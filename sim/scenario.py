@@ -25,6 +25,12 @@ SCENE_DIR = MODELS_DIR / "scenes"
 
 Vec3 = tuple[float, float, float]
 
+MAX_ROBOTS = 200  # robots in one scenario: the per-tick pairwise arrays stay small
+MAX_TARGETS = 200  # moving targets in one scenario
+MAX_SEED = 2**64 - 1  # np.random.default_rng takes seeds in [0, 2**64)
+MAX_DURATION_S = 1e6  # simulated seconds (about 11.6 days)
+MAX_SCENARIO_BYTES = 1_000_000  # a scenario file is a short text
+
 
 @dataclass(frozen=True)
 class PhysicsConfig:
@@ -70,8 +76,10 @@ class RobotGroup:
     spawn_spacing_m: float = 0.8  # grid spacing, m
 
     def __post_init__(self):
+        require(len(self.starts) <= MAX_ROBOTS, "starts", f"lists {len(self.starts)} robots, at most {MAX_ROBOTS}")
         if self.count is not None:
             require(self.count >= 1, "count", f"must be at least 1, got {self.count}")
+            require(self.count <= MAX_ROBOTS, "count", f"must be at most {MAX_ROBOTS} robots, got {self.count}")
             require(self.spawn_center is not None or len(self.starts) >= self.count,
                     "spawn_center", "is required with count unless starts lists enough positions")
         else:
@@ -170,7 +178,14 @@ class ScenarioBody:
 
     def __post_init__(self):
         require(self.duration_s > 0, "duration_s", f"must be positive, got {self.duration_s}")
+        require(self.duration_s <= MAX_DURATION_S, "duration_s",
+                f"must be at most {MAX_DURATION_S:g} s, got {self.duration_s:g}")
+        require(0 <= self.seed <= MAX_SEED, "seed", f"must be in [0, 2**64 - 1], got {self.seed}")
         require(len(self.robots) >= 1, "robots", "must define at least one robot group")
+        n_robots = sum(len(g.positions()) for g in self.robots)
+        require(n_robots <= MAX_ROBOTS, "robots", f"has {n_robots} robots, at most {MAX_ROBOTS}")
+        require(len(self.targets) <= MAX_TARGETS, "targets",
+                f"lists {len(self.targets)} targets, at most {MAX_TARGETS}")
 
 
 @dataclass(frozen=True)
@@ -258,9 +273,23 @@ def read_table(name_or_path: str) -> tuple[dict, str]:
         raise ConfigError("scenario", f"'{name_or_path}' is neither a built-in scenario ({names}) nor a file")
     try:
         with open(path, "rb") as f:
-            return tomllib.load(f), str(path)
+            raw = f.read(MAX_SCENARIO_BYTES + 1)
+    except OSError as err:
+        raise ConfigError("scenario", f"cannot read {path}: {err.strerror or err}") from None
+    if len(raw) > MAX_SCENARIO_BYTES:
+        raise ConfigError("scenario", f"{path} is larger than {MAX_SCENARIO_BYTES} bytes; not a scenario file")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ConfigError("scenario", f"{path} is not a text file (byte {err.start} is not UTF-8)") from None
+    if "\0" in text:
+        raise ConfigError("scenario", f"{path} is not a text file (it holds NUL bytes)")
+    try:
+        return tomllib.loads(text), str(path)
     except tomllib.TOMLDecodeError as err:
         raise ConfigError("scenario", f"{path} is not valid TOML: {err}") from None
+    except RecursionError:
+        raise ConfigError("scenario", f"{path} is not valid TOML: nested too deeply") from None
 
 
 def from_table(table: dict, source: str = "") -> Scenario:

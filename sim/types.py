@@ -121,6 +121,11 @@ class Strategy(Protocol):
     Optional: ``progress() -> str``, how far the mission got ("7/25 targets
     visited"), for the run's status message.
     Optional: ``summary() -> dict``, merged into metrics.json.
+    Optional: ``violation(commands) -> str | None``, the strategy's own
+    invariant after each tick (None: kept); a reason stops the run
+    "diverged" with it (and pauses the tuning page). ``update_params`` may
+    raise ValueError("field: problem") to refuse a change that would break
+    it at the current state.
 
     ``step`` may skip building ``Commands.info``'s figures and decorations
     when ``observation.info_wanted`` is False (no observer reads them this

@@ -75,9 +75,9 @@ def load_scene_spec(scene_path: Path) -> mujoco.MjSpec:
     try:
         spec = mujoco.MjSpec.from_file(str(scene_path))
         spec.compile()
-    except Exception as err:  # MuJoCo raises ValueError with a parser message
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise ConfigError("scene", f"{scene_path} is not a valid MJCF scene: {first}") from None
+    except Exception as err:  # MuJoCo raises ValueError with a parser message over several lines
+        reason = " ".join(line.strip() for line in str(err).splitlines() if line.strip()) or type(err).__name__
+        raise ConfigError("scene", f"{scene_path} is not a valid MJCF scene: {reason}") from None
     return spec
 
 

@@ -19,20 +19,35 @@ Timelines: ``sim_time`` (s) and ``tick``; every temporal row has both. A
 default blueprint (3D view beside time series and the event log) is embedded
 in the file.
 
+The file is written as complete segment files (``run.rrd.segments/``,
+each with its footer; the first after 1 s of wall time, then ever longer up
+to 30 s) and
+merged into ``run.rrd`` when the run ends; a run killed outright leaves its
+finished segments readable (``RrdReader(...).store()``; open them together
+in the viewer: they share one recording id).
+
 Live (``tether run --rerun-live``): :class:`LiveViewer` serves a gRPC stream
-on 127.0.0.1 and the web viewer; the recorder logs everything to it as well as
-to the file, and the stream outlives the recorder so a viewer that connects
-late still gets the whole run.
+and the web viewer on 127.0.0.1 (or ``--host``); the recorder logs everything
+to it as well as to the file, and the stream outlives the recorder so a viewer
+that connects late still gets the whole run.
 """
 
 from __future__ import annotations
 
 import datetime
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
 from urllib.parse import quote
 
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
+from rerun.chunk import RrdReader
 
 from sim.observers import Frame, tracking_errors
 from sim.world import INFINITE_PLANE_HALF_SIZE, World
@@ -46,6 +61,12 @@ LINK_COLOR = (40, 190, 60)
 REFERENCE_COLOR = (60, 110, 255)
 FILE_FLUSH_PERIOD = datetime.timedelta(seconds=2)  # run.rrd: rows are batched this long (wall time)
 FILE_FLUSH_BYTES = 8 * 1024 * 1024  # ... or up to this many bytes
+# The recording is written as complete segment files, the first after SEGMENT_FIRST_S of wall time, each
+# next one twice as long up to SEGMENT_MAX_S (a killed run keeps all but its last few seconds) ...
+SEGMENT_FIRST_S = 1.0
+SEGMENT_MAX_S = 30.0
+SEGMENTS_SUFFIX = ".segments"
+PROPERTIES = "/__properties"  # Rerun's recording properties entity  # ... in run.rrd.segments/, merged into run.rrd when the run ends
 
 
 def default_blueprint() -> rrb.Blueprint:
@@ -64,23 +85,94 @@ def default_blueprint() -> rrb.Blueprint:
 
 
 class LiveViewer:
-    """A gRPC server on ``host:grpc_port`` streaming ``stream`` to viewers
-    (``grpc_url``), and Rerun's web viewer on ``host:web_port`` connected to it
-    (``web_url``); no browser is opened. The server buffers the whole stream
-    for late viewers and runs until :meth:`close` (or the process ends)."""
+    """Rerun's gRPC server and web viewer on ``host`` (default 127.0.0.1:
+    this machine only), both bound there, streaming ``stream`` to viewers
+    (``grpc_url``, ``web_url``); no browser is opened.
+
+    rerun-sdk 0.41's ``serve_web_viewer`` takes no bind address (it listens
+    on 0.0.0.0), so the servers are the ``rerun`` binary's own
+    (``rerun --serve-web --bind HOST``), run as a child process that ends
+    with this one; it buffers the whole stream for late viewers and serves
+    until :meth:`close`."""
 
     def __init__(self, host: str = "127.0.0.1", grpc_port: int = 9876, web_port: int = 9090):
-        self.stream = rr.RecordingStream("tether")
-        sink = rr.GrpcServerSink(host, grpc_port)
-        self.stream.set_sinks(sink, default_blueprint=default_blueprint())
-        self.grpc_url = sink.uri  # rerun+http://HOST:PORT/proxy
+        command = [_rerun_binary(), "--serve-web", "--bind", host, "--port", str(grpc_port),
+                   "--web-viewer-port", str(web_port)]
+        self._server = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                        stderr=subprocess.DEVNULL, start_new_session=True,
+                                        preexec_fn=_end_with_parent)
+        connect = "127.0.0.1" if host in ("0.0.0.0", "") else "::1" if host == "::" else host
+        try:
+            for port in (grpc_port, web_port):
+                _wait_for_port(connect, port, self._server)
+        except OSError:
+            self._stop_server()
+            raise
+        shown = f"[{connect}]" if ":" in connect else connect
+        self.grpc_url = f"rerun+http://{shown}:{grpc_port}/proxy"
         self.grpc_port = grpc_port
-        rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=self.grpc_url)
-        self.web_url = f"http://{host}:{web_port}/?url={quote(self.grpc_url, safe='')}"
+        self.stream = rr.RecordingStream("tether")
+        self.stream.set_sinks(rr.GrpcSink(self.grpc_url), default_blueprint=default_blueprint())
+        self.web_url = f"http://{shown}:{web_port}/?url={quote(self.grpc_url, safe='')}"
 
     def close(self) -> None:
         self.stream.flush()
         self.stream.disconnect()
+        self._stop_server()
+
+    def _stop_server(self) -> None:
+        if self._server.poll() is None:
+            self._server.terminate()
+            try:
+                self._server.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self._server.kill()
+                self._server.wait()
+
+
+def _rerun_binary() -> str:
+    """The viewer binary itself (rerun-sdk's ``rerun`` script is a Python
+    wrapper that would leave it running when terminated)."""
+    import os
+
+    if os.environ.get("RERUN_CLI_PATH"):
+        return os.environ["RERUN_CLI_PATH"]
+    try:
+        import rerun_cli
+
+        bundled = Path(rerun_cli.__file__).parent / "rerun"
+        if bundled.exists():
+            return str(bundled)
+    except ImportError:
+        pass
+    found = shutil.which("rerun")
+    if not found:
+        raise OSError("the rerun binary (from rerun-sdk) is not installed")
+    return found
+
+
+def _end_with_parent() -> None:
+    """In the child: receive SIGTERM when the parent dies (Linux), so a killed run leaves no server behind."""
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _wait_for_port(host: str, port: int, server: subprocess.Popen, timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if server.poll() is not None:
+            raise OSError(f"the rerun server could not listen on {host}:{port} (exit code {server.returncode})")
+        try:
+            with socket.create_connection((host, port), timeout=0.5):
+                return
+        except OSError:
+            time.sleep(0.1)
+    raise OSError(f"the rerun server did not listen on {host}:{port} within {timeout_s:g} s")
 
 
 class _Tee:
@@ -128,11 +220,14 @@ class RerunRecorder:
         self.period_s = period_s
         # The file needs no low latency: batching rows for a few seconds of wall time gives fewer,
         # larger chunks (a 200 s connected-office run: about 5x smaller than with the default 200 ms).
-        batching = rr.ChunkBatcherConfig()
-        batching.flush_tick = FILE_FLUSH_PERIOD
-        batching.flush_num_bytes = FILE_FLUSH_BYTES
-        file_stream = rr.RecordingStream("tether", recording_id=None, batcher_config=batching)
-        file_stream.save(path, default_blueprint=default_blueprint())
+        self.path = Path(path)
+        self.segments = self.path.with_name(self.path.name + SEGMENTS_SUFFIX)
+        self.segments.mkdir(parents=True, exist_ok=True)
+        self.recording_id = str(uuid.uuid4())
+        self._segment_count = 0
+        self._segment_period_s = SEGMENT_FIRST_S
+        self._rotate_at = time.monotonic() + self._segment_period_s
+        file_stream = self._segment_stream()
         self.rec = file_stream if live_stream is None else _Tee(file_stream, live_stream)
         self.rows = 0
         self._next_time = 0.0
@@ -142,6 +237,44 @@ class RerunRecorder:
         self._decorations_logged: dict = {}  # decoration key -> the object last logged
         self._kind_colors = np.array([KIND_COLORS[k] for k in world.robot_kinds], dtype=np.uint8)
         self._log_static(scenario_name)
+
+    def _segment_stream(self) -> rr.RecordingStream:
+        """A stream writing the next complete segment file (same recording id)."""
+        batching = rr.ChunkBatcherConfig()
+        batching.flush_tick = FILE_FLUSH_PERIOD
+        batching.flush_num_bytes = FILE_FLUSH_BYTES
+        stream = rr.RecordingStream("tether", recording_id=self.recording_id, batcher_config=batching)
+        stream.save(str(self.segments / f"part-{self._segment_count:05d}.rrd"), default_blueprint=default_blueprint())
+        self._segment_count += 1
+        return stream
+
+    def _file_stream(self) -> rr.RecordingStream:
+        return self.rec.file_stream if isinstance(self.rec, _Tee) else self.rec
+
+    def _rotate(self) -> None:
+        """Finish the current segment (a complete .rrd file, footer included) and start the next."""
+        old = self._file_stream()
+        fresh = self._segment_stream()
+        if isinstance(self.rec, _Tee):
+            self.rec.file_stream = fresh
+        else:
+            self.rec = fresh
+        old.flush()
+        old.disconnect()
+        self._segment_period_s = min(2 * self._segment_period_s, SEGMENT_MAX_S)
+        self._rotate_at = time.monotonic() + self._segment_period_s
+
+    def _merge(self) -> None:
+        """run.rrd: every segment's chunks in one file; the segments go."""
+        parts = sorted(self.segments.glob("part-*.rrd"))
+        merged = rr.RecordingStream("tether", recording_id=self.recording_id)
+        merged.save(str(self.path), default_blueprint=default_blueprint())
+        for part in parts:  # each segment carries its own recording properties: the merged file has one set
+            rr.send_chunks((c for c in RrdReader(part).stream() if not str(c.entity_path).startswith(PROPERTIES)),
+                           recording=merged)
+        merged.flush()
+        merged.disconnect()
+        shutil.rmtree(self.segments)
 
     def _log_static(self, scenario_name: str) -> None:
         boxes = self.world.obstacles
@@ -175,6 +308,8 @@ class RerunRecorder:
             self._latest = (time_s, tick)
 
     def on_tick(self, frame: Frame) -> None:
+        if time.monotonic() >= self._rotate_at:
+            self._rotate()
         log_events(self, frame)  # a strategy's info['events'], every tick
         if frame.observation.time_s + 1e-9 < self._next_time:
             self._unlogged = frame
@@ -226,6 +361,7 @@ class RerunRecorder:
         self.event(time_s, f"run ended: {status}", level="INFO" if status == "completed" else "WARN", tick=tick)
         self.rec.flush()
         self.rec.disconnect()
+        self._merge()
 
 
 def _quat_xyzw(rotation: np.ndarray) -> np.ndarray:

@@ -51,9 +51,12 @@ from sim.observers import Frame, tracking_errors
 from sim.registry import strategy_params_class
 from sim.scenario import Scenario, dumps_toml, to_scenario_table, toml_value
 from sim.types import Commands
+from sim.validate import check_scenario
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
+MAX_BODY_BYTES = 1_000_000  # a request body holds a few parameter values
+REQUEST_TIMEOUT_S = 5.0  # s a request may take to arrive
 SAMPLE_PERIOD_S = 0.1  # plot sampling, s of sim time
 HISTORY_POINTS = 3000  # plot samples kept (5 min of sim time)
 JPEG_QUALITY = 80
@@ -171,6 +174,7 @@ class TuningSession:
                  save_path: str | Path | None = None):
         from viz.video import resolve_camera
 
+        check_scenario(scenario)  # the checks of `tether run`, before anything is built
         self.sim = Simulation(scenario)  # ConfigError for a bad world
         self.camera = resolve_camera(self.sim.world.model, scenario.video.camera)
         self.kind = scenario.strategy.kind
@@ -270,7 +274,8 @@ class TuningSession:
                     if not healthy:
                         self.paused = True
                         self.state = "diverged"
-                        self.message = f"physics diverged at t = {self.sim.time_s:.3f} s; reset to start again"
+                        self.message = (f"diverged: {self.sim.divergence} (t = {self.sim.time_s:.3f} s); "
+                                        f"reset to start again")
                     if stepping or not healthy or self.sim.time_s + 1e-9 >= next_render:
                         next_render = self.sim.time_s + 1.0 / self.view_fps
                         self._render(renderer, frame)
@@ -488,6 +493,10 @@ class TuningServer(ThreadingHTTPServer):
 
     daemon_threads = True
 
+    def handle_error(self, request, client_address) -> None:
+        """A connection that failed outside the handlers (a client gone
+        mid-request): no traceback on the terminal."""
+
     def __init__(self, session: TuningSession, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT):
         super().__init__((host, port), _Handler)
         self.session = session
@@ -520,6 +529,7 @@ def _json_safe(obj: Any) -> Any:
 class _Handler(BaseHTTPRequestHandler):
     server: TuningServer
     server_version = "tether-tune"
+    timeout = REQUEST_TIMEOUT_S  # a client that sends less than it announced gets a 400, not a hung thread
 
     def log_message(self, format: str, *args: Any) -> None:  # keep the terminal for the URL
         pass
@@ -554,11 +564,32 @@ class _Handler(BaseHTTPRequestHandler):
             return False
         return True
 
+    def send_error(self, code: int, message: str | None = None, explain: str | None = None) -> None:
+        """http.server's own refusals (a malformed request line or header) as JSON."""
+        try:
+            self.close_connection = True
+            if self.request_version == "HTTP/0.9":  # an unparsable request line: answer with headers anyway
+                self.request_version = "HTTP/1.0"
+            self._json({"ok": False, "error": message or HTTPStatus(code).phrase}, code)
+        except OSError:
+            pass
+
     def _body(self) -> dict:
-        length = int(self.headers.get("Content-Length") or 0)
-        if length > 1_000_000:
-            raise ConfigError("request", "body too large")
-        raw = self.rfile.read(length) if length else b"{}"
+        text = self.headers.get("Content-Length") or "0"
+        if not text.strip().isdigit():
+            self.close_connection = True
+            raise ConfigError("Content-Length", f"must be a non-negative integer, got {text!r}")
+        length = int(text)
+        if length > MAX_BODY_BYTES:
+            self.close_connection = True
+            raise ConfigError("request", f"body too large ({length} bytes, at most {MAX_BODY_BYTES})")
+        try:
+            raw = self.rfile.read(length) if length else b"{}"
+        except TimeoutError:
+            raw = b""
+        if len(raw) < length:
+            self.close_connection = True
+            raise ConfigError("request", f"body shorter than its Content-Length ({len(raw)} of {length} bytes)")
         try:
             payload = json.loads(raw or b"{}")
         except json.JSONDecodeError as err:
@@ -598,8 +629,10 @@ class _Handler(BaseHTTPRequestHandler):
                            {"Content-Disposition": f'attachment; filename="{name}"'})
             else:
                 self._error(HTTPStatus.NOT_FOUND, f"no page {url.path}")
-        except (BrokenPipeError, ConnectionResetError):
+        except (BrokenPipeError, ConnectionResetError, TimeoutError):
             pass
+        except Exception as err:  # a bug: answer it, never a traceback in the terminal
+            self._error(HTTPStatus.INTERNAL_SERVER_ERROR, f"{type(err).__name__}: {err}")
 
     def do_POST(self) -> None:  # noqa: N802
         if not self._trusted(post=True):
@@ -620,7 +653,9 @@ class _Handler(BaseHTTPRequestHandler):
                 self._error(HTTPStatus.NOT_FOUND, f"no endpoint {path}")
         except ConfigError as err:
             self._error(HTTPStatus.BAD_REQUEST, str(err))
-        except OSError as err:
+        except (BrokenPipeError, ConnectionResetError):
+            pass
+        except Exception as err:  # OSError while saving, or a bug: answer it, never a traceback
             self._error(HTTPStatus.INTERNAL_SERVER_ERROR, f"{type(err).__name__}: {err}")
 
     def _stream(self) -> None:

@@ -169,6 +169,9 @@ def preset_values(preset: str, sensing_range: float = math.nan) -> dict[str, flo
     return out
 
 
+MAX_TARGETS_PER_ROBOT = 1000  # random targets per robot (drawing them costs time before the run starts)
+
+
 @dataclass(frozen=True)
 class ConnectedParams:
     # -- general (group headers "# -- NAME, ..." group the fields on the tuning page)
@@ -318,6 +321,8 @@ class ConnectedParams:
                 f"got {self.target_height_max_m:g}")
         require(all(isinstance(c, int) and c >= 0 for c in self.target_counts), "target_counts",
                 f"must be non-negative integers, got {list(self.target_counts)}")
+        require(all(c <= MAX_TARGETS_PER_ROBOT for c in self.target_counts), "target_counts",
+                f"must be at most {MAX_TARGETS_PER_ROBOT} targets per robot, got {max(self.target_counts, default=0)}")
         if self.targets == "fixed":
             require(any(len(route) for route in self.target_lists), "target_lists",
                     "must list at least one target with targets = \"fixed\"")

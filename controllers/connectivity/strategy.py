@@ -105,6 +105,7 @@ from controllers.connectivity.exploration import ExplorationController, Explorat
 from controllers.connectivity.graph import connectivity_state, generalized_connectivity_force
 from controllers.connectivity.mission import (
     MissionStatistics,
+    LAMBDA2_TOLERANCE,
     check_start,
     pairwise_min_distance,
     shared_planner,
@@ -227,6 +228,15 @@ class ConnectedStrategy:
                 return False
         if params.message_latency_ticks != self.params.message_latency_ticks:
             return False
+        # A change that would break the invariants at the current state is refused before it applies.
+        distance = pairwise_min_distance(self.q)
+        if not distance >= params.connectivity.min_robot_distance:
+            raise ValueError(f"min_robot_distance_m: two virtual points are {distance:.3f} m apart now, inside "
+                             f"R_c = {params.min_robot_distance_m:g} m")
+        lambda2 = connectivity_state(self.q, self.boxes, params.connectivity).lambda2
+        if not lambda2 > params.connectivity.lambda2_min + LAMBDA2_TOLERANCE:
+            raise ValueError(f"lambda2_min: must stay below the current lambda2 ({lambda2:.3g}) of the "
+                             f"virtual points, got {params.lambda2_min:g}")
         self.params = params
         self.explorer.params = params.exploration
         return True
@@ -245,6 +255,20 @@ class ConnectedStrategy:
         if self.params.estimator_consensus == "weights":
             return None
         return (estimator_weights > 0).astype(float)
+
+    def violation(self, commands: Commands) -> str | None:
+        """The invariant the tick of ``commands`` broke, or None: seed 001
+        keeps lambda2 > lambda2_min and no two virtual points within R_c."""
+        c = self.params.connectivity
+        scalars = commands.info.get("scalars", {})
+        lambda2 = scalars.get("lambda2", np.inf)
+        if not lambda2 > c.lambda2_min + LAMBDA2_TOLERANCE:
+            return f"lambda2 = {lambda2:.3g} fell to lambda2_min = {c.lambda2_min:g} (connectivity lost)"
+        distance = scalars.get("min_robot_distance_m", np.inf)
+        if not distance >= c.min_robot_distance:
+            return (f"two virtual points came {distance:.3f} m apart, inside R_c = "
+                    f"{c.min_robot_distance:g} m")
+        return None
 
     # ------------------------------------------------------------------ per tick
     @property

@@ -21,6 +21,8 @@ from controllers.intermittent.teams import Teams
 from sim.config import require
 
 Vec3 = tuple[float, float, float]
+MAX_SAMPLES = 100_000  # n_sample: what one plan may hold in memory
+MAX_REPLANS = 100  # max_replans
 
 
 @dataclass(frozen=True)
@@ -67,6 +69,8 @@ class IntermittentParams:
     def __post_init__(self):
         require(isinstance(self.n_sample, int) and self.n_sample >= 1, "n_sample",
                 f"must be an integer >= 1, got {self.n_sample!r}")
+        require(self.n_sample <= MAX_SAMPLES, "n_sample",
+                f"must be at most {MAX_SAMPLES} (one plan keeps every sample's belief), got {self.n_sample}")
         require(self.n_uniform >= 0, "n_uniform", f"must be >= 0, got {self.n_uniform}")
         require(self.delta_m2 > 0, "delta_m2", f"must be positive (a variance threshold, m^2), got {self.delta_m2}")
         for name in ("step_size_m", "speed_mps", "step_s", "clearance_m", "arrival_tolerance_m",
@@ -76,7 +80,8 @@ class IntermittentParams:
         for name in ("link_margin_m", "gather_after_s"):
             value = getattr(self, name)
             require(value >= 0, name, f"must be non-negative, got {value}")
-        require(self.max_replans >= 0, "max_replans", f"must be >= 0, got {self.max_replans}")
+        require(0 <= self.max_replans <= MAX_REPLANS, "max_replans",
+                f"must be in [0, {MAX_REPLANS}], got {self.max_replans}")
         require(self.lag_team >= 0, "lag_team", f"must be >= 0, got {self.lag_team}")
         if self.teams:
             for index, team in enumerate(self.teams):
