@@ -415,9 +415,9 @@ def run(
             if status == "completed":  # ran to its end: the mission's end or the time limit
                 status, message = end_of_run(sim.strategy, mission_ended, scenario.duration_s, sim.time_s)
             interrupts.closing = True
-            if message and recorder is not None:
-                level = {"diverged": "ERROR", "interrupted": "WARN"}.get(status, "INFO")
-                recorder.event(sim.time_s, message, level=level, tick=sim.tick_count)
+            if status in ("diverged", "interrupted") and recorder is not None:
+                recorder.event(sim.time_s, message, level="ERROR" if status == "diverged" else "WARN",
+                               tick=sim.tick_count)
             closed = True
             closing = time.perf_counter()
             for observer in observers:

@@ -358,7 +358,7 @@ class RerunRecorder:
             self.log_frame(self._unlogged)
             self._unlogged = None
         time_s, tick = self._latest
-        self.event(time_s, f"run ended: {status}", level="INFO" if status == "completed" else "WARN", tick=tick)
+        self.event(time_s, f"run ended: {status}", level="INFO" if status in ("completed", "time limit") else "WARN", tick=tick)
         self.rec.flush()
         self.rec.disconnect()
         self._merge()

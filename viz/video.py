@@ -440,9 +440,23 @@ class VideoRecorder:
             raise RuntimeError(f"video renderer wrote {result} frames of {self.frames_written}")
 
 
+def _next_state(states, parent):
+    """The next queued state; None at the end of the video, or once the
+    simulation's process is gone (killed: this process holds the queue's
+    write end too, so no end of file would come): the file is then closed
+    and stays readable up to the last frame."""
+    while True:
+        try:
+            return states.get(timeout=WORKER_POLL_S)
+        except queue.Empty:
+            if parent is not None and not parent.is_alive():
+                return None
+
+
 def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, result) -> None:
     """The renderer process: draw and encode every state from ``states`` until
     None; send the number of frames written (or the error's text) on ``result``."""
+    import multiprocessing
     import traceback
 
     written = 0
@@ -456,8 +470,9 @@ def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, 
             path, fps=config.fps, codec="libx264", quality=7, macro_block_size=1,
             ffmpeg_log_level="error", output_params=["-pix_fmt", "yuv420p"],
         )
+        parent = multiprocessing.parent_process()
         try:
-            while (item := states.get()) is not None:
+            while (item := _next_state(states, parent)) is not None:
                 (qpos, qvel, act, mocap_pos, mocap_quat), frame, repeats = pickle.loads(item)
                 data.qpos[:], data.qvel[:], data.act[:] = qpos, qvel, act
                 data.mocap_pos[:], data.mocap_quat[:] = mocap_pos, mocap_quat

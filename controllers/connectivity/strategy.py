@@ -374,7 +374,7 @@ class ConnectedStrategy:
         scalars = {
             **tick,
             "lambda2_estimate_mean": float(np.mean(estimate.lambda2)) if estimate is not None else nan,
-            "prime_traveler": float(out.prime),
+            "prime_traveler": float(out.prime) if out.prime >= 0 else nan,  # undefined without a prime: a gap
             "secondary_travelers": float(secondary.sum()),
             "anchors": float(np.sum(roles == ANCHOR_CODE)),
             "connectors": float(np.sum(roles == CONNECTOR_CODE)),
