@@ -61,8 +61,12 @@ class Route:
         self.durations = np.where(lengths > 0, _MIN_JERK_PEAK_RATIO * lengths / speed, 0.0)
         self.dwell = dwell
         self.period = float(np.sum(self.durations + dwell))
-        # Per segment (start, end, duration) as row views and Python floats, for sample's loop.
-        self._segments = list(zip(self.starts, self.ends, self.durations.tolist()))
+        # Per segment (start, end - start, duration) as Python floats, for sample's loop (the same IEEE
+        # double arithmetic as numpy's on (3,) rows, without its per-call overhead).
+        self._segments = [(tuple(start), tuple(e - s for s, e in zip(start, end)), duration)
+                          for start, end, duration in zip(self.starts.tolist(), self.ends.tolist(),
+                                                    self.durations.tolist())]
+        self._first = tuple(self.points[0].tolist())
 
     def progress(self, t: float) -> float:
         """Where on the route time ``t`` falls: ``2k + f`` while resting at
@@ -88,23 +92,26 @@ class Route:
             return before + rest * self.dwell
         return before + self.dwell + (rest - 1.0) * float(self.durations[k])
 
-    def sample(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def sample(self, t: float) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
+        """Position, velocity and acceleration (each x, y, z as Python floats) at route time ``t``."""
+        zero = (0.0, 0.0, 0.0)
         if len(self.points) == 1 or self.period == 0:
-            return self.points[0], np.zeros(3), np.zeros(3)
+            return self._first, zero, zero
         t = t % self.period
-        for start, end, duration in self._segments:
+        for start, delta, duration in self._segments:
             if t < self.dwell or duration == 0:
                 if t < self.dwell + duration:
-                    return start, np.zeros(3), np.zeros(3)
+                    return start, zero, zero
                 t -= self.dwell + duration
                 continue
             t -= self.dwell
             if t < duration:
                 s, ds, dds = min_jerk(t / duration)
-                delta = end - start
-                return start + s * delta, ds / duration * delta, dds / duration**2 * delta
+                v, a = ds / duration, dds / duration**2
+                return (tuple(p + s * d for p, d in zip(start, delta)), tuple(v * d for d in delta),
+                        tuple(a * d for d in delta))
             t -= duration
-        return self.points[0], np.zeros(3), np.zeros(3)
+        return self._first, zero, zero
 
 
 class WaypointStrategy:

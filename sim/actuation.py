@@ -51,6 +51,7 @@ class LowLevelControl:
         if len(self.grounds):
             g = self.grounds
             yaw = ground.yaw_from_quaternion(observation.quaternion[g])
-            point = ground.offset_point(observation.position[g, :2], yaw)
+            cos_sin = np.cos(yaw), np.sin(yaw)
+            point = ground.offset_point(observation.position[g, :2], yaw, cos_sin=cos_sin)
             u = commands.velocity[g, :2] + GROUND_POSITION_GAIN * (commands.position[g, :2] - point)
-            ctrl[self.ground_actuators] = ground.track_velocity(self.ground_params, u, yaw)
+            ctrl[self.ground_actuators] = ground.track_velocity(self.ground_params, u, yaw, cos_sin=cos_sin)

@@ -286,3 +286,25 @@ def boxes_reaching(boxes: Boxes, height: float) -> Boxes:
     reach = np.einsum("kj,kj->k", np.abs(boxes.rotations[:, 2, :]), boxes.half_sizes)
     keep = boxes.centers[:, 2] + reach > height
     return Boxes(boxes.centers[keep], boxes.half_sizes[keep], boxes.rotations[keep])
+
+
+def pairwise_min_distance(points: np.ndarray) -> float:
+    """Smallest distance between two of ``points`` (N, D), m (inf for N < 2;
+    NaN rows are skipped). Per pair sqrt(dx^2 + dy^2 [+ dz^2]) summed in that
+    order: the figure numpy's ``norm(diff, axis=-1)`` gives."""
+    if len(points) < 2:
+        return float("inf")
+    return float(_pairwise_min_distance(np.ascontiguousarray(points, dtype=float)))
+
+
+@kernel
+def _pairwise_min_distance(points):
+    smallest = np.inf
+    for i in range(points.shape[0]):
+        for j in range(i + 1, points.shape[0]):
+            square = 0.0
+            for d in range(points.shape[1]):
+                delta = points[i, d] - points[j, d]
+                square += delta * delta
+            smallest = min(smallest, np.sqrt(square))
+    return smallest

@@ -30,7 +30,7 @@ from sim.scenario import Scenario, StrategyConfig
 from sim.sensing import RaySensors
 from sim.targets import TargetDriver, nominal_path_samples
 from sim.types import Observation, WorldInfo
-from sim.validate import check_output_folder, check_scenario, tick_violation
+from sim.validate import NON_FINITE, check_output_folder, check_scenario, tick_sanity, tick_violation
 from sim.world import World, build_world
 
 _WARNINGS_THAT_DIVERGE = tuple(int(w) for w in (
@@ -109,7 +109,8 @@ class Simulation:
         self._warning_numbers = self.world.data.warning.number  # (mjNWARNING,) view, updated by mj_step
         self._warnings = self._warning_count()
         # Index arrays for reading every robot's free-joint state in one fancy-index each.
-        qpos_adr = np.asarray(self.world.qpos_adr)[:, None]
+        self._qpos_adr = np.asarray(self.world.qpos_adr, dtype=np.int64)
+        qpos_adr = self._qpos_adr[:, None]
         qvel_adr = np.asarray(self.world.qvel_adr)[:, None]
         self._position_index = qpos_adr + np.arange(3)
         self._quaternion_index = qpos_adr + np.arange(3, 7)
@@ -227,14 +228,14 @@ class Simulation:
         over (sim.validate), or the strategy's own invariant (its optional
         ``violation(commands)``)."""
         data = self.world.data
-        if not (np.all(np.isfinite(data.qpos)) and np.all(np.isfinite(data.qvel))):
+        code, robot = tick_sanity(self.world, data.qpos, data.qvel, self._qpos_adr, self._start_height)
+        if code == NON_FINITE:
             return "physics: non-finite state"
         count = self._warning_count()
         if count != self._warnings:
             self._warnings = count
             return "physics: " + (_mujoco_warnings[-1] if _mujoco_warnings else "MuJoCo warning")
-        position, quaternion = data.qpos[self._position_index], data.qpos[self._quaternion_index]
-        reason = tick_violation(self.world, position, quaternion, self._start_height)
+        reason = tick_violation(self.world, code, robot, data.qpos, self._qpos_adr)
         if reason:
             return reason
         violation = getattr(self.strategy, "violation", None)

@@ -24,6 +24,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from sim.compiled import kernel
 from sim.config import ConfigError, allows_infinity
 from sim.scenario import Scenario
 
@@ -138,26 +139,57 @@ def check_output_folder(out: str | Path, flag: str = "--out") -> None:
         raise ConfigError(flag, f"cannot write {out}: {existing}: {err.strerror or err}") from None
 
 
-def tick_violation(world, position: np.ndarray, quaternion: np.ndarray, start_height: np.ndarray) -> str | None:
-    """Physical sanity of one tick's state: a robot outside the scene bounds
-    (by more than ``BOUNDS_MARGIN_M``), a ground robot fallen below its
-    start height or tipped over. Returns the reason, or None."""
+NON_FINITE = 1  # _tick_sanity's codes (0: sane)
+_OUTSIDE, _FALLEN, _TIPPED = 2, 3, 4
+
+
+@kernel
+def _tick_sanity(qpos, qvel, qpos_adr, lo, hi, ground, start_height):
+    """(code, robot) of the first insanity in one pass over the state, in
+    :func:`tick_violation`'s order: a non-finite qpos or qvel entry, then any
+    robot outside [lo, hi], then a ground robot fallen, then one tipped."""
+    for k in range(qpos.shape[0]):
+        if not np.isfinite(qpos[k]):
+            return NON_FINITE, -1
+    for k in range(qvel.shape[0]):
+        if not np.isfinite(qvel[k]):
+            return NON_FINITE, -1
+    for i in range(qpos_adr.shape[0]):
+        a = qpos_adr[i]
+        for d in range(3):
+            if qpos[a + d] < lo[d] or qpos[a + d] > hi[d]:
+                return _OUTSIDE, i
+    for i in ground:
+        if qpos[qpos_adr[i] + 2] < start_height[i] - FALL_DEPTH_M:
+            return _FALLEN, i
+    for i in ground:
+        a = qpos_adr[i]
+        q1, q2 = qpos[a + 4], qpos[a + 5]
+        if 1.0 - 2.0 * (q1 ** 2 + q2 ** 2) < TIP_COSINE:
+            return _TIPPED, i
+    return 0, -1
+
+
+def tick_sanity(world, qpos: np.ndarray, qvel: np.ndarray, qpos_adr: np.ndarray,
+                start_height: np.ndarray) -> tuple[int, int]:
+    """One compiled pass over MuJoCo's ``qpos`` / ``qvel``: ``(0, -1)`` if the
+    state is sane, ``(NON_FINITE, -1)`` if an entry is NaN or inf, else a code
+    and the robot for :func:`tick_violation` to name (``qpos_adr``: each
+    robot's free-joint qpos address, int64)."""
     lo, hi = world.bounds[0] - BOUNDS_MARGIN_M, world.bounds[1] + BOUNDS_MARGIN_M
-    outside = np.any((position < lo) | (position > hi), axis=1)
-    if outside.any():
-        i = int(np.flatnonzero(outside)[0])
-        return (f"{world.robot_names[i]} left the scene bounds at "
-                f"{tuple(round(float(v), 2) for v in position[i])}")
-    ground = world.kind_index["ground"]
-    if len(ground):
-        fallen = position[ground, 2] < start_height[ground] - FALL_DEPTH_M
-        if fallen.any():
-            i = int(ground[np.flatnonzero(fallen)[0]])
-            return f"{world.robot_names[i]} fell to z = {position[i, 2]:.2f} m (nothing to stand on)"
-        q = quaternion[ground]
-        up_z = 1.0 - 2.0 * (q[:, 1] ** 2 + q[:, 2] ** 2)
-        tipped = up_z < TIP_COSINE
-        if tipped.any():
-            i = int(ground[np.flatnonzero(tipped)[0]])
-            return f"{world.robot_names[i]} tipped over"
-    return None
+    return _tick_sanity(qpos, qvel, qpos_adr, lo, hi, world.kind_index["ground"], start_height)
+
+
+def tick_violation(world, code: int, robot: int, qpos: np.ndarray, qpos_adr: np.ndarray) -> str | None:
+    """Physical sanity of one tick's state, from :func:`tick_sanity`'s
+    ``(code, robot)``: a robot outside the scene bounds (by more than
+    ``BOUNDS_MARGIN_M``), a ground robot fallen below its start height (by
+    more than ``FALL_DEPTH_M``) or tipped over. Returns the reason, or None."""
+    if robot < 0:
+        return None
+    name, position = world.robot_names[robot], qpos[qpos_adr[robot]:qpos_adr[robot] + 3]
+    if code == _OUTSIDE:
+        return f"{name} left the scene bounds at {tuple(round(float(v), 2) for v in position)}"
+    if code == _FALLEN:
+        return f"{name} fell to z = {position[2]:.2f} m (nothing to stand on)"
+    return f"{name} tipped over"

@@ -20,6 +20,7 @@ import time
 import textwrap
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -310,6 +311,40 @@ def test_a_ground_robot_that_falls_stops_the_run_diverged(tmp_path):
     message = result.metrics["message"]
     assert result.status == "diverged" and "ground0" in message and ("fell" in message or "tipped" in message)
     assert result.metrics["sim_time_s"] < 3.0
+
+
+def test_the_compiled_tick_check_finds_what_the_numpy_formulation_finds():
+    """sim.validate's one-pass kernel against the numpy expressions it replaced, on random states."""
+    from types import SimpleNamespace
+
+    from sim.validate import BOUNDS_MARGIN_M, FALL_DEPTH_M, NON_FINITE, TIP_COSINE, tick_sanity
+
+    rng = np.random.default_rng(7)
+    world = SimpleNamespace(bounds=np.array([[0.0, 0.0, 0.0], [4.0, 3.0, 2.0]]),
+                            kind_index={"ground": np.array([1, 3])})
+    adr = np.array([0, 7, 14, 21], dtype=np.int64)
+    lo, hi = world.bounds[0] - BOUNDS_MARGIN_M, world.bounds[1] + BOUNDS_MARGIN_M
+    for _ in range(500):
+        qpos = rng.uniform(-1.3, 5.3, 28)
+        qpos[[3, 10, 17, 24]] = 1.0
+        qpos[[4, 5, 11, 12, 18, 19, 25, 26]] = rng.uniform(-0.7, 0.7, 8)
+        qvel = rng.normal(size=24)
+        if rng.random() < 0.1:
+            (qpos if rng.random() < 0.5 else qvel)[rng.integers(20)] = rng.choice([np.nan, np.inf])
+        start = rng.uniform(-0.3, 1.0, 4)
+        position, quaternion = qpos[adr[:, None] + np.arange(3)], qpos[adr[:, None] + np.arange(3, 7)]
+        g = world.kind_index["ground"]
+        if not (np.all(np.isfinite(qpos)) and np.all(np.isfinite(qvel))):
+            expected = (NON_FINITE, -1)
+        elif np.any(outside := np.any((position < lo) | (position > hi), axis=1)):
+            expected = (2, int(np.flatnonzero(outside)[0]))
+        elif np.any(fallen := position[g, 2] < start[g] - FALL_DEPTH_M):
+            expected = (3, int(g[np.flatnonzero(fallen)[0]]))
+        elif np.any(tipped := 1.0 - 2.0 * (quaternion[g, 1] ** 2 + quaternion[g, 2] ** 2) < TIP_COSINE):
+            expected = (4, int(g[np.flatnonzero(tipped)[0]]))
+        else:
+            expected = (0, -1)
+        assert tuple(int(v) for v in tick_sanity(world, qpos, qvel, adr, start)) == expected
 
 
 # ---------------------------------------------------------------- property test

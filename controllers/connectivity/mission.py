@@ -39,7 +39,7 @@ from controllers.connectivity.travel import row_norm
 from controllers.connectivity.targets import TargetQueues
 from sim.compiled import kernel
 from sim.config import ConfigError
-from sim.geometry import Boxes, point_clearance
+from sim.geometry import Boxes, pairwise_min_distance, point_clearance  # noqa: F401  (re-exported)
 
 # lambda2 at or below lambda2_min + this is "disconnected" (eigh round-off is ~1e-16).
 LAMBDA2_TOLERANCE = 1e-9
@@ -162,23 +162,6 @@ def _component(adjacency: np.ndarray, root: int) -> np.ndarray:
         frontier = adjacency[frontier].any(axis=0) & ~reached
         reached |= frontier
     return reached
-
-
-def pairwise_min_distance(points: np.ndarray) -> float:
-    """Smallest distance between two of ``points`` (N, 3), m (inf for N < 2)."""
-    if len(points) < 2:
-        return float("inf")
-    return float(_pairwise_min_distance(np.ascontiguousarray(points, dtype=float)))
-
-
-@kernel
-def _pairwise_min_distance(points):
-    smallest = np.inf
-    for i in range(points.shape[0]):
-        for j in range(i + 1, points.shape[0]):
-            dx, dy, dz = points[i, 0] - points[j, 0], points[i, 1] - points[j, 1], points[i, 2] - points[j, 2]
-            smallest = min(smallest, np.sqrt(dx * dx + dy * dy + dz * dz))
-    return smallest
 
 
 @dataclass

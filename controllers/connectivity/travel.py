@@ -162,7 +162,8 @@ def force_alignment(x, y) -> np.ndarray:
     ny = row_norm(y)
     both = (nx > 0) & (ny > 0)
     cosine = np.sum(x * y, axis=1) / np.where(both, nx * ny, 1.0)
-    return np.where(both, 0.5 * (1.0 + np.clip(cosine, -1.0, 1.0)), 1.0)
+    # np.minimum(np.maximum(.)) here and below: np.clip's own arithmetic (NaN kept), without its ~4 us dispatch
+    return np.where(both, 0.5 * (1.0 + np.minimum(np.maximum(cosine, -1.0), 1.0)), 1.0)
 
 
 def efficiency(x, x_full: float, x_zero: float) -> np.ndarray:
@@ -170,7 +171,7 @@ def efficiency(x, x_full: float, x_zero: float) -> np.ndarray:
     if not 0 <= x_full < x_zero:
         raise ValueError(f"eq. (9) needs 0 <= x_c < x_M, got x_c={x_full!r}, x_M={x_zero!r}")
     x = np.asarray(x, dtype=float)
-    phase = np.clip((x - x_full) / (x_zero - x_full), 0.0, 1.0)
+    phase = np.minimum(np.maximum((x - x_full) / (x_zero - x_full), 0.0), 1.0)
     return 0.5 + 0.5 * np.cos(np.pi * phase)
 
 
@@ -200,14 +201,14 @@ def consensus_step(estimates, adjacency, is_prime, prime_efficiency, gain: float
     neighbours = np.asarray(adjacency) > 0
     np.fill_diagonal(neighbours, False)  # a robot is not its own neighbour
     disagreement = neighbours.astype(float) @ estimates - neighbours.sum(axis=1) * estimates
-    updated = np.clip(estimates + dt * gain * disagreement, 0.0, 1.0)
-    return np.where(is_prime, np.clip(prime_efficiency, 0.0, 1.0), updated)
+    updated = np.minimum(np.maximum(estimates + dt * gain * disagreement, 0.0), 1.0)
+    return np.where(is_prime, np.minimum(np.maximum(prime_efficiency, 0.0), 1.0), updated)
 
 
 def adaptive_gain(alignment, efficiency_estimate, sigma: float) -> np.ndarray:
     """Eqs. (14)-(15): rho = (1 - Theta) hat-Lambda^sigma + Theta (1 - (1 - hat-Lambda)^sigma)."""
     if not sigma >= 1.0:
         raise ValueError(f"sigma must be >= 1 (eq. 14), got {sigma!r}")
-    x = np.clip(np.asarray(alignment, dtype=float), 0.0, 1.0)
-    y = np.clip(np.asarray(efficiency_estimate, dtype=float), 0.0, 1.0)
+    x = np.minimum(np.maximum(np.asarray(alignment, dtype=float), 0.0), 1.0)
+    y = np.minimum(np.maximum(np.asarray(efficiency_estimate, dtype=float), 0.0), 1.0)
     return (1.0 - x) * y**sigma + x * (1.0 - (1.0 - y) ** sigma)

@@ -33,7 +33,7 @@ from controllers.intermittent.planner_geometry import points_free
 # Seed 000's task as every method sees it (re-exported: the strategies import it from here).
 from controllers.task import EstimateSeries, check_time_base, measurement_records, prior_state  # noqa: F401
 from sim.config import ConfigError
-from sim.geometry import Boxes, boxes_reaching
+from sim.geometry import Boxes, boxes_reaching, pairwise_min_distance
 from sim.types import Commands, Observation, WorldInfo
 
 PATH_HEIGHT_M = 0.01  # drawn paths lie this high above the floor, m
@@ -219,7 +219,7 @@ def separation_offsets(body_xy: np.ndarray, velocity: np.ndarray | None = None,
     body_xy = np.asarray(body_xy, dtype=float)
     n = len(body_xy)
     offsets = np.zeros((n, 2))
-    if n < 2:
+    if n < 2 or pairwise_min_distance(body_xy) >= distance:  # no pair closer: the usual tick, compiled
         return offsets
     diff = body_xy[:, None, :] - body_xy[None, :, :]
     dist = np.linalg.norm(diff, axis=-1)

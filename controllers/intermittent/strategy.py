@@ -81,6 +81,7 @@ from estimation.beliefs import NetworkBeliefs
 from estimation.ekf import FilterState
 from estimation.metrics import delay_report
 from sim.config import ConfigError
+from sim.geometry import pairwise_min_distance
 from sim.types import Commands, Observation, WorldInfo
 
 RING_RADIUS_M = 0.06  # members of a geodesic meeting stop on a ring this wide around its point, m
@@ -235,7 +236,6 @@ class MeetingStrategy(ABC):
         self._time_s = 0.0
         self.held_ticks = 0  # robot-ticks a path clock waited for its lagging body
         self.closest_m = math.inf  # closest approach of two robot bodies over the run, m
-        self._pairs: tuple[np.ndarray, np.ndarray] | None = None  # robot index pairs i < j
         # Footnote 4: the paths to the first meeting of every team, a priori.
         for epoch in range(1, self.schedule.period + 1):
             for team in self.schedule.teams_meeting_at(epoch):
@@ -418,11 +418,7 @@ class MeetingStrategy(ABC):
         return commands
 
     def _track_closest(self, xy: np.ndarray) -> None:
-        if len(xy) > 1:
-            if self._pairs is None:  # robot pairs i < j, once
-                self._pairs = np.triu_indices(len(xy), 1)
-            i, j = self._pairs
-            self.closest_m = min(self.closest_m, float(np.linalg.norm(xy[i] - xy[j], axis=-1).min()))
+        self.closest_m = min(self.closest_m, pairwise_min_distance(xy))
 
     # ---------------------------------------------------------------- outputs
     def _refresh_visual(self) -> None:

@@ -1,7 +1,11 @@
 """Differential-drive ground robot control: single-integrator commands to wheels.
 
-Pure numpy, never imports MuJoCo; batched over all N ground robots (all share
-one :class:`GroundRobotParams`).
+Numpy and small compiled kernels (:mod:`sim.compiled`), never imports
+MuJoCo; batched over all N ground robots (all share one
+:class:`GroundRobotParams`). The heading's trigonometry stays numpy's (its
+vectorised sin/cos/arctan2 differ from libm's in the last bit); the kernels
+do the same elementwise arithmetic as the numpy expressions they replaced,
+so wheel commands are bit-identical to them.
 
 Seed 000 plans for single integrators, p(t+1) = p(t) + u(t). A differential
 drive robot (a unicycle: forward speed v, turn rate omega, heading theta) is
@@ -33,6 +37,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from sim.compiled import kernel
 
 DEFAULT_OFFSET = 0.02  # m, distance of the controlled point ahead of the axle
 
@@ -68,33 +74,45 @@ def yaw_from_quaternion(q: np.ndarray) -> np.ndarray:
     return np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
-def offset_point(position: np.ndarray, yaw: np.ndarray, offset: float = DEFAULT_OFFSET) -> np.ndarray:
+def offset_point(position: np.ndarray, yaw: np.ndarray, offset: float = DEFAULT_OFFSET,
+                 cos_sin: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Point P_b (N, 2), m, world frame, ``offset`` m ahead of the axle centre.
 
     position: (N, 2) or (N, 3) robot centre (only x, y are used), m, world frame.
-    yaw: (N,) heading, rad.
+    yaw: (N,) heading, rad. cos_sin: ``(np.cos(yaw), np.sin(yaw))`` when the caller has them.
     """
     position = np.asarray(position, dtype=float)
     yaw = np.asarray(yaw, dtype=float)
     n = len(yaw)
     assert yaw.shape == (n,), yaw.shape
     assert position.ndim == 2 and position.shape[0] == n and position.shape[1] in (2, 3), position.shape
-    return position[:, :2] + offset * np.column_stack([np.cos(yaw), np.sin(yaw)])
+    c, s = cos_sin if cos_sin is not None else (np.cos(yaw), np.sin(yaw))
+    return position[:, :2] + offset * np.column_stack([c, s])
 
 
-def unicycle_command(velocity: np.ndarray, yaw: np.ndarray, offset: float = DEFAULT_OFFSET) -> tuple[np.ndarray, np.ndarray]:
+@kernel
+def _unicycle_kernel(velocity, c, s, offset):
+    n = velocity.shape[0]
+    v, omega = np.empty(n), np.empty(n)
+    for i in range(n):
+        v[i] = c[i] * velocity[i, 0] + s[i] * velocity[i, 1]
+        omega[i] = (-s[i] * velocity[i, 0] + c[i] * velocity[i, 1]) / offset
+    return v, omega
+
+
+def unicycle_command(velocity: np.ndarray, yaw: np.ndarray, offset: float = DEFAULT_OFFSET,
+                     cos_sin: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Forward speed v (N,), m/s, and turn rate omega (N,), rad/s, that move
-    the offset point with ``velocity`` (N, 2), m/s, world frame."""
+    the offset point with ``velocity`` (N, 2), m/s, world frame (``cos_sin``:
+    ``(np.cos(yaw), np.sin(yaw))`` when the caller has them)."""
     velocity = np.asarray(velocity, dtype=float)
     yaw = np.asarray(yaw, dtype=float)
     n = len(yaw)
     assert velocity.shape == (n, 2), velocity.shape
     assert yaw.shape == (n,), yaw.shape
     assert offset > 0.0, offset
-    c, s = np.cos(yaw), np.sin(yaw)
-    v = c * velocity[:, 0] + s * velocity[:, 1]
-    omega = (-s * velocity[:, 0] + c * velocity[:, 1]) / offset
-    return v, omega
+    c, s = cos_sin if cos_sin is not None else (np.cos(yaw), np.sin(yaw))
+    return _unicycle_kernel(velocity, c, s, float(offset))
 
 
 def wheel_speeds(params: GroundRobotParams, v: np.ndarray, omega: np.ndarray) -> np.ndarray:
@@ -108,12 +126,21 @@ def wheel_speeds(params: GroundRobotParams, v: np.ndarray, omega: np.ndarray) ->
     omega = np.asarray(omega, dtype=float)
     n = len(v)
     assert v.shape == (n,) and omega.shape == (n,), (v.shape, omega.shape)
-    r, half = params.wheel_radius, params.half_axle
-    wheels = np.column_stack([(v - half * omega) / r, (v + half * omega) / r])
-    peak = np.abs(wheels).max(axis=1)
-    scale = np.minimum(1.0, params.wheel_speed_max / np.maximum(peak, 1e-12))
-    wheels = np.clip(wheels * scale[:, None], -params.wheel_speed_max, params.wheel_speed_max)  # round-off
-    return wheels * np.asarray(params.wheel_direction, dtype=float)
+    return _wheel_kernel(v, omega, params.wheel_radius, params.half_axle, params.wheel_speed_max,
+                         float(params.wheel_direction[0]), float(params.wheel_direction[1]))
+
+
+@kernel
+def _wheel_kernel(v, omega, r, half, wheel_max, left_direction, right_direction):
+    n = v.shape[0]
+    wheels = np.empty((n, 2))
+    for i in range(n):
+        left, right = (v[i] - half * omega[i]) / r, (v[i] + half * omega[i]) / r
+        scale = min(1.0, wheel_max / max(max(abs(left), abs(right)), 1e-12))
+        # np.clip's min(max(.)) for round-off, then the motors' sense.
+        wheels[i, 0] = min(max(left * scale, -wheel_max), wheel_max) * left_direction
+        wheels[i, 1] = min(max(right * scale, -wheel_max), wheel_max) * right_direction
+    return wheels
 
 
 def track_velocity(
@@ -121,6 +148,7 @@ def track_velocity(
     velocity: np.ndarray,
     yaw: np.ndarray,
     offset: float = DEFAULT_OFFSET,
+    cos_sin: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Wheel angular velocities (N, 2), rad/s (left, right), that move the
     offset point (see :func:`offset_point`) with the single-integrator
@@ -130,7 +158,7 @@ def track_velocity(
     so the offset point then moves slower than asked (and, while turning, not
     exactly along ``velocity``).
     """
-    v, omega = unicycle_command(velocity, yaw, offset)
+    v, omega = unicycle_command(velocity, yaw, offset, cos_sin)
     return wheel_speeds(params, v, omega)
 
 

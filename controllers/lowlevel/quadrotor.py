@@ -348,7 +348,8 @@ def geometric_control(
     w, x, y, z = (q / np.sqrt(np.add.reduce(q * q, axis=1, keepdims=True))).T
     heading = np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
     yaw_error = np.angle(np.exp(1j * (reference.yaw - heading)))
-    yaw_cmd = heading + np.clip(yaw_error, -gains.max_yaw_error, gains.max_yaw_error)
+    # np.clip's own min(max(.)) (NaN kept), without its dispatch: half its ~8 us
+    yaw_cmd = heading + np.minimum(np.maximum(yaw_error, -gains.max_yaw_error), gains.max_yaw_error)
     _geometric_control_kernel(
         f64(state.position), f64(state.velocity), f64(state.quaternion), f64(state.angular_velocity),
         f64(reference.position), f64(reference.velocity), f64(reference.acceleration), np.cos(yaw_cmd),
