@@ -36,6 +36,7 @@ latest row is not "completed" (a new attempt file; the old one stays).
 
 from __future__ import annotations
 
+import abc
 import hashlib
 import json
 import math
@@ -505,11 +506,12 @@ class SweepStopped(RuntimeError):
     """An engine cannot go on (e.g. its process pool broke); rows stored so far stay."""
 
 
-class Engine:
+class Engine(abc.ABC):
     """Runs trials and yields their rows as they finish (any order)."""
 
+    @abc.abstractmethod
     def run(self, trials: list[Trial], recordings: str) -> Iterable[dict]:
-        raise NotImplementedError
+        """Yield one row per trial as it finishes."""
 
     def close(self) -> None:
         pass
