@@ -308,14 +308,18 @@ def table1_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
             if row_i == 0 and col == 0:
                 ax.legend(fontsize=7)
     fig.tight_layout()
-    png = out / "table1.png"
+    return _with_figure(lines, fig, out / "table1.png", "Table I")
+
+
+def _with_figure(lines: list[str], fig, png: Path, alt: str) -> tuple[list[str], list[Path]]:
+    """Save ``fig`` as ``png`` and place it under the section's heading (the first two lines)."""
     fig.savefig(png, dpi=110)
-    plt.close(fig)
-    return [*lines[:2], f"![Table I]({png.name})", "", *lines[2:]], [png]
+    _plt().close(fig)
+    return [*lines[:2], f"![{alt}]({png.name})", "", *lines[2:]], [png]
 
 
 def paradigms_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
-    """Issue 12: e_g and lambda-bar of every method against the communication range."""
+    """Both paradigms on seed 000's task: e_g and lambda-bar of every method against the communication range."""
     chosen = [r for r in rows if r.get("status") == "completed" and _number(r.get(RANGE_COLUMN)) is not None
               and r.get("strategy") in PARADIGM_METHODS and _number(r.get("e_g_mean_m")) is not None
               and _number(r.get("lambda_bar_mean_m2")) is not None]
@@ -364,10 +368,7 @@ def paradigms_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path
     axes[0].legend(fontsize=8)
     fig.suptitle("mean over seeds; band: min-max over seeds", fontsize=9)
     fig.tight_layout()
-    png = out / "paradigms.png"
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
-    return [*lines[:2], f"![paradigms]({png.name})", "", *lines[2:]], [png]
+    return _with_figure(lines, fig, out / "paradigms.png", "paradigms")
 
 
 def teams_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
@@ -421,10 +422,7 @@ def teams_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
         ax.set_ylabel(label)
         ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
-    png = out / "teams.png"
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
-    return [*lines[:2], f"![team graphs]({png.name})", "", *lines[2:]], [png]
+    return _with_figure(lines, fig, out / "teams.png", "team graphs")
 
 
 def generic_section(rows: list[dict], out: Path, x: str, y: str, hue: str | None) -> tuple[list[str], list[Path]]:

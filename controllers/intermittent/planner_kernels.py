@@ -90,6 +90,18 @@ JACOBI_OFF_RTOL = 1e-36  # stop when sum(off-diagonal^2) <= this times sum(diago
 
 
 @njit(cache=True)
+def _jacobi_rotation(a_pp: float, a_qq: float, a_pq: float) -> tuple[float, float, float]:
+    """tan, cos and sin of the rotation in the (p, q) plane that zeroes
+    a_pq (a_pq != 0), in Numerical Recipes' stable form: the smaller root t."""
+    theta = (a_qq - a_pp) / (2.0 * a_pq)
+    t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+    if theta < 0.0:
+        t = -t
+    cs = 1.0 / math.sqrt(t * t + 1.0)
+    return t, cs, t * cs
+
+
+@njit(cache=True)
 def max_eigenvalue_sym3(c) -> float:
     """Largest eigenvalue of the symmetric 3x3 matrix ``c`` (upper triangle read).
 
@@ -107,36 +119,21 @@ def max_eigenvalue_sym3(c) -> float:
             break
         # Rotation in the (0, 1) plane zeroes a01; a02, a12 mix.
         if a01 != 0.0:
-            theta = (a11 - a00) / (2.0 * a01)
-            t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-            if theta < 0.0:
-                t = -t
-            cs = 1.0 / math.sqrt(t * t + 1.0)
-            sn = t * cs
+            t, cs, sn = _jacobi_rotation(a00, a11, a01)
             a00 -= t * a01
             a11 += t * a01
             a01 = 0.0
             a02, a12 = cs * a02 - sn * a12, sn * a02 + cs * a12
         # (0, 2) plane: zeroes a02; a01, a12 mix.
         if a02 != 0.0:
-            theta = (a22 - a00) / (2.0 * a02)
-            t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-            if theta < 0.0:
-                t = -t
-            cs = 1.0 / math.sqrt(t * t + 1.0)
-            sn = t * cs
+            t, cs, sn = _jacobi_rotation(a00, a22, a02)
             a00 -= t * a02
             a22 += t * a02
             a02 = 0.0
             a01, a12 = cs * a01 - sn * a12, sn * a01 + cs * a12
         # (1, 2) plane: zeroes a12; a01, a02 mix.
         if a12 != 0.0:
-            theta = (a22 - a11) / (2.0 * a12)
-            t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-            if theta < 0.0:
-                t = -t
-            cs = 1.0 / math.sqrt(t * t + 1.0)
-            sn = t * cs
+            t, cs, sn = _jacobi_rotation(a11, a22, a12)
             a11 -= t * a12
             a22 += t * a12
             a12 = 0.0
