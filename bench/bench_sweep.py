@@ -51,7 +51,7 @@ def run(folder: Path, sweep_path: Path, engine, on_row=None) -> tuple[float, lis
     start = time.perf_counter()
     outcome = run_sweep(sweep, folder, engine, progress=False, on_row=on_row)
     wall = time.perf_counter() - start
-    assert outcome.completed == outcome.total, f"{sweep_path.name}: {outcome}"
+    assert outcome.finished == outcome.total, f"{sweep_path.name}: {outcome}"
     return wall, read_results(folder).to_pylist()
 
 

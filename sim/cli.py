@@ -392,7 +392,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         files = write_report(folder.out)
         report_note = f"; report {files[0].parent / 'report.md'}" if files else ""
     where = f"table {outcome.results}" if outcome.results else "no rows yet"
-    print(f"{sweep.name}: {outcome.completed} completed, {outcome.failed} failed, {outcome.not_run} not run "
+    print(f"{sweep.name}: {outcome.finished} finished, {outcome.failed} failed, {outcome.not_run} not run "
           f"of {outcome.total}; {where}{report_note}")
     if outcome.stopped:
         print(f"stopped: {outcome.stopped}; run the same command again to resume", file=sys.stderr)

@@ -17,8 +17,10 @@ trials, and every cell states its n:
   and spread over seeds, a table and a plot (``paradigms.png``);
 - with ``--x KEY --y METRIC [--hue KEY]``: any metric against any column.
 
-Only rows with status "completed" enter statistics; the trial counts and
-failures head the report. Writes ``report.md`` and PNGs into the folder.
+Finished rows (status "completed", or "time limit": ran to the duration cap)
+enter statistics; Fig. 9's completion time counts only trials whose mission
+completed, and each cell says how many stopped at the time limit. The trial
+counts and failures head the report. Writes ``report.md`` and PNGs into the folder.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from sim.config import ConfigError
+from sim.sweep import FINISHED
 
 # Seed 001, Fig. 9: rows (column, axis label).
 FIG9_ROWS = (
@@ -94,16 +97,18 @@ def _plt():
 
 def trials_section(rows: list[dict], manifest: dict | None) -> list[str]:
     total = manifest.get("trials") if manifest else None
-    completed = sum(r.get("status") == "completed" for r in rows)
-    failed = [r for r in rows if r.get("status") != "completed"]
+    finished = sum(r.get("status") in FINISHED for r in rows)
+    time_limited = sum(r.get("status") == "time limit" for r in rows)
+    failed = [r for r in rows if r.get("status") not in FINISHED]
     name = manifest.get("sweep", "") if manifest else ""
     lines = [f"# Sweep report{': ' + name if name else ''}", ""]
     if manifest and manifest.get("description"):
         lines += [manifest["description"], ""]
     not_run = f", {total - len(rows)} not run" if total is not None else ""
-    lines += [f"Trials: {completed} completed, {len(failed)} failed{not_run}"
+    capped = f" ({time_limited} of them stopped at their time limit)" if time_limited else ""
+    lines += [f"Trials: {finished} finished{capped}, {len(failed)} failed{not_run}"
               f"{f' (of {total})' if total is not None else ''}. "
-              "Statistics use completed trials only; n is given per cell.", ""]
+              "Statistics use finished trials only; n is given per cell.", ""]
     if failed:
         lines += ["| trial | seed | status | error |", "| --- | --- | --- | --- |"]
         for r in failed[:20]:
@@ -120,16 +125,20 @@ def fig9_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
     mine = [r for r in rows if r.get("strategy") == "connected" and _number(r.get("n_robots")) is not None]
     if not mine:
         return [], []
-    done = [r for r in mine if r.get("status") == "completed"]
+    done = [r for r in mine if r.get("status") in FINISHED]
     scenes = sorted({_label(r["scenario"]) for r in mine})
     counts = sorted({int(r["n_robots"]) for r in mine})
-    # values[metric][scene][count] -> list; trials[scene][count] -> completed trials in the cell
+    # values[metric][scene][count] -> list; trials[scene][count] -> finished trials in the cell
     values: dict = {m: defaultdict(lambda: defaultdict(list)) for m, _ in FIG9_ROWS}
     trials: dict = defaultdict(lambda: defaultdict(int))
+    capped: dict = defaultdict(lambda: defaultdict(int))  # stopped at the time limit: no completion time
     for r in done:
         scene, count = _label(r["scenario"]), int(r["n_robots"])
         trials[scene][count] += 1
+        capped[scene][count] += r.get("status") == "time limit"
         for metric, _ in FIG9_ROWS:
+            if metric == "completion_time_s" and r.get("status") != "completed":
+                continue
             value = _number(r.get(metric))
             if value is not None:
                 values[metric][scene][count].append(value)
@@ -150,7 +159,7 @@ def fig9_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
                     ax.annotate(f"{len(values[metric][scene][x])}", (x, p[xs.index(x), 2]), fontsize=6,
                                 textcoords="offset points", xytext=(0, 4), ha="center", color="#555")
             else:
-                ax.text(0.5, 0.5, "no completed trials", ha="center", va="center", transform=ax.transAxes,
+                ax.text(0.5, 0.5, "no finished trials", ha="center", va="center", transform=ax.transAxes,
                         fontsize=8, color="#777")
             ax.grid(alpha=0.3)
             if col == 0:
@@ -169,8 +178,9 @@ def fig9_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
 
     lines = ["## Seed 001, Fig. 9 (connected)", "",
              f"![Fig. 9]({png.name})", "",
-             "Cells: median [25th, 75th percentile] (n completed trials with a value). Completion time counts "
-             "only trials that visited every target before the scenario's cap.", ""]
+             "Cells: median [25th, 75th percentile] (n = trials with a value / finished trials in the cell). "
+             "Completion time counts only trials that visited every target before the scenario's cap; "
+             "\"k capped\" says how many stopped at that cap instead.", ""]
     for metric, label in FIG9_ROWS:
         lines += [f"**{label}**", "", "| robots | " + " | ".join(scenes) + " |",
                   "| --- |" + " --- |" * len(scenes)]
@@ -178,11 +188,12 @@ def fig9_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
             cells = []
             for scene in scenes:
                 v = values[metric][scene][c]
+                note = f", {capped[scene][c]} capped" if metric == "completion_time_s" and capped[scene][c] else ""
                 if v:
                     q25, q50, q75 = np.percentile(v, (25, 50, 75))
-                    cells.append(f"{q50:.3g} [{q25:.3g}, {q75:.3g}] (n={len(v)}/{trials[scene][c]})")
+                    cells.append(f"{q50:.3g} [{q25:.3g}, {q75:.3g}] (n={len(v)}/{trials[scene][c]}{note})")
                 else:
-                    cells.append(f"- (n=0/{trials[scene][c]})")
+                    cells.append(f"- (n=0/{trials[scene][c]}{note})")
             lines.append(f"| {c} | " + " | ".join(cells) + " |")
         lines.append("")
     trend = []
@@ -204,7 +215,7 @@ def _table1_cells(rows: list[dict]) -> dict:
     cells: dict = {}
     groups = defaultdict(list)
     for r in rows:
-        if r.get("status") == "completed" and _number(r.get("e_g_mean_m")) is not None \
+        if r.get("status") in FINISHED and _number(r.get("e_g_mean_m")) is not None \
                 and _number(r.get("lambda_bar_mean_m2")) is not None:
             groups[(int(r.get("n_targets") or 0), r.get("strategy"))].append(r)
     for key, chosen in groups.items():
@@ -226,7 +237,7 @@ def _paired_wins(rows: list[dict], n_targets: int) -> list[str]:
     the intermittent method is lower."""
     value = {}
     for r in rows:
-        if r.get("status") == "completed" and int(r.get("n_targets") or 0) == n_targets:
+        if r.get("status") in FINISHED and int(r.get("n_targets") or 0) == n_targets:
             value[(r.get("strategy"), r.get("scenario"), r.get("seed"))] = r
     out = []
     for key, name in (("e_g_mean_m", "e_g"), ("lambda_bar_mean_m2", "lambda-bar")):
@@ -320,7 +331,7 @@ def _with_figure(lines: list[str], fig, png: Path, alt: str) -> tuple[list[str],
 
 def paradigms_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
     """Both paradigms on seed 000's task: e_g and lambda-bar of every method against the communication range."""
-    chosen = [r for r in rows if r.get("status") == "completed" and _number(r.get(RANGE_COLUMN)) is not None
+    chosen = [r for r in rows if r.get("status") in FINISHED and _number(r.get(RANGE_COLUMN)) is not None
               and r.get("strategy") in PARADIGM_METHODS and _number(r.get("e_g_mean_m")) is not None
               and _number(r.get("lambda_bar_mean_m2")) is not None]
     methods = [m for m in PARADIGM_METHODS if any(r.get("strategy") == m for r in chosen)]
@@ -337,7 +348,7 @@ def paradigms_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path
                 cells[(m, rng)] = {"n": len(group), "e_g": e_g, "lam": lam}
     lines = ["## Both paradigms against the communication range", "",
              "Per method and range: mean over seeds of each run's time-averaged e_g (m) and lambda-bar (m^2), "
-             "+- their std over seeds, [min, max] over seeds, and n (completed trials).", ""]
+             "+- their std over seeds, [min, max] over seeds, and n (finished trials).", ""]
     for key, name in (("e_g", "e_g (m)"), ("lam", "lambda-bar (m^2)")):
         lines += [f"**{name}**", "", "| method | " + " | ".join(f"R = {rng:g} m" for rng in ranges) + " |",
                   "|" + " --- |" * (1 + len(ranges))]
@@ -385,14 +396,14 @@ def teams_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
                ("max_delay_epochs_observed", "max observed delay (epochs)"),
                ("t_star_lag_mean_s", "t - t*(t) mean (s)"), ("t_star_lag_max_s", "t - t*(t) max (s)"))
     lines = ["## Seed 000, Sec. IV-A: team graphs", "",
-             "Ours: mean ± std over completed trials (n). Paper: 8 targets, one run each.", "",
+             "Ours: mean ± std over finished trials (n). Paper: 8 targets, one run each.", "",
              "| scenario | team graph | n | " + " | ".join(label for _, label in columns)
              + " | paper e_g-bar (m) | paper lambda-bar (m^2) | paper D_G |",
              "|" + " --- |" * (3 + len(columns) + 3)]
     stats = {}
     for n_targets in sorted(compared, key=lambda n: n or 0):
         for scenario in sorted(compared[n_targets]):
-            chosen = [r for r in mine if _label(r["scenario"]) == scenario and r.get("status") == "completed"]
+            chosen = [r for r in mine if _label(r["scenario"]) == scenario and r.get("status") in FINISHED]
             cell = []
             stats[scenario] = {}
             for key, _ in columns:
@@ -427,7 +438,7 @@ def teams_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
 
 def generic_section(rows: list[dict], out: Path, x: str, y: str, hue: str | None) -> tuple[list[str], list[Path]]:
     """Any metric against any column: median and 25-75 % band per x, one line per hue value."""
-    done = [r for r in rows if r.get("status") == "completed" and _number(r.get(y)) is not None]
+    done = [r for r in rows if r.get("status") in FINISHED and _number(r.get(y)) is not None]
     groups: dict = defaultdict(lambda: defaultdict(list))
     for r in done:
         groups[_label(r.get(hue)) if hue else ""][r.get(x)].append(float(r[y]))
@@ -445,7 +456,7 @@ def generic_section(rows: list[dict], out: Path, x: str, y: str, hue: str | None
     if not numeric:
         ax.set_xticks(range(len(xs_all)), [_label(v) for v in xs_all], fontsize=7, rotation=20)
     if not done:
-        ax.text(0.5, 0.5, "no completed trials", ha="center", va="center", transform=ax.transAxes)
+        ax.text(0.5, 0.5, "no finished trials", ha="center", va="center", transform=ax.transAxes)
     ax.set_xlabel(x)
     ax.set_ylabel(y)
     ax.grid(alpha=0.3)

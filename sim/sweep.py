@@ -30,8 +30,11 @@ name and renamed, so a file is whole or absent), then, at the end,
 ``DIR/results.parquet`` (latest attempt per trial, one row each).
 ``DIR/sweep.json`` holds the sweep's definition and its hash: a folder
 holding another sweep's results is refused. A rerun of the same command
-skips every trial that has a row; ``--retry-failed`` reruns the trials whose
-latest row is not "completed" (a new attempt file; the old one stays).
+skips every trial whose latest row is finished ("completed", or "time limit":
+the trial ran to its duration cap) or failed ("diverged", "error");
+``--retry-failed`` also reruns the failed ones (a new attempt file; the old
+one stays). A row that says "interrupted" (a trial stopped by a signal) is
+never a result: the next call runs that trial again.
 """
 
 from __future__ import annotations
@@ -65,8 +68,12 @@ SWEEP_KEYS = {"description", "scenario", "duration_s", "seeds", "set", "grid", "
 # Columns every row has, before the swept keys and the metrics.
 ROW_KEYS = ("trial_id", "trial_index", "attempt", "scenario", "seed", "duration_s", "overrides", "status",
             "error", "wall_time_s", "host", "finished_at")
-# Statuses of a trial's row: "completed" and "diverged" come from the run, "error" is an exception.
+# Statuses of a trial's row. From the run: "completed" (its mission ended, or it ran its whole
+# duration), "time limit" (stopped by the duration cap before its mission ended: a finished trial
+# with a censored completion time), "diverged", "interrupted"; "error" is an exception.
+FINISHED = ("completed", "time limit")
 FAILED = ("diverged", "error")
+NOT_A_RESULT = ("interrupted",)  # always run again
 
 
 # ---------------------------------------------------------------- sweep files
@@ -665,7 +672,7 @@ def local_ray_cluster(num_cpus: int, temp_dir: str | Path | None = None, timeout
 @dataclass
 class SweepOutcome:
     total: int
-    completed: int
+    finished: int  # "completed" or "time limit"
     failed: int
     not_run: int
     results: Path | None
@@ -682,15 +689,17 @@ def run_sweep(sweep: Sweep, out: str | Path, engine: Engine, retry_failed: bool 
     folder = ResultsFolder(out)
     status = folder.latest_status({t.trial_id for t in sweep.trials})
     todo = [t for t in sweep.trials
-            if t.trial_id not in status or (retry_failed and status[t.trial_id][1] in FAILED)]
-    completed = sum(s == "completed" for _, s in status.values())
-    failed = sum(s in FAILED for _, s in status.values()) - sum(t.trial_id in status for t in todo)
+            if t.trial_id not in status or status[t.trial_id][1] in NOT_A_RESULT
+            or (retry_failed and status[t.trial_id][1] in FAILED)]
+    finished = sum(s in FINISHED for _, s in status.values())
+    rerun = {t.trial_id for t in todo}
+    failed = sum(s in FAILED for trial_id, (_, s) in status.items() if trial_id not in rerun)
     bar = tqdm(total=len(sweep.trials), initial=len(sweep.trials) - len(todo), desc=sweep.name, unit="trial",
                disable=not progress, file=sys.stderr, dynamic_ncols=True, smoothing=0.1)
 
     def show() -> None:
-        remaining = len(sweep.trials) - completed - failed
-        bar.set_postfix_str(f"done {completed}, failed {failed}, remaining {remaining}", refresh=False)
+        remaining = len(sweep.trials) - finished - failed
+        bar.set_postfix_str(f"done {finished}, failed {failed}, remaining {remaining}", refresh=False)
 
     show()
     stopped = ""
@@ -698,9 +707,9 @@ def run_sweep(sweep: Sweep, out: str | Path, engine: Engine, retry_failed: bool 
         for row in engine.run(todo, str(folder.out / "recordings")):
             row["attempt"] = status.get(row["trial_id"], (0, ""))[0] + 1
             folder.store(row)
-            if row["status"] == "completed":
-                completed += 1
-            else:
+            if row["status"] in FINISHED:
+                finished += 1
+            elif row["status"] in FAILED:
                 failed += 1
             if on_row is not None:
                 on_row(row)
@@ -714,5 +723,5 @@ def run_sweep(sweep: Sweep, out: str | Path, engine: Engine, retry_failed: bool 
         engine.close()
         bar.close()
     results = folder.consolidate()
-    return SweepOutcome(len(sweep.trials), completed, failed, len(sweep.trials) - completed - failed, results,
+    return SweepOutcome(len(sweep.trials), finished, failed, len(sweep.trials) - finished - failed, results,
                         stopped)

@@ -84,7 +84,7 @@ def test_pool_sweep_runs_to_the_end_and_a_rerun_skips_every_trial(tiny, tmp_path
     out = tmp_path / "out"
     assert main(["sweep", str(tiny), "--out", str(out), "--workers", "2", "--rrd", "1"]) == 0
     summary = capsys.readouterr().out
-    assert "4 completed, 0 failed, 0 not run of 4" in summary and str(out / "results.parquet") in summary
+    assert "4 finished, 0 failed, 0 not run of 4" in summary and str(out / "results.parquet") in summary
 
     table = pq.read_table(out / "results.parquet")
     rows = table.to_pylist()
@@ -113,7 +113,7 @@ def test_a_trial_that_raises_is_recorded_and_the_others_finish(tmp_path, capsys)
                                             '"strategy.speed_mps" = [0.3, 0.5]\n')
     out = tmp_path / "out"
     assert main(["sweep", str(sweep), "--out", str(out), "--workers", "2"]) == 1
-    assert "2 completed, 2 failed, 0 not run of 4" in capsys.readouterr().out
+    assert "2 finished, 2 failed, 0 not run of 4" in capsys.readouterr().out
     rows = read_results(out).to_pylist()
     failed = [r for r in rows if r["status"] != "completed"]
     assert [r["trial_index"] for r in failed] == [2, 3]
@@ -129,6 +129,26 @@ def test_a_trial_that_raises_is_recorded_and_the_others_finish(tmp_path, capsys)
         == completed_files
     assert sorted(r["attempt"] for r in read_results(out).to_pylist()) == [1, 1, 2, 2]
     assert read_results(out, all_attempts=True).num_rows == 6
+
+
+def test_time_limited_trials_are_results_and_interrupted_ones_run_again(tmp_path, capsys):
+    """A trial stopped by its duration cap ("time limit") finished: it is counted as done and never
+    rerun, even with --retry-failed; a row saying "interrupted" is not a result and runs again."""
+    sweep_path = write_sweep(tmp_path, "statuses", 'duration_s = 0.2\nseeds = 3\n')
+    sweep = load_sweep(str(sweep_path))
+    out = tmp_path / "out"
+    folder = ResultsFolder(out)
+    folder.claim(sweep)
+    capped, interrupted, _ = sweep.trials
+    for trial, status in ((capped, "time limit"), (interrupted, "interrupted")):
+        folder.store({"trial_id": trial.trial_id, "trial_index": trial.index, "attempt": 1, "scenario": "hover",
+                      "seed": trial.seed, "status": status, "error": f"stopped: {status}"})
+    assert main(["sweep", str(sweep_path), "--out", str(out), "--workers", "1", "--retry-failed"]) == 0
+    assert "3 finished, 0 failed, 0 not run of 3" in capsys.readouterr().out
+    latest = {r["trial_id"]: (r["attempt"], r["status"]) for r in read_results(out).to_pylist()}
+    assert latest[capped.trial_id] == (1, "time limit")
+    assert latest[interrupted.trial_id] == (2, "completed")
+    assert "1 of them stopped at their time limit" in (out / "report.md").read_text()
 
 
 def test_driver_killed_mid_sweep_and_rerun_gives_the_uninterrupted_table(tmp_path):
@@ -197,8 +217,10 @@ def fixture_table(folder: Path) -> Path:
     for scene in ("connected-office", "connected-town"):
         for count in (10, 20, 35):
             for seed in range(4):
+                capped = seed == 3 and count == 35  # stopped at its time limit: no completion time
                 row(scenario=scene, strategy="connected", n_robots=count, seed=seed,
-                    completion_time_s=None if seed == 3 and count == 35 else 300 - 4 * count + rng.normal(0, 10),
+                    status="time limit" if capped else "completed",
+                    completion_time_s=None if capped else 300 - 4 * count + rng.normal(0, 10),
                     mean_travel_m=40 + rng.normal(0, 3), max_stretch_m=20 + count / 5, lambda2_mean=0.1 + count / 300)
     row(scenario="connected-town", strategy="connected", n_robots=20, status="error", error="RuntimeError: boom")
     for scenario, targets in (("intermittent-4", 4), ("intermittent-8", 8)):
@@ -235,8 +257,10 @@ def test_report_on_a_fixture_table_writes_figures_and_tables(tmp_path, capsys):
         assert_non_blank_png(tmp_path / name)
     report = (tmp_path / "report.md").read_text()
     assert "1 failed" in report and "RuntimeError: boom" in report
-    # Fig. 9: the 35-robot cell of the office has one trial without a completion time.
-    assert "| 35 | " in report and "(n=3/4)" in report
+    assert "2 of them stopped at their time limit" in report
+    # Fig. 9: the 35-robot cells have one trial stopped at its time limit: no completion time,
+    # but its distance, stretch and lambda2 count.
+    assert "| 35 | " in report and "(n=3/4, 1 capped)" in report and "(n=4/4)" in report
     # Table I beside the paper, with n per cell.
     assert "0.929 ± 0.561" in report and "2.517 ± 0.810" in report and "n=3)" in report
     # Team graphs beside the paper's figures.
