@@ -115,6 +115,13 @@ def test_recording_entity_tree_targets_teams_plans_and_meetings(room_recording):
     assert [t for t, _ in plans] == [t for t, _ in meetings] == [0] + [t for t, _ in held]
     assert all(len(points) >= 2 for _, points in meetings)
     assert all(len(strips) >= 4 for _, strips in plans)  # at least one path per robot
+    # The legend says what the colours mean: teams, the plain colours, the true targets and estimates.
+    legend = rrd_column(chunks["/legend"], "TextDocument:text")
+    assert legend and legend[0][0] == 0
+    text = str(legend[0][1])
+    for words in ("team 0", "team 1", "no meeting planned", "target (true)", "target estimate", "reference",
+                  "communication link", "**yellow**"):
+        assert words in text, words
 
 
 def test_plots_draw_the_figs_5_to_7_series(room_recording):

@@ -12,7 +12,7 @@ import pytest
 from sim.loop import run
 from sim.scenario import load
 
-from helpers import check_static_once_and_both_timelines, recorded_ticks, rrd_chunks, rrd_rows, write_scenario
+from helpers import check_static_once_and_both_timelines, recorded_ticks, rrd_chunks, rrd_column, rrd_rows, write_scenario
 
 DURATION_S = 2.0
 
@@ -104,6 +104,12 @@ def test_recording_has_entities_rows_and_a_blueprint(hover_run):
     assert names.to_record_batch().column("Points3D:labels").to_pylist()[0] == [
         *(f"quad{i}" for i in range(4)), *(f"ground{i}" for i in range(4))]
     assert RrdReader(str(out / "run.rrd")).blueprints(), "default blueprint missing"
+    # Colours explained in the recording: hover's robots are coloured by kind.
+    ((tick, text),) = rrd_column(chunks["/legend"], "TextDocument:text")  # logged once: it never changes
+    assert tick == 0
+    for line in ("**orange** `#e67828`: quadrotor robot", "**green** `#3ca050`: ground robot",
+                 "**blue** `#3c6eff`: reference", "communication link", "target (true)"):
+        assert line in str(text), line
 
 
 def test_same_seed_same_run_and_observers_do_not_perturb(tmp_path):

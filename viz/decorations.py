@@ -115,6 +115,22 @@ def _rgb8(rgba: np.ndarray) -> np.ndarray:
     return np.clip(np.round(np.asarray(rgba, dtype=float) * 255), 0, 255).astype(np.uint8)
 
 
+def colour_name(rgb) -> str:
+    """A plain name for an RGB colour (0..255): the recording's legend is text,
+    so it says "blue" beside the hex code."""
+    import colorsys
+
+    hue, lightness, saturation = colorsys.rgb_to_hls(*(c / 255 for c in rgb[:3]))
+    if saturation < 0.2 or lightness < 0.12 or lightness > 0.92:
+        return "black" if lightness < 0.15 else "white" if lightness > 0.9 else "grey"
+    degrees = hue * 360
+    for limit, name in ((15, "red"), (40, "orange"), (70, "yellow"), (165, "green"), (195, "cyan"),
+                        (255, "blue"), (290, "purple"), (340, "pink"), (360, "red")):
+        if degrees < limit:
+            return name
+    return "red"
+
+
 def robot_colors_rgb8(info: dict, default: np.ndarray) -> np.ndarray:
     """(N, 3) uint8 recording colours of the robots: ``robot_colors`` when the
     strategy gives one per robot, else ``default``."""

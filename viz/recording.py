@@ -15,6 +15,7 @@ Entity tree:
   robots/...               per-robot series (the strategy's ``robot_scalars``)
   events                   text log (start, the strategy's events, warnings,
                            end status)
+  legend                   what the colours mean (Markdown; logged when it changes)
 Timelines: ``sim_time`` (s) and ``tick``; every temporal row has both. A
 default blueprint (3D view beside time series and the event log) is embedded
 in the file.
@@ -51,7 +52,7 @@ from rerun.chunk import RrdReader
 
 from sim.observers import Frame, tracking_errors
 from sim.world import INFINITE_PLANE_HALF_SIZE, World
-from viz.decorations import log_events, log_recording_decorations, robot_colors_rgb8
+from viz.decorations import colour_name, frame_legend, log_events, log_recording_decorations, robot_colors_rgb8
 from viz.video import link_color
 
 KIND_COLORS = {"quadrotor": (230, 120, 40), "ground": (60, 160, 80)}
@@ -59,6 +60,8 @@ ROBOT_RADIUS_M = 0.08
 TARGET_COLOR = (240, 200, 30)
 LINK_COLOR = (40, 190, 60)
 REFERENCE_COLOR = (60, 110, 255)
+LINK_FULL_RGB = tuple(int(round(255 * c)) for c in link_color(1.0)[:3])
+LINK_EMPTY_RGB = tuple(int(round(255 * c)) for c in link_color(0.0)[:3])
 FILE_FLUSH_PERIOD = datetime.timedelta(seconds=2)  # run.rrd: rows are batched this long (wall time)
 FILE_FLUSH_BYTES = 8 * 1024 * 1024  # ... or up to this many bytes
 # The recording is written as complete segment files, the first after SEGMENT_FIRST_S of wall time, each
@@ -76,7 +79,8 @@ def default_blueprint() -> rrb.Blueprint:
             rrb.Vertical(
                 rrb.TimeSeriesView(name="Metrics", origin="metrics"),
                 rrb.TextLogView(name="Events", origin="events"),
-                row_shares=[3, 1],
+                rrb.TextDocumentView(name="Legend", origin="legend"),
+                row_shares=[3, 1, 1],
             ),
             column_shares=[3, 2],
         ),
@@ -235,6 +239,7 @@ class RerunRecorder:
         self._latest = (0.0, 0)  # latest (sim time, tick) logged at, for the closing event
         self._robot_series: set[str] = set()
         self._decorations_logged: dict = {}  # decoration key -> the object last logged
+        self._legend = ""  # the legend text last logged
         self._kind_colors = np.array([KIND_COLORS[k] for k in world.robot_kinds], dtype=np.uint8)
         self._log_static(scenario_name)
 
@@ -346,7 +351,27 @@ class RerunRecorder:
                 self.rec.log(f"robots/{key}", rr.SeriesLines(names=list(self.world.robot_names)), static=True)
             self.rec.log(f"robots/{key}", rr.Scalars(np.asarray(values, dtype=float)))
         log_recording_decorations(self.rec, frame, self._decorations_logged)  # optional: plans, estimates, ...
+        legend = self.legend(frame)
+        if legend != self._legend:  # roles and teams change rarely: log the text when it does
+            self._legend = legend
+            self.rec.log("legend", rr.TextDocument(legend, media_type=rr.MediaType.MARKDOWN))
         self.rows += 1
+
+    def legend(self, frame: Frame) -> str:
+        """What the colours of ``frame`` mean, as Markdown: the strategy's legend (roles, teams,
+        paths), the robots' kind colours when the strategy colours none, and the recorder's own."""
+        entries = [(label, tuple(int(round(255 * c)) for c in rgba[:3])) for label, rgba in frame_legend(frame)]
+        if frame.commands.info.get("robot_colors") is None:
+            entries += [(f"{kind} robot", KIND_COLORS[kind]) for kind in dict.fromkeys(self.world.robot_kinds)]
+        entries.append(("reference (the point a robot is steered to)", REFERENCE_COLOR))
+        if frame.commands.info.get("link_weights") is None:
+            entries.append(("communication link", LINK_COLOR))
+        else:
+            entries += [("link of full weight (1)", LINK_FULL_RGB), ("link of weight near 0", LINK_EMPTY_RGB)]
+        if len(frame.target_positions) and not any(label == "target (true)" for label, _ in entries):
+            entries.append(("target (true)", TARGET_COLOR))
+        lines = [f"- **{colour_name(rgb)}** `#{rgb[0]:02x}{rgb[1]:02x}{rgb[2]:02x}`: {label}" for label, rgb in entries]
+        return "\n".join(["**Colours**", "", *lines])
 
     def event(self, time_s: float, text: str, level: str = "INFO", tick: int | None = None) -> None:
         """One line of the event log at ``time_s`` (and ``tick``, when known)."""
