@@ -12,6 +12,13 @@ TOML table, before the scenario is validated:
   communication range and in line of sight). The pattern keeps the spacing
   the method was tuned for (the connected method's lattice at R'_c, the
   intermittent teams' 0.12 m cluster).
+  A team spread out on purpose (the waypoint demo, not connected at the
+  start) is placed robot by robot instead: each start is scaled from the old
+  scene's floor plan into the new one's and moved to the nearest free spot.
+- waypoint routes (``strategy.routes``): scaled the same way, each waypoint
+  moved to the nearest free spot; a route that would still cross an obstacle
+  becomes a back-and-forth between the robot's start and the farthest free
+  point nearby that it can reach in a straight line.
 - targets (``[[targets]]``): a path that leaves the bounds or passes through
   an obstacle is redrawn, same shape and speed, at the first free spot of a
   deterministic low-discrepancy sequence over the scene.
@@ -36,7 +43,7 @@ from sim.config import ConfigError, build
 from sim.geometry import Boxes, point_clearance, segment_clearance
 from sim.scenario import SCENE_DIR, Scenario, TargetConfig, from_table, load_table, resolve_scene
 from sim.targets import nominal_path_samples
-from sim.world import ROBOT_RADIUS_M, extract_obstacles, load_scene_spec, scene_bounds
+from sim.world import ROBOT_PREFIX, ROBOT_RADIUS_M, extract_obstacles, load_scene_spec, scene_bounds
 
 # Clearance of each start from obstacles, m. Quadrotors: the connected method's
 # full-weight line-of-sight clearance in the office (R'_o = 0.6 m), so the
@@ -50,6 +57,15 @@ GROUND_PROBE_LIFT_M = 0.01
 # large scenes so the search stays within ~40,000 candidates.
 CANDIDATE_STEP_M = 0.05
 MAX_CANDIDATES_PER_AXIS = 200
+# Waypoints (and the straight legs between them) keep this clearance from obstacles, m:
+# a quadrotor's rotor disc plus margin; a ground robot's radius plus margin.
+ROUTE_CLEARANCE_M = {"quadrotor": 0.35, "ground": 0.08}
+# Robots placed one by one keep at least this distance between their starts, m.
+START_SEPARATION_M = 0.6
+# A route that crosses an obstacle is replaced by a back-and-forth to a free point at one of
+# these distances (the farthest that works) and bearings around the start.
+FALLBACK_LEG_M = (1.5, 1.0, 0.6, 0.3)
+FALLBACK_BEARINGS = 12
 # Redrawn targets keep this clearance from obstacles and bounds, m.
 TARGET_CLEARANCE_M = 0.3
 # Low-discrepancy candidates tried per redrawn target.
@@ -134,10 +150,7 @@ def move_team(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, com
         shift = max(0.0, lo[2] + margin - z.min()) - max(0.0, z.max() - (hi[2] - margin))
         pattern[flying, 2] += shift
     centroid = pattern[:, :2].mean(axis=0)
-    step = max(CANDIDATE_STEP_M, float((hi - lo)[:2].max()) / MAX_CANDIDATES_PER_AXIS)
-    xs = np.arange(lo[0], hi[0] + 1e-9, step)
-    ys = np.arange(lo[1], hi[1] + 1e-9, step)
-    grid = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+    grid = candidate_grid(geometry)
     # Nearest the centre first; ties broken by position so the order is fixed.
     order = np.lexsort((grid[:, 1], grid[:, 0], np.linalg.norm(grid - geometry.center[:2], axis=1).round(9)))
     for c in grid[order]:
@@ -146,6 +159,102 @@ def move_team(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, com
         if starts_fit(geometry, kinds, moved, comm_range_m, connected):
             return moved
     return None
+
+
+def candidate_grid(geometry: SceneGeometry) -> np.ndarray:
+    """(K, 2) x, y candidates over the scene's floor plan, CANDIDATE_STEP_M apart (coarser in large scenes)."""
+    lo, hi = geometry.bounds
+    step = max(CANDIDATE_STEP_M, float((hi - lo)[:2].max()) / MAX_CANDIDATES_PER_AXIS)
+    xs = np.arange(lo[0], hi[0] + 1e-9, step)
+    ys = np.arange(lo[1], hi[1] + 1e-9, step)
+    return np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+
+
+def scale_plan(points: np.ndarray, old_bounds: np.ndarray, new_bounds: np.ndarray) -> np.ndarray:
+    """``points`` with x, y mapped from one floor plan's box onto the other's (z unchanged)."""
+    out = np.array(points, dtype=float)
+    size = np.maximum(old_bounds[1, :2] - old_bounds[0, :2], 1e-9)
+    out[:, :2] = new_bounds[0, :2] + (out[:, :2] - old_bounds[0, :2]) / size * (new_bounds[1, :2] - new_bounds[0, :2])
+    return out
+
+
+def nearest_free(geometry: SceneGeometry, grid: np.ndarray, point: np.ndarray, clearance: float,
+                 lift_ground: bool, away_from: list[np.ndarray] = (), separation: float = 0.0) -> np.ndarray | None:
+    """The grid point (at ``point``'s height, kept inside the bounds' height) nearest ``point`` that is
+    ``clearance`` from obstacles and the bounds and ``separation`` from every point of ``away_from``."""
+    lo, hi = geometry.bounds
+    z = lo[2] + clearance + GROUND_PROBE_LIFT_M if lift_ground else float(np.clip(point[2], lo[2] + clearance,
+                                                                                 hi[2] - clearance))
+    inside = np.all((grid >= lo[:2] + clearance) & (grid <= hi[:2] - clearance), axis=1)
+    for other in away_from:
+        inside &= np.linalg.norm(grid - other[:2], axis=1) >= separation
+    candidates = grid[inside]
+    if not len(candidates):
+        return None
+    order = np.lexsort((candidates[:, 1], candidates[:, 0], np.linalg.norm(candidates - point[:2], axis=1).round(9)))
+    for start in range(0, len(order), 512):  # nearest first, a block at a time
+        block = candidates[order[start:start + 512]]
+        probe = np.column_stack([block, np.full(len(block), z)])
+        free = np.flatnonzero(point_clearance(geometry.obstacles, probe) >= clearance)
+        if len(free):
+            x, y = block[free[0]]
+            return np.array([x, y, point[2] if lift_ground else z])
+    return None
+
+
+def place_each(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray,
+               old_bounds: np.ndarray) -> np.ndarray | None:
+    """A team that need not be connected, placed robot by robot: each start scaled from the old
+    floor plan into the new one, then moved to the nearest free spot apart from those already placed."""
+    grid = candidate_grid(geometry)
+    wanted = scale_plan(starts, old_bounds, geometry.bounds)
+    placed: list[np.ndarray] = []
+    for kind, point in zip(kinds, wanted):
+        spot = nearest_free(geometry, grid, point, START_CLEARANCE_M[kind], kind == "ground", placed,
+                            START_SEPARATION_M)
+        if spot is None:
+            return None
+        placed.append(spot)
+    return np.array(placed)
+
+
+def _route_is_clear(geometry: SceneGeometry, loop: np.ndarray, clearance: float, ground: bool) -> bool:
+    probe = loop.copy()
+    if ground:  # the floor is not an obstacle to a ground robot
+        probe[:, 2] = geometry.bounds[0, 2] + clearance + GROUND_PROBE_LIFT_M
+    closed = np.vstack([probe, probe[:1]])
+    return bool(np.all(segment_clearance(geometry.obstacles, closed[:-1], closed[1:]).distance >= clearance))
+
+
+def fit_routes(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, routes: list,
+               old_bounds: np.ndarray) -> tuple[list, list[int]]:
+    """Waypoint routes moved into the scene (see the module's docstring); also the robots whose
+    route became a back-and-forth."""
+    grid = candidate_grid(geometry)
+    lo, hi = geometry.bounds
+    out, replaced = [], []
+    for i, (kind, start, route) in enumerate(zip(kinds, starts, routes)):
+        clearance, ground = ROUTE_CLEARANCE_M[kind], kind == "ground"
+        points = []
+        for point in scale_plan(np.array(route, dtype=float).reshape(-1, 3), old_bounds, geometry.bounds):
+            spot = nearest_free(geometry, grid, point, clearance, ground)
+            points.append(point if spot is None else spot)
+        if points and _route_is_clear(geometry, np.array([start, *points]), clearance, ground):
+            out.append([[round(float(v), 3) for v in p] for p in points])
+            continue
+        replaced.append(i)
+        out.append([])  # hold the start if nothing nearby can be reached
+        for leg in FALLBACK_LEG_M:
+            for k in range(FALLBACK_BEARINGS):
+                angle = 2 * np.pi * k / FALLBACK_BEARINGS
+                end = start + leg * np.array([np.cos(angle), np.sin(angle), 0.0])
+                if np.all(end[:2] >= lo[:2] + clearance) and np.all(end[:2] <= hi[:2] - clearance) \
+                        and _route_is_clear(geometry, np.array([start, end]), clearance, ground):
+                    out[-1] = [[round(float(v), 3) for v in end]]
+                    break
+            if out[-1]:
+                break
+    return out, replaced
 
 
 def _halton(count: int, base: int) -> np.ndarray:
@@ -244,15 +353,19 @@ def place_in_scene(table: dict, source: str, scene: str, keep: set[str] = frozen
     notes: list[str] = []
     scenario: Scenario = from_table(table, source)
 
+    # The old scene's floor plan (for scaling starts and routes); the starts' own box without one.
+    starts = np.array([p for _, p in scenario.robot_starts()], dtype=float)
+    old_bounds = SceneGeometry(old_path).bounds if old_path is not None and old_path.is_file() else \
+        np.array([starts.min(axis=0), starts.max(axis=0)])
     if not any(k == "robots" or k.startswith("robots.") for k in keep):
         kinds = [kind for kind, _ in scenario.robot_starts()]
-        starts = np.array([p for _, p in scenario.robot_starts()], dtype=float)
         comm = scenario.sensing.comm_range_m
         # A team that starts connected (the methods rely on it) must stay so; one
         # spread out on purpose (the waypoint demo) need not.
         connected = connected_by_range(starts, comm)
         if not starts_fit(geometry, kinds, starts, comm, connected):
-            moved = move_team(geometry, kinds, starts, comm, connected)
+            moved = move_team(geometry, kinds, starts, comm, connected) if connected else \
+                place_each(geometry, kinds, starts, old_bounds)
             if moved is None:
                 needs = "clear of obstacles and connected" if connected else "clear of obstacles"
                 raise ConfigError("robots", f"no free place in {scene_name} holds the team's start pattern {needs}; "
@@ -264,10 +377,23 @@ def place_in_scene(table: dict, source: str, scene: str, keep: set[str] = frozen
                 groups.append({"kind": group.kind, "starts": [[round(float(v), 3) for v in p] for p in moved[k:k + n]]})
                 k += n
             table["robots"] = groups
-            centre = tuple(round(float(v), 2) for v in moved[:, :2].mean(axis=0))
-            where = "every robot is clear of obstacles" + (" and the team is connected" if connected else "")
-            notes.append(f"robots: the team's start pattern moved to {centre} m in {scene_name}, the free spot "
-                         f"nearest its centre where {where}")
+            if connected:
+                centre = tuple(round(float(v), 2) for v in moved[:, :2].mean(axis=0))
+                notes.append(f"robots: the team's start pattern moved to {centre} m in {scene_name}, the free spot "
+                             "nearest its centre where every robot is clear of obstacles and the team is connected")
+            else:
+                notes.append(f"robots: the starts (a team spread out, not connected) scaled to {scene_name}'s floor "
+                             "plan, each moved to the nearest free spot")
+            starts = moved
+
+    routes = table.get("strategy", {}).get("routes")
+    if scenario.strategy.kind == "waypoints" and routes and "strategy.routes" not in keep:
+        kinds = [kind for kind, _ in scenario.robot_starts()]
+        table["strategy"]["routes"], replaced = fit_routes(geometry, kinds, starts, routes, old_bounds)
+        names = [f"{ROBOT_PREFIX[kind]}{sum(k == kind for k in kinds[:i])}" for i, kind in enumerate(kinds)]
+        crossing = f"; {', '.join(names[i] for i in replaced)}: route crossed an obstacle, now a back-and-forth " \
+                   "to a free point nearby" if replaced else ""
+        notes.append(f"strategy.routes: scaled to {scene_name}'s floor plan, waypoints moved to free spots{crossing}")
 
     if table.get("targets") and not any(k == "targets" or k.startswith("targets.") for k in keep):
         table["targets"], target_notes = redraw_targets(geometry, list(table["targets"]), scene_name)

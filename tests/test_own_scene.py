@@ -17,14 +17,14 @@ import numpy as np
 import pytest
 
 from sim.cli import main
-from sim.geometry import point_clearance
+from sim.geometry import point_clearance, segment_clearance
 from sim.loop import end_of_run, run
-from sim.placement import SceneGeometry, load_in_scene, starts_fit
+from sim.placement import ROUTE_CLEARANCE_M, START_SEPARATION_M, SceneGeometry, load_in_scene, starts_fit
 from sim.scenario import MODELS_DIR, builtin_scenarios, load, to_scenario_table
 from sim.targets import nominal_path_samples
 
 FLAT = MODELS_DIR / "scenes" / "examples" / "flat.xml"
-CONNECTED, INTERMITTENT = "connected-office", "intermittent-4"
+CONNECTED, INTERMITTENT, WAYPOINTS = "connected-office", "intermittent-4", "hover"
 
 
 def cli(*argv: str) -> tuple[int, str, str]:
@@ -58,6 +58,26 @@ def test_starts_are_placed_clear_and_connected(name, flat):
         # The pattern is moved, not reshaped: the method's spacing is kept.
         original = np.array([p for _, p in load(name).robot_starts()])
         assert np.allclose(np.diff(starts, axis=0), np.diff(original, axis=0), atol=2e-3)
+
+
+def test_a_spread_out_waypoint_team_is_placed_robot_by_robot_with_clear_routes(flat):
+    """hover's 8 robots span the office on purpose (no connected start); in the flat its dividing
+    wall stands where some starts and route legs were. Each robot gets a free start and a route
+    whose every leg (a closed loop through its start) keeps its clearance."""
+    scenario, notes = load_in_scene(WAYPOINTS, str(FLAT))
+    kinds = [k for k, _ in scenario.robot_starts()]
+    starts = np.array([p for _, p in scenario.robot_starts()])
+    assert starts_fit(flat, kinds, starts, scenario.sensing.comm_range_m, connected=False)
+    gaps = np.linalg.norm(starts[:, None, :2] - starts[None, :, :2], axis=2) + np.eye(len(starts)) * 1e9
+    assert gaps.min() >= START_SEPARATION_M - 1e-9
+    assert any(n.startswith("robots: the starts") for n in notes)
+    assert any(n.startswith("strategy.routes:") and "back-and-forth" in n for n in notes)
+    for kind, start, route in zip(kinds, starts, scenario.strategy.params.routes):
+        assert route, kind  # every robot still moves
+        loop = np.array([start, *route, start], dtype=float)
+        if kind == "ground":
+            loop[:, 2] = flat.bounds[0, 2] + ROUTE_CLEARANCE_M[kind] + 0.01  # the floor is no obstacle
+        assert segment_clearance(flat.obstacles, loop[:-1], loop[1:]).distance.min() >= ROUTE_CLEARANCE_M[kind] - 1e-9
 
 
 def test_targets_that_do_not_fit_are_redrawn_in_free_space_and_said_so(flat):
@@ -151,6 +171,7 @@ CHEAP_PLANNING = ("--set", "strategy.n_sample=40", "--set", "strategy.n_uniform=
 @pytest.mark.parametrize("name, duration, extra, status, progress", [
     (CONNECTED, "1.0", (), "time limit", "/25 targets visited"),
     (INTERMITTENT, "3.0", CHEAP_PLANNING, "completed", "scheduled meetings held"),
+    (WAYPOINTS, "2.0", (), "completed", "ran the full 2 s"),
 ])
 def test_walk_through_runs_in_the_example_scene(name, duration, extra, status, progress, tmp_path):
     code, text, err = cli("run", name, "--scene", str(FLAT), "--duration", duration, "--out", str(tmp_path), "--quiet",
