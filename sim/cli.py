@@ -45,9 +45,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override a scenario value, e.g. --set strategy.speed_mps=0.3 (repeatable)")
     run.add_argument("--quiet", action="store_true", help="print only the summary line (no progress, no file list)")
-    run.add_argument("--scene", default=None, metavar="MJCF",
-                     help="run the scenario in this scene (a built-in name or an MJCF file): starts, targets and "
-                          "prior are placed in it, each change printed")
+    _scene_argument(run, "run")
     _video_arguments(run, implies_video=True)
     run.add_argument("--rerun-live", action="store_true",
                      help="also stream to Rerun viewers while running (gRPC server and web viewer on --host; "
@@ -63,6 +61,7 @@ def _parser() -> argparse.ArgumentParser:
     tune.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine only)")
     tune.add_argument("--port", default="8765", metavar="N", help="port (default 8765; 0: any free port)")
     tune.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    _scene_argument(tune, "tune")
     tune.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                       help="override a scenario value (repeatable)")
     tune.add_argument("--view-fps", default="10", metavar="F", help="live view frames per second (default 10)")
@@ -75,6 +74,7 @@ def _parser() -> argparse.ArgumentParser:
     view = sub.add_parser("view", help="watch a scenario run in MuJoCo's interactive viewer (needs a display)")
     view.add_argument("scenario", help="built-in scenario name or a TOML file")
     view.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    _scene_argument(view, "view")
     view.add_argument("--duration", type=float, default=None, metavar="S", help="simulated seconds")
     view.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                       help="override a scenario value (repeatable)")
@@ -120,6 +120,23 @@ def _parser() -> argparse.ArgumentParser:
     report.add_argument("--hue", default=None, metavar="KEY", help="generic plot: one line per value of KEY")
     report.add_argument("--out", default=None, metavar="DIR", help="where the report goes (default: DIR)")
     return parser
+
+
+def _scene_argument(parser: argparse.ArgumentParser, verb: str) -> None:
+    parser.add_argument("--scene", default=None, metavar="MJCF",
+                        help=f"{verb} the scenario in this scene (a built-in name or an MJCF file): starts, targets "
+                             "and prior are placed in it, each change printed")
+
+
+def _load(args: argparse.Namespace, overrides: list[str], duration_s: float | None = None):
+    """The scenario the command names, placed in ``--scene`` when given; also the placement's notes."""
+    from sim.scenario import load
+
+    if args.scene is None:
+        return load(args.scenario, overrides, seed=args.seed, duration_s=duration_s), []
+    from sim.placement import load_in_scene
+
+    return load_in_scene(args.scenario, args.scene, overrides, seed=args.seed, duration_s=duration_s)
 
 
 def _video_arguments(parser: argparse.ArgumentParser, implies_video: bool) -> None:
@@ -178,7 +195,6 @@ def _fail(message: str) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from sim.scenario import load
     from sim.validate import check_output_folder
 
     try:
@@ -188,13 +204,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             raise ConfigError("--duration", f"must be a positive, finite number of seconds, got {args.duration}")
         video_overrides = _video_overrides(args)
         overrides = [*args.overrides, *video_overrides]
-        if args.scene is not None:
-            from sim.placement import load_in_scene
-
-            scenario, placement_notes = load_in_scene(args.scenario, args.scene, overrides, seed=args.seed,
-                                                      duration_s=args.duration)
-        else:
-            scenario, placement_notes = load(args.scenario, overrides, seed=args.seed, duration_s=args.duration), []
+        scenario, placement_notes = _load(args, overrides, args.duration)
         out = Path(args.out) if args.out else Path("runs") / scenario.name
         check_output_folder(out)
         if args.rerun_live:
@@ -260,11 +270,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
-    from sim.scenario import load
-
     try:
         overrides = [*args.overrides, *_video_overrides(args)]
-        scenario = load(args.scenario, overrides, seed=args.seed)
+        scenario, placement_notes = _load(args, overrides)
         view_fps = _number(args.view_fps, "--view-fps", minimum=0.1)
         speed = _number(args.speed, "--speed")
         port = int(_number(args.port, "--port", int))
@@ -273,6 +281,9 @@ def cmd_tune(args: argparse.Namespace) -> int:
         return _fail(str(err))
 
     from viz.tuning import serve
+
+    for note in placement_notes:
+        print(note, flush=True)
 
     def ready(server) -> None:
         print(f"tuning page: {server.url}  ({scenario.name}, strategy {scenario.strategy.kind}; Ctrl-C to stop)",
@@ -291,12 +302,10 @@ def cmd_tune(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    from sim.scenario import load
-
     if args.duration is not None and args.duration <= 0:
         return _fail(f"--duration: must be positive, got {args.duration}")
     try:
-        scenario = load(args.scenario, args.overrides, seed=args.seed, duration_s=args.duration)
+        scenario, placement_notes = _load(args, args.overrides, args.duration)
         speed = _number(args.speed, "--speed")
     except ConfigError as err:
         return _fail(str(err))
@@ -305,6 +314,8 @@ def cmd_view(args: argparse.Namespace) -> int:
     problem = needs_display()
     if problem:
         return _fail(problem)
+    for note in placement_notes:
+        print(note, flush=True)
     print(f"MuJoCo viewer: {scenario.name} ({scenario.strategy.kind}); Space pauses, Right arrow steps a tick, "
           "close the window to quit", flush=True)
     try:

@@ -218,3 +218,40 @@ def test_a_scene_too_small_for_the_team_says_in_one_line_what_to_set(tmp_path):
     assert code == 2 and text == "" and not (tmp_path / "out").exists()
     assert err.count("\n") == 1
     assert "robots: no free place in tiny.xml" in err and "set the starts" in err and "tether init" in err
+
+
+def test_tune_places_the_scenario_in_the_scene_too(tmp_path):
+    """`tether tune NAME --scene my.xml`: the placement's lines first, then the page, whose scenario
+    (what "save as scenario TOML" writes) is the placed one."""
+    import os
+    import select
+    import signal
+    import subprocess
+    import sys
+    import urllib.request
+
+    proc = subprocess.Popen([sys.executable, "-m", "sim.cli", "tune", WAYPOINTS, "--scene", str(FLAT), "--port", "0",
+                             "--view-fps", "1", "--video-size", "160x120", "--save", str(tmp_path / "tuned.toml")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+    try:
+        printed = []
+        while not any("tuning page:" in line for line in printed):
+            ready, _, _ = select.select([proc.stdout], [], [], 120)
+            assert ready, f"no URL printed: {printed} {proc.stderr.read() if proc.poll() is not None else ''}"
+            printed.append(proc.stdout.readline())
+        assert printed[0].startswith("robots: the starts") and any(p.startswith("strategy.routes:") for p in printed)
+        url = re.search(r"http://127\.0\.0\.1:\d+/", printed[-1]).group(0)
+        with urllib.request.urlopen(url + "scenario.toml", timeout=10) as response:
+            table = tomllib.loads(response.read().decode())
+        placed, _ = load_in_scene(WAYPOINTS, str(FLAT))
+        assert Path(table["scene"]).resolve() == FLAT.resolve()
+        assert table["robots"] == to_scenario_table(placed)["robots"]
+        assert table["strategy"]["routes"] == to_scenario_table(placed)["strategy"]["routes"]
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
