@@ -86,6 +86,22 @@ def test_connected_strategy_drives_ground_robots_with_its_invariants(tmp_path):
     assert np.linalg.norm(sim.observe().position[:, :2] - core.q[:, :2], axis=1).max() < 0.1
 
 
+def test_fixed_targets_of_ground_robots_are_places_in_the_sensors_plane(tmp_path):
+    """A target list written with a height (as for quadrotors) still works on ground robots: each
+    target is the point of the sensors' plane below it, and the explorer steers there."""
+    path = room_scenario(tmp_path, kind="connected", duration=5.0)
+    head, _, rest = path.read_text().partition("[strategy]")
+    table = ('kind = "connected"\npreset = "ground"\ntargets = "fixed"\n'
+             "target_lists = [[[1.0, 1.0, 1.2], [1.0, 2.5, 0.8]], [], [], []]\n")
+    path.write_text(head + "[strategy]\n" + table + "\n[[robots]]" + rest.split("[[robots]]", 1)[1])
+    sim = _run(path, 2.0)
+    core = sim.strategy
+    assert core.targets_total == 2
+    target = core.last.targets[0]  # robot 0's current target z_0
+    assert target == pytest.approx([1.0, 1.0, core.plane_z])
+    assert core.last.remaining[0] < 1.5  # on its way: the path reaches the target from the start
+
+
 def test_connected_tracking_invariants_readings_and_targets(tmp_path):
     """One 20 s run checks, on every tick: seed 001's invariants on the ground
     robots; every reading of a reading tick is in the EKF that tick and the

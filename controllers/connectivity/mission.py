@@ -114,9 +114,13 @@ def target_queues(params: ConnectedParams, planner: GridPlanner, starts: np.ndar
         if len(lists) > n:
             raise ConfigError("strategy.target_lists", f"lists {len(lists)} robots but the scenario has {n}")
         lists += [np.zeros((0, 3))] * (n - len(lists))
+        # A single-layer grid (ground robots: the sensors' plane) has lower == upper on z: a target is
+        # a place in that plane, whatever height the list gives.
+        flat = planner.lower == planner.upper
         for robot, points in enumerate(lists):
+            points[:, flat] = planner.lower[flat]
             for k, point in enumerate(points):
-                inside = np.all(point > planner.lower) and np.all(point < planner.upper)
+                inside = np.all((point > planner.lower) | flat) and np.all((point < planner.upper) | flat)
                 if not inside or not planner.is_free(point[None], 0.0)[0]:
                     raise ConfigError(f"strategy.target_lists.{robot}.{k}",
                                       f"target {point.tolist()} is inside an obstacle or outside the scene")
