@@ -183,6 +183,17 @@ def test_connected_tracking_is_deterministic_for_a_seed(tmp_path):
     assert np.array_equal(runs[0][2], runs[1][2])
 
 
+def test_connected_tracking_run_that_lasts_its_duration_is_completed(tmp_path):
+    """Tracking has no mission end: like the other methods of seed 000's task, a run that lasts its
+    duration is "completed" (not "time limit"), its message saying what the team did."""
+    from sim.loop import run
+
+    result = run(load(str(room_scenario(tmp_path, kind="connected_tracking", duration=2.0))), tmp_path / "out")
+    assert result.status == "completed"
+    assert result.metrics["message"].startswith("ran the full 2 s: ")
+    assert f"{result.metrics['readings_fused']} readings fused, 0 viewpoints visited" in result.metrics["message"]
+
+
 @pytest.mark.parametrize("range_m, expected", [
     (0.1, "robots: the starting graph is disconnected"),
     (0.05, "sensing.comm_range_m: 0.05 m is unusable for connected_tracking"),

@@ -87,9 +87,13 @@ class ConnectedTrackingStrategy:
                                             explorers, self.world.target_range_m, self.core.params.exploration.cruise_speed)
         return self.generator.first_targets(len(starts), starts, self.prior)
 
-    @property
-    def finished(self) -> bool:
-        return False  # tracking lasts the scenario's duration
+    # No ``finished``: tracking lasts the scenario's duration, so a run that lasts it is "completed"
+    # (like the other methods of seed 000's task), not stopped at a "time limit".
+
+    def progress(self) -> str:
+        """What the team did so far, for the run's status message."""
+        visited = len(self.core.last.visits) if self.core.last is not None else 0
+        return f"{self.readings_fused} readings fused, {visited} viewpoints visited"
 
     def step(self, observation: Observation) -> Commands:
         fresh = observation.target_ranges is not None
