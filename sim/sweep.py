@@ -539,7 +539,8 @@ class ProcessPool(Engine):
 
         from concurrent.futures.process import BrokenProcessPool
 
-        self.pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=get_context("forkserver"))
+        self.pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=get_context("forkserver"),
+                                        initializer=_end_with_driver, initargs=(os.getpid(),))
         futures = [self.pool.submit(run_trial, trial, recordings) for trial in trials]
         try:
             for future in as_completed(futures):
@@ -560,6 +561,34 @@ class ProcessPool(Engine):
                 process.terminate()
         for process in workers:
             process.join(timeout=10)
+
+
+DRIVER_CHECK_S = 1.0  # how often a pool worker checks that its driver still runs
+
+
+def _end_with_driver(driver_pid: int) -> None:
+    """Pool worker initializer: end this worker when the driver is gone (killed, even by SIGKILL).
+    Without it a worker would finish its trial and take the next queued ones, whose rows nobody
+    stores: CPU spent for nothing while the next call runs them again."""
+    import threading
+
+    def watch() -> None:
+        while True:
+            time.sleep(DRIVER_CHECK_S)
+            if os.getppid() == 1 or not _alive(driver_pid):
+                os._exit(1)
+
+    threading.Thread(target=watch, name="end-with-driver", daemon=True).start()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 class RayCluster(Engine):

@@ -179,6 +179,44 @@ def test_driver_killed_mid_sweep_and_rerun_gives_the_uninterrupted_table(tmp_pat
     assert comparable(pq.read_table(killed / "results.parquet")) == comparable(pq.read_table(whole / "results.parquet"))
 
 
+def _session_members(session: int) -> list[int]:
+    """Pids of the live processes in a session (Linux /proc; zombies do not count)."""
+    members = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[3]) == session and fields[0] != "Z":  # fields: state, ppid, pgrp, session, ...
+            members.append(int(stat.parent.name))
+    return members
+
+
+def test_pool_workers_end_when_their_driver_is_killed(tmp_path):
+    """SIGKILL of the driver alone: its pool workers (and the pool's helper processes) stop within
+    seconds instead of finishing their trial and the queued ones, whose rows nobody would store."""
+    sweep = write_sweep(tmp_path, "orphans", 'duration_s = 30.0\nseeds = 6\n')
+    command = [sys.executable, "-m", "sim.cli", "sweep", str(sweep), "--out", str(tmp_path / "out"), "--workers", "2"]
+    driver = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while len(_session_members(driver.pid)) < 4:  # driver, forkserver, 2 workers (at least)
+            assert driver.poll() is None and time.monotonic() < deadline
+            time.sleep(0.1)
+        time.sleep(2.0)  # the workers are inside their first trial
+        driver.send_signal(signal.SIGKILL)
+        driver.wait()
+        deadline = time.monotonic() + 15
+        while _session_members(driver.pid) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert _session_members(driver.pid) == []
+    finally:
+        try:
+            os.killpg(driver.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
 # ---------------------------------------------------------------- Ray
 
 def _free_port() -> int:
