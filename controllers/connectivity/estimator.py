@@ -80,6 +80,7 @@ import numpy as np
 import scipy.linalg
 
 from controllers.connectivity.params import FiedlerEstimatorParams
+from controllers.connectivity.smooth_spectrum import _smooth_lambda2_kernel
 from sim.compiled import kernel
 
 # Floor for Ave(x^2) when normalising the eigenvector estimate (unit: x^2).
@@ -541,26 +542,66 @@ def ritz_connectivity_gradient(links, estimate: SubspaceEstimate, kappa: float) 
     coefficients (sign-consistent by construction). ``links`` is a
     graph.LinkWeights (only its ``lambda2_gradient`` is used).
     """
-    from controllers.connectivity.smooth_spectrum import smooth_minimum
-
-    n = len(estimate.lambda2)
-    smooth = np.zeros(n)
-    scale = 1.0 / math.sqrt(n)
-    terms = []  # (robot, soft-min slope, its Ritz vector): each robot's own terms, in order
-    for i in range(n):
-        valid = estimate.valid[i]
-        if not valid.any():
-            smooth[i] = estimate.lambda2[i]
-            continue
-        values = estimate.values[i, valid]
-        s, slope = smooth_minimum(values, kappa)
-        smooth[i] = s
-        vectors = estimate.components @ estimate.coefficients[i][:, valid] * scale
-        terms += [(i, slope[k], vectors[:, k]) for k in np.flatnonzero(slope > 1e-9 * slope.max())]
+    n, k = estimate.components.shape
+    smooth = np.empty(n)
+    robots = np.empty(n * k, dtype=np.int64)
+    slopes = np.empty(n * k)
+    vectors = np.empty((n, n * k))
+    count = _ritz_terms(np.ascontiguousarray(estimate.values, dtype=float), np.ascontiguousarray(estimate.valid),
+                        np.asarray(estimate.lambda2, dtype=float), np.ascontiguousarray(estimate.components, dtype=float),
+                        np.ascontiguousarray(estimate.coefficients, dtype=float), float(kappa), 1.0 / math.sqrt(n),
+                        smooth, robots, slopes, vectors)
     gradient = np.zeros((n, 3))
-    if terms:
+    if count:
         # One batched eq. (17) for all the Ritz vectors; robot i keeps its own row.
-        rows = links.lambda2_gradients(np.stack([vector for _, _, vector in terms], axis=1))
-        for (i, slope, _), row in zip(terms, rows):
-            gradient[i] += slope * row[i]
+        rows = links.lambda2_gradients(vectors[:, :count])
+        _add_own_rows(robots[:count], slopes[:count], rows, gradient)
     return smooth, gradient
+
+
+@kernel
+def _ritz_terms(values, valid, lambda2, components, coefficients, kappa, scale, smooth, robots, slopes, vectors):
+    """Each robot's soft minimum of its valid Ritz values into ``smooth`` (N,), and its gradient terms:
+    for term t, robot ``robots[t]``, soft-min slope ``slopes[t]`` and Ritz vector ``vectors[:, t]`` (N,)
+    (terms with a slope above 1e-9 of the robot's largest, in robot then mode order). Returns the term count."""
+    n, k = components.shape
+    own = np.empty(k)
+    slope = np.empty(k)
+    mode = np.empty(k, dtype=np.int64)
+    count = 0
+    for i in range(n):
+        m = 0
+        for a in range(k):
+            if valid[i, a]:
+                own[m] = values[i, a]
+                mode[m] = a
+                m += 1
+        if m == 0:
+            smooth[i] = lambda2[i]
+            continue
+        smooth[i] = _smooth_lambda2_kernel(own[:m], kappa, slope[:m])
+        top = slope[0]
+        for c in range(1, m):
+            top = max(top, slope[c])
+        for c in range(m):
+            if not slope[c] > 1e-9 * top:
+                continue
+            a = mode[c]
+            for r in range(n):
+                total = 0.0
+                for b in range(k):
+                    total += components[r, b] * coefficients[i, b, a]
+                vectors[r, count] = total * scale
+            robots[count] = i
+            slopes[count] = slope[c]
+            count += 1
+    return count
+
+
+@kernel
+def _add_own_rows(robots, slopes, rows, gradient):
+    """gradient[i] += slope_t * rows[t, i] for each term t of robot i, in term order."""
+    for t in range(robots.shape[0]):
+        i = robots[t]
+        for d in range(3):
+            gradient[i, d] += slopes[t] * rows[t, i, d]
