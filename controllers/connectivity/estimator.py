@@ -390,27 +390,14 @@ class SubspaceEstimator:
     @property
     def estimate(self) -> SubspaceEstimate:
         n, k = self.num_robots, self.modes
-        mean = self.mean
-        centred_gram = self.gram - mean[:, :, None] * mean[:, None, :]
-        projected = self.projected
-        scale, basis = np.linalg.eigh(centred_gram)
-        keep = scale > np.maximum(_GRAM_RELATIVE_FLOOR * scale[:, -1:], _MIN_GRAM)
-        whiten = basis / np.sqrt(np.where(keep, scale, 1.0))[:, None, :] * keep[:, None, :]
-        reduced = np.einsum("nak,nab,nbl->nkl", whiten, projected, whiten)
-        reduced = 0.5 * (reduced + np.swapaxes(reduced, 1, 2))
-        reduced += np.eye(k)[None] * np.where(keep, 0.0, _DROPPED_VALUE)[:, None, :]
-        values, rotation = np.linalg.eigh(reduced)
-        coefficients = whiten @ rotation
-        valid = values < 0.5 * _DROPPED_VALUE
-        values = np.where(valid, values, _DROPPED_VALUE)
-        # Sign of each Ritz vector: its largest coefficient positive (K = 1: C > 0).
-        index = np.abs(coefficients).argmax(axis=1)
-        sign = np.sign(np.take_along_axis(coefficients, index[:, None, :], axis=1))
-        coefficients = coefficients * np.where(sign == 0, 1.0, sign)
-        fiedler = np.einsum("na,na->n", self.components - mean, coefficients[:, :, 0]) / math.sqrt(n)
-        lambda2 = np.where(valid[:, 0], values[:, 0], self.params.lambda2_ceiling)
+        values, valid = np.empty((n, k)), np.empty((n, k), dtype=np.bool_)
+        coefficients, fiedler, lambda2 = np.empty((n, k, k)), np.empty(n), np.empty(n)
+        components = np.ascontiguousarray(self.components, dtype=float)
+        _rayleigh_ritz(np.ascontiguousarray(self.consensus, dtype=float), components, self._gram_index.astype(np.int64),
+                       self._projected_slice.start, self.params.lambda2_ceiling, values, valid, coefficients, fiedler,
+                       lambda2)
         return SubspaceEstimate(lambda2=lambda2, values=values, valid=valid, coefficients=coefficients,
-                                components=self.components.copy(), fiedler=fiedler)
+                                components=components.copy(), fiedler=fiedler)
 
     def substep_count(self, weights: np.ndarray, dt: float) -> int:
         """Substeps for a control period ``dt`` (s): FiedlerEstimator's rule."""
@@ -530,6 +517,64 @@ def _subspace_substeps(x, consensus, laplacian, transition, inflow, h, count, no
         consensus[:, :] = updated
         inputs[:, :] = mixed
     return x
+
+
+@kernel
+def _rayleigh_ritz(consensus, components, gram_index, projected_start, lambda2_ceiling, values_out, valid_out,
+                   coefficients_out, fiedler_out, lambda2_out):
+    """Each robot's Rayleigh-Ritz from its consensus estimates (SubspaceEstimator.estimate, row by row):
+    whiten the centred Gram estimate, drop the directions it does not span, then the Ritz pairs of the
+    projected Laplacian in that basis, each Ritz vector's largest coefficient positive."""
+    n, k = components.shape
+    centred = np.empty((k, k))
+    projected = np.empty((k, k))
+    whiten = np.empty((k, k))
+    reduced = np.empty((k, k))
+    keep = np.empty(k, dtype=np.bool_)
+    for i in range(n):
+        for a in range(k):
+            for b in range(k):
+                centred[a, b] = consensus[i, gram_index[a * k + b]] - consensus[i, a] * consensus[i, b]
+                projected[a, b] = 0.5 * (consensus[i, projected_start + a * k + b]
+                                         + consensus[i, projected_start + b * k + a])
+        scale, basis = np.linalg.eigh(centred)
+        floor = max(_GRAM_RELATIVE_FLOOR * scale[k - 1], _MIN_GRAM)
+        for c in range(k):
+            keep[c] = scale[c] > floor
+            root = np.sqrt(scale[c] if keep[c] else 1.0)
+            for a in range(k):
+                whiten[a, c] = basis[a, c] / root * (1.0 if keep[c] else 0.0)
+        for c in range(k):
+            for d in range(k):
+                total = 0.0
+                for a in range(k):
+                    for b in range(k):
+                        total += whiten[a, c] * projected[a, b] * whiten[b, d]
+                reduced[c, d] = total
+        for c in range(k):
+            for d in range(c + 1, k):
+                reduced[c, d] = reduced[d, c] = 0.5 * (reduced[c, d] + reduced[d, c])
+            if not keep[c]:
+                reduced[c, c] += _DROPPED_VALUE
+        ritz, rotation = np.linalg.eigh(reduced)
+        for c in range(k):
+            valid_out[i, c] = ritz[c] < 0.5 * _DROPPED_VALUE
+            values_out[i, c] = ritz[c] if valid_out[i, c] else _DROPPED_VALUE
+            largest, sign = -1.0, 1.0
+            for a in range(k):
+                total = 0.0
+                for b in range(k):
+                    total += whiten[a, b] * rotation[b, c]
+                coefficients_out[i, a, c] = total
+                if abs(total) > largest:
+                    largest, sign = abs(total), (1.0 if total > 0 else (-1.0 if total < 0 else 1.0))
+            for a in range(k):
+                coefficients_out[i, a, c] *= sign
+        total = 0.0
+        for a in range(k):
+            total += (components[i, a] - consensus[i, a]) * coefficients_out[i, a, 0]
+        fiedler_out[i] = total / np.sqrt(n)
+        lambda2_out[i] = values_out[i, 0] if valid_out[i, 0] else lambda2_ceiling
 
 
 def ritz_connectivity_gradient(links, estimate: SubspaceEstimate, kappa: float) -> tuple[np.ndarray, np.ndarray]:
