@@ -82,10 +82,19 @@ def reference_speed(remaining, cruise_speed: float, braking_distance: float) -> 
     """Speed (P,), m/s, of the virtual point with ``remaining`` (P,) metres to go,
     and its derivative along the path dv/ds (P,), 1/s."""
     remaining = np.asarray(remaining, dtype=float)
-    braking = remaining < braking_distance
-    speed = cruise_speed * np.where(braking, np.maximum(remaining, 0.0) / braking_distance, 1.0)
-    slope = np.where(braking, -cruise_speed / braking_distance, 0.0)  # d_gamma decreases as s grows
+    pairs = [_reference_speed_scalar(value, float(cruise_speed), float(braking_distance)) for value in remaining.ravel()]
+    speed = np.reshape([pair[0] for pair in pairs], remaining.shape)
+    slope = np.reshape([pair[1] for pair in pairs], remaining.shape)
     return speed, slope
+
+
+@kernel
+def _reference_speed_scalar(remaining, cruise_speed, braking_distance):
+    """``reference_speed`` of one robot: (speed, dv/ds)."""
+    if remaining < braking_distance:
+        ahead = remaining if (remaining != remaining or remaining > 0.0) else 0.0  # np.maximum(remaining, 0)
+        return cruise_speed * (ahead / braking_distance), -cruise_speed / braking_distance  # d_gamma falls as s grows
+    return cruise_speed * 1.0, 0.0
 
 
 def path_reference(path: SplinePath, positions, cruise_speed: float, braking_distance: float) -> PathReference:
@@ -103,12 +112,26 @@ def batch_path_reference(batch: PathBatch, positions, cruise_speed: float, braki
 
 
 def _reference(length, arc, closest, tangent, curvature, distance, cruise_speed, braking_distance) -> PathReference:
-    remaining = length - arc
-    speed, slope = reference_speed(remaining, cruise_speed, braking_distance)
-    velocity = speed[:, None] * tangent
-    # d/dt (v t) = v dv/ds t + v^2 dt/ds along the path.
-    acceleration = (speed * slope)[:, None] * tangent + (speed**2)[:, None] * curvature
+    arc = np.asarray(arc, dtype=float)
+    remaining = np.empty(len(arc))
+    velocity, acceleration = np.empty((len(arc), 3)), np.empty((len(arc), 3))
+    _reference_kernel(np.broadcast_to(np.asarray(length, dtype=float), arc.shape), arc, np.asarray(tangent, dtype=float),
+                      np.asarray(curvature, dtype=float), float(cruise_speed), float(braking_distance), remaining,
+                      velocity, acceleration)
     return PathReference(arc, closest, velocity, acceleration, distance, remaining)
+
+
+@kernel
+def _reference_kernel(length, arc, tangent, curvature, cruise_speed, braking_distance, remaining, velocity,
+                      acceleration):
+    """Remaining length, v_gamma and a_gamma of each robot's virtual point from its closest-point frame."""
+    for r in range(arc.shape[0]):
+        remaining[r] = length[r] - arc[r]
+        speed, slope = _reference_speed_scalar(remaining[r], cruise_speed, braking_distance)
+        for k in range(3):
+            velocity[r, k] = speed * tangent[r, k]
+            # d/dt (v t) = v dv/ds t + v^2 dt/ds along the path.
+            acceleration[r, k] = (speed * slope) * tangent[r, k] + (speed * speed) * curvature[r, k]
 
 
 def travel_force(
