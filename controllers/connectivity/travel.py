@@ -115,7 +115,8 @@ def _reference(length, arc, closest, tangent, curvature, distance, cruise_speed,
     arc = np.asarray(arc, dtype=float)
     remaining = np.empty(len(arc))
     velocity, acceleration = np.empty((len(arc), 3)), np.empty((len(arc), 3))
-    _reference_kernel(np.broadcast_to(np.asarray(length, dtype=float), arc.shape), arc, np.asarray(tangent, dtype=float),
+    length = np.full(arc.shape, length) if np.ndim(length) == 0 else np.asarray(length, dtype=float)
+    _reference_kernel(length, arc, np.asarray(tangent, dtype=float),
                       np.asarray(curvature, dtype=float), float(cruise_speed), float(braking_distance), remaining,
                       velocity, acceleration)
     return PathReference(arc, closest, velocity, acceleration, distance, remaining)
