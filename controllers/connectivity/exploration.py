@@ -176,9 +176,10 @@ class ExplorationController:
         """Robots with a path (ascending indices) and their path references, one
         row each: splines batched in one compiled pass, single-point paths alone."""
         p = self.params
-        robots = np.array([i for i in range(self.n_robots) if self.paths[i] is not None], dtype=int)
-        if not len(robots):
-            return robots, None
+        # Python ints and lists here: indexing lists with numpy integers costs more than the work.
+        robots = [i for i, path in enumerate(self.paths) if path is not None]
+        if not robots:
+            return np.zeros(0, dtype=int), None
         batched = [i for i in robots if self.paths[i].spline is not None]
         stacked = None
         if batched:
@@ -189,11 +190,11 @@ class ExplorationController:
                 self._batch = PathBatch(paths)
             stacked = batch_path_reference(self._batch, q[batched], p.cruise_speed, p.braking_distance)
             if len(batched) == len(robots):
-                return robots, stacked
+                return np.array(robots, dtype=int), stacked
         single = {i: self._reference(i, q[i]) for i in robots if self.paths[i].spline is None}
         batch_row = {i: k for k, i in enumerate(batched)}
         rows = [single[i] if i in single else stacked.row(batch_row[i]) for i in robots]
-        return robots, PathReference.stack(rows)
+        return np.array(robots, dtype=int), PathReference.stack(rows)
 
     def _targets_now(self) -> tuple[np.ndarray, np.ndarray]:
         """Each robot's current target point (N, 3; NaN without one) and dwell time (N,; inf)."""
