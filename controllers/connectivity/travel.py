@@ -4,6 +4,9 @@ Pure functions over arrays batched over robots: positions q (N, 3), m;
 velocities (N, 3), m/s; forces (N, 3), N. A path reference (closest point,
 velocity and acceleration of the virtual point travelling along gamma_i) is
 computed per robot from its own path, then everything else is batched.
+Each law is also a compiled per-robot kernel (``_travel_force_row``,
+``_consensus_kernel``, ...): the batched functions here loop over them, and
+the exploration layer runs them for the whole team in one compiled pass.
 
 - eq. (3)  ``travel_force``: a_gamma + k_v (v_gamma - q') + k_p (q_gamma - q);
 - (5)-(7)  ``anchor_potential`` / ``anchor_force``;
