@@ -80,6 +80,7 @@ import numpy as np
 import scipy.linalg
 
 from controllers.connectivity.params import FiedlerEstimatorParams
+from controllers.connectivity.smooth_spectrum import _smooth_lambda2_kernel
 from sim.compiled import kernel
 
 # Floor for Ave(x^2) when normalising the eigenvector estimate (unit: x^2).
@@ -389,27 +390,14 @@ class SubspaceEstimator:
     @property
     def estimate(self) -> SubspaceEstimate:
         n, k = self.num_robots, self.modes
-        mean = self.mean
-        centred_gram = self.gram - mean[:, :, None] * mean[:, None, :]
-        projected = self.projected
-        scale, basis = np.linalg.eigh(centred_gram)
-        keep = scale > np.maximum(_GRAM_RELATIVE_FLOOR * scale[:, -1:], _MIN_GRAM)
-        whiten = basis / np.sqrt(np.where(keep, scale, 1.0))[:, None, :] * keep[:, None, :]
-        reduced = np.einsum("nak,nab,nbl->nkl", whiten, projected, whiten)
-        reduced = 0.5 * (reduced + np.swapaxes(reduced, 1, 2))
-        reduced += np.eye(k)[None] * np.where(keep, 0.0, _DROPPED_VALUE)[:, None, :]
-        values, rotation = np.linalg.eigh(reduced)
-        coefficients = whiten @ rotation
-        valid = values < 0.5 * _DROPPED_VALUE
-        values = np.where(valid, values, _DROPPED_VALUE)
-        # Sign of each Ritz vector: its largest coefficient positive (K = 1: C > 0).
-        index = np.abs(coefficients).argmax(axis=1)
-        sign = np.sign(np.take_along_axis(coefficients, index[:, None, :], axis=1))
-        coefficients = coefficients * np.where(sign == 0, 1.0, sign)
-        fiedler = np.einsum("na,na->n", self.components - mean, coefficients[:, :, 0]) / math.sqrt(n)
-        lambda2 = np.where(valid[:, 0], values[:, 0], self.params.lambda2_ceiling)
+        values, valid = np.empty((n, k)), np.empty((n, k), dtype=np.bool_)
+        coefficients, fiedler, lambda2 = np.empty((n, k, k)), np.empty(n), np.empty(n)
+        components = np.ascontiguousarray(self.components, dtype=float)
+        _rayleigh_ritz(np.ascontiguousarray(self.consensus, dtype=float), components, self._gram_index.astype(np.int64),
+                       self._projected_slice.start, self.params.lambda2_ceiling, values, valid, coefficients, fiedler,
+                       lambda2)
         return SubspaceEstimate(lambda2=lambda2, values=values, valid=valid, coefficients=coefficients,
-                                components=self.components.copy(), fiedler=fiedler)
+                                components=components.copy(), fiedler=fiedler)
 
     def substep_count(self, weights: np.ndarray, dt: float) -> int:
         """Substeps for a control period ``dt`` (s): FiedlerEstimator's rule."""
@@ -531,6 +519,64 @@ def _subspace_substeps(x, consensus, laplacian, transition, inflow, h, count, no
     return x
 
 
+@kernel
+def _rayleigh_ritz(consensus, components, gram_index, projected_start, lambda2_ceiling, values_out, valid_out,
+                   coefficients_out, fiedler_out, lambda2_out):
+    """Each robot's Rayleigh-Ritz from its consensus estimates (SubspaceEstimator.estimate, row by row):
+    whiten the centred Gram estimate, drop the directions it does not span, then the Ritz pairs of the
+    projected Laplacian in that basis, each Ritz vector's largest coefficient positive."""
+    n, k = components.shape
+    centred = np.empty((k, k))
+    projected = np.empty((k, k))
+    whiten = np.empty((k, k))
+    reduced = np.empty((k, k))
+    keep = np.empty(k, dtype=np.bool_)
+    for i in range(n):
+        for a in range(k):
+            for b in range(k):
+                centred[a, b] = consensus[i, gram_index[a * k + b]] - consensus[i, a] * consensus[i, b]
+                projected[a, b] = 0.5 * (consensus[i, projected_start + a * k + b]
+                                         + consensus[i, projected_start + b * k + a])
+        scale, basis = np.linalg.eigh(centred)
+        floor = max(_GRAM_RELATIVE_FLOOR * scale[k - 1], _MIN_GRAM)
+        for c in range(k):
+            keep[c] = scale[c] > floor
+            root = np.sqrt(scale[c] if keep[c] else 1.0)
+            for a in range(k):
+                whiten[a, c] = basis[a, c] / root * (1.0 if keep[c] else 0.0)
+        for c in range(k):
+            for d in range(k):
+                total = 0.0
+                for a in range(k):
+                    for b in range(k):
+                        total += whiten[a, c] * projected[a, b] * whiten[b, d]
+                reduced[c, d] = total
+        for c in range(k):
+            for d in range(c + 1, k):
+                reduced[c, d] = reduced[d, c] = 0.5 * (reduced[c, d] + reduced[d, c])
+            if not keep[c]:
+                reduced[c, c] += _DROPPED_VALUE
+        ritz, rotation = np.linalg.eigh(reduced)
+        for c in range(k):
+            valid_out[i, c] = ritz[c] < 0.5 * _DROPPED_VALUE
+            values_out[i, c] = ritz[c] if valid_out[i, c] else _DROPPED_VALUE
+            largest, sign = -1.0, 1.0
+            for a in range(k):
+                total = 0.0
+                for b in range(k):
+                    total += whiten[a, b] * rotation[b, c]
+                coefficients_out[i, a, c] = total
+                if abs(total) > largest:
+                    largest, sign = abs(total), (1.0 if total > 0 else (-1.0 if total < 0 else 1.0))
+            for a in range(k):
+                coefficients_out[i, a, c] *= sign
+        total = 0.0
+        for a in range(k):
+            total += (components[i, a] - consensus[i, a]) * coefficients_out[i, a, 0]
+        fiedler_out[i] = total / np.sqrt(n)
+        lambda2_out[i] = values_out[i, 0] if valid_out[i, 0] else lambda2_ceiling
+
+
 def ritz_connectivity_gradient(links, estimate: SubspaceEstimate, kappa: float) -> tuple[np.ndarray, np.ndarray]:
     """Each robot's smooth lambda2 s_i and its own row of ds/dq (N,), (N, 3).
 
@@ -541,26 +587,66 @@ def ritz_connectivity_gradient(links, estimate: SubspaceEstimate, kappa: float) 
     coefficients (sign-consistent by construction). ``links`` is a
     graph.LinkWeights (only its ``lambda2_gradient`` is used).
     """
-    from controllers.connectivity.smooth_spectrum import smooth_minimum
-
-    n = len(estimate.lambda2)
-    smooth = np.zeros(n)
-    scale = 1.0 / math.sqrt(n)
-    terms = []  # (robot, soft-min slope, its Ritz vector): each robot's own terms, in order
-    for i in range(n):
-        valid = estimate.valid[i]
-        if not valid.any():
-            smooth[i] = estimate.lambda2[i]
-            continue
-        values = estimate.values[i, valid]
-        s, slope = smooth_minimum(values, kappa)
-        smooth[i] = s
-        vectors = estimate.components @ estimate.coefficients[i][:, valid] * scale
-        terms += [(i, slope[k], vectors[:, k]) for k in np.flatnonzero(slope > 1e-9 * slope.max())]
+    n, k = estimate.components.shape
+    smooth = np.empty(n)
+    robots = np.empty(n * k, dtype=np.int64)
+    slopes = np.empty(n * k)
+    vectors = np.empty((n, n * k))
+    count = _ritz_terms(np.ascontiguousarray(estimate.values, dtype=float), np.ascontiguousarray(estimate.valid),
+                        np.asarray(estimate.lambda2, dtype=float), np.ascontiguousarray(estimate.components, dtype=float),
+                        np.ascontiguousarray(estimate.coefficients, dtype=float), float(kappa), 1.0 / math.sqrt(n),
+                        smooth, robots, slopes, vectors)
     gradient = np.zeros((n, 3))
-    if terms:
+    if count:
         # One batched eq. (17) for all the Ritz vectors; robot i keeps its own row.
-        rows = links.lambda2_gradients(np.stack([vector for _, _, vector in terms], axis=1))
-        for (i, slope, _), row in zip(terms, rows):
-            gradient[i] += slope * row[i]
+        rows = links.lambda2_gradients(vectors[:, :count])
+        _add_own_rows(robots[:count], slopes[:count], rows, gradient)
     return smooth, gradient
+
+
+@kernel
+def _ritz_terms(values, valid, lambda2, components, coefficients, kappa, scale, smooth, robots, slopes, vectors):
+    """Each robot's soft minimum of its valid Ritz values into ``smooth`` (N,), and its gradient terms:
+    for term t, robot ``robots[t]``, soft-min slope ``slopes[t]`` and Ritz vector ``vectors[:, t]`` (N,)
+    (terms with a slope above 1e-9 of the robot's largest, in robot then mode order). Returns the term count."""
+    n, k = components.shape
+    own = np.empty(k)
+    slope = np.empty(k)
+    mode = np.empty(k, dtype=np.int64)
+    count = 0
+    for i in range(n):
+        m = 0
+        for a in range(k):
+            if valid[i, a]:
+                own[m] = values[i, a]
+                mode[m] = a
+                m += 1
+        if m == 0:
+            smooth[i] = lambda2[i]
+            continue
+        smooth[i] = _smooth_lambda2_kernel(own[:m], kappa, slope[:m])
+        top = slope[0]
+        for c in range(1, m):
+            top = max(top, slope[c])
+        for c in range(m):
+            if not slope[c] > 1e-9 * top:
+                continue
+            a = mode[c]
+            for r in range(n):
+                total = 0.0
+                for b in range(k):
+                    total += components[r, b] * coefficients[i, b, a]
+                vectors[r, count] = total * scale
+            robots[count] = i
+            slopes[count] = slope[c]
+            count += 1
+    return count
+
+
+@kernel
+def _add_own_rows(robots, slopes, rows, gradient):
+    """gradient[i] += slope_t * rows[t, i] for each term t of robot i, in term order."""
+    for t in range(robots.shape[0]):
+        i = robots[t]
+        for d in range(3):
+            gradient[i, d] += slopes[t] * rows[t, i, d]

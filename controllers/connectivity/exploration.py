@@ -55,18 +55,20 @@ from controllers.connectivity.roles import ANCHOR_CODE, CONNECTOR_CODE, PRIME_CO
 from controllers.connectivity.targets import DwellClock, Target, TargetQueues, Visit
 from controllers.connectivity.travel import (
     PathReference,
-    adaptive_gain,
-    anchor_force,
+    _adaptive_gain_scalar,
+    _alignment_row,
+    _anchor_force_row,
+    _consensus_kernel,
+    _efficiency_scalar,
+    _norm3,
+    _tracking_error_row,
+    _travel_force_row,
     batch_path_reference,
-    consensus_step,
-    efficiency,
-    force_alignment,
     needs_replanning,
     path_reference,
     row_norm,
-    tracking_error,
-    travel_force,
 )
+from sim.compiled import kernel
 
 # Floor of the reference speed, as a fraction of cruise, when scaling the efficiency error.
 _MIN_REFERENCE_FRACTION = 0.1
@@ -174,9 +176,10 @@ class ExplorationController:
         """Robots with a path (ascending indices) and their path references, one
         row each: splines batched in one compiled pass, single-point paths alone."""
         p = self.params
-        robots = np.array([i for i in range(self.n_robots) if self.paths[i] is not None], dtype=int)
-        if not len(robots):
-            return robots, None
+        # Python ints and lists here: indexing lists with numpy integers costs more than the work.
+        robots = [i for i, path in enumerate(self.paths) if path is not None]
+        if not robots:
+            return np.zeros(0, dtype=int), None
         batched = [i for i in robots if self.paths[i].spline is not None]
         stacked = None
         if batched:
@@ -187,11 +190,11 @@ class ExplorationController:
                 self._batch = PathBatch(paths)
             stacked = batch_path_reference(self._batch, q[batched], p.cruise_speed, p.braking_distance)
             if len(batched) == len(robots):
-                return robots, stacked
+                return np.array(robots, dtype=int), stacked
         single = {i: self._reference(i, q[i]) for i in robots if self.paths[i].spline is None}
         batch_row = {i: k for k, i in enumerate(batched)}
         rows = [single[i] if i in single else stacked.row(batch_row[i]) for i in robots]
-        return robots, PathReference.stack(rows)
+        return np.array(robots, dtype=int), PathReference.stack(rows)
 
     def _targets_now(self) -> tuple[np.ndarray, np.ndarray]:
         """Each robot's current target point (N, 3; NaN without one) and dwell time (N,; inf)."""
@@ -283,40 +286,23 @@ class ExplorationController:
             self._target_table = None
             self.arrival_time[i] = np.nan
 
-        # Algorithm 2.
-        forces = np.zeros((n, 3))
-        lam = np.full(n, np.nan)
-        error = np.full(n, np.nan)
-        path_points = np.full((n, 3), np.nan)
-        if len(travelers):
-            batch = references
-            f_travel = travel_force(q[travelers], v[travelers], batch, p.position_gain, p.velocity_gain, p.virtual_mass,
-                                    p.travel_force_limit)
-            error[travelers] = tracking_error(q[travelers], v[travelers], batch, p.position_error_weight)
-            # Over the braking stretch the reference slows down (travel.py); the error is
-            # weighed against the reference's own speed there, so a traveler held back near
-            # its target reads as inefficient, as one held back at cruise speed does.
-            reference_speed = row_norm(batch.velocity)
-            scale = p.cruise_speed / np.maximum(reference_speed, _MIN_REFERENCE_FRACTION * p.cruise_speed)
-            lam[travelers] = efficiency(error[travelers] * scale, p.efficiency_error_full, p.efficiency_error_zero)
-            path_points[travelers] = batch.point
-            forces[travelers] = f_travel
-        is_prime = roles == PRIME_CODE
-        self.estimates = consensus_step(
-            self.estimates, adjacency, is_prime, np.where(np.isnan(lam), 0.0, lam), p.consensus_gain, dt
-        )
-        alignment = np.full(n, np.nan)
-        gain = np.full(n, np.nan)
-        secondary = roles == SECONDARY_CODE
-        alignment[secondary] = force_alignment(f_lambda[secondary], forces[secondary])
-        gain[secondary] = adaptive_gain(alignment[secondary], self.estimates[secondary], p.sigma)
-        forces[secondary] *= gain[secondary, None]
-        anchored = roles == ANCHOR_CODE
-        if np.any(anchored):
-            forces[anchored] = anchor_force(
-                q[anchored], target_points[anchored], p.target_radius, p.anchor_gain, p.anchor_force_limit
-            )
-        forces[roles == CONNECTOR_CODE] = 0.0
+        # Algorithm 2, every robot in one compiled pass.
+        forces = np.empty((n, 3))
+        lam, error, alignment, gain = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+        path_points = np.empty((n, 3))
+        estimates = np.empty(n)
+        if references is None or not len(travelers):
+            points = velocities_ref = accelerations = np.zeros((0, 3))
+            travelers = np.zeros(0, dtype=np.int64)
+        else:
+            points, velocities_ref, accelerations = references.point, references.velocity, references.acceleration
+        _motion_control(q, v, f_lambda, roles, travelers, points, velocities_ref, accelerations, target_points,
+                        adjacency, self.estimates, dt, p.position_gain, p.velocity_gain, p.virtual_mass,
+                        p.travel_force_limit, p.position_error_weight, p.cruise_speed,
+                        _MIN_REFERENCE_FRACTION * p.cruise_speed, p.efficiency_error_full, p.efficiency_error_zero,
+                        p.consensus_gain, p.sigma, p.target_radius, p.anchor_gain, p.anchor_force_limit,
+                        forces, lam, error, path_points, estimates, alignment, gain)
+        self.estimates = estimates
 
         self.tick += 1
         self.last_time = float(time)
@@ -341,3 +327,48 @@ class ExplorationController:
             skipped=tuple(self.skipped),
             finished=finished,
         )
+
+
+@kernel
+def _motion_control(q, v, f_lambda, roles, travelers, points, velocities, accelerations, target_points, adjacency,
+                    estimates, dt, position_gain, velocity_gain, mass, travel_force_limit, position_weight,
+                    cruise_speed, min_reference_speed, x_full, x_zero, consensus_gain, sigma, target_radius,
+                    anchor_gain, anchor_force_limit, forces, lam, error, path_points, estimates_out, alignment, gain):
+    """Algorithm 2 for every robot (see the module docstring); outputs NaN where undefined.
+
+    travelers (R,) with their path references' points, velocities and
+    accelerations (R, 3); roles (N,) codes; estimates (N,) hat-Lambda_p^i of the
+    previous tick, estimates_out the new ones (eq. 13)."""
+    n = q.shape[0]
+    for i in range(n):
+        lam[i] = error[i] = alignment[i] = gain[i] = np.nan
+        for k in range(3):
+            forces[i, k] = 0.0
+            path_points[i, k] = np.nan
+    for r in range(travelers.shape[0]):
+        i = travelers[r]
+        _travel_force_row(q[i], v[i], points[r], velocities[r], accelerations[r], position_gain, velocity_gain, mass,
+                          travel_force_limit, forces[i])
+        error[i] = _tracking_error_row(q[i], v[i], points[r], velocities[r], position_weight)
+        # Over the braking stretch the reference slows down (travel.py); the error is
+        # weighed against the reference's own speed there, so a traveler held back near
+        # its target reads as inefficient, as one held back at cruise speed does.
+        reference_speed = _norm3(velocities[r, 0], velocities[r, 1], velocities[r, 2])
+        scale = cruise_speed / max(reference_speed, min_reference_speed)
+        lam[i] = _efficiency_scalar(error[i] * scale, x_full, x_zero)
+        for k in range(3):
+            path_points[i, k] = points[r, k]
+    is_prime = roles == PRIME_CODE
+    prime_efficiency = np.where(np.isnan(lam), 0.0, lam)
+    _consensus_kernel(estimates, adjacency, is_prime, prime_efficiency, consensus_gain, dt, estimates_out)
+    for i in range(n):
+        if roles[i] == SECONDARY_CODE:
+            alignment[i] = _alignment_row(f_lambda[i], forces[i])
+            gain[i] = _adaptive_gain_scalar(alignment[i], estimates_out[i], sigma)
+            for k in range(3):
+                forces[i, k] *= gain[i]
+        elif roles[i] == ANCHOR_CODE:
+            _anchor_force_row(q[i], target_points[i], target_radius, anchor_gain, anchor_force_limit, forces[i])
+        elif roles[i] == CONNECTOR_CODE:
+            for k in range(3):
+                forces[i, k] = 0.0

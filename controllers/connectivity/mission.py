@@ -35,7 +35,6 @@ from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.graph import ConnectivityState
 from controllers.connectivity.paths import GridPlanner
 from controllers.connectivity.roles import PRIME_CODE
-from controllers.connectivity.travel import row_norm
 from controllers.connectivity.targets import TargetQueues
 from sim.compiled import kernel
 from sim.config import ConfigError
@@ -199,19 +198,14 @@ class MissionStatistics:
         """Add one tick; returns that tick's values (for the per-tick scalars)."""
         if len(self.travel) != len(q):
             self.travel = np.zeros(len(q))
-        edges = int(len(state.edges))
+        edges = int(_link_count(state.links.pairs, state.weights))
         self.ticks += 1
         self.lambda2_min = min(self.lambda2_min, state.lambda2)
         self.lambda2_sum += state.lambda2
         self.edges_min = edges if self.edges_min is None else min(self.edges_min, edges)
         self.edges_sum += edges
-        stretch = 0.0
-        if len(self.explorers) > 1:
-            e = q[self.explorers]
-            offset = e[:, None] - e[None]
-            stretch = float(np.sqrt(np.add.reduce(offset * offset, axis=-1)).max())  # np.linalg.norm's sum
+        stretch = _stretch_and_travel(q, q_next, self.explorers, self.travel)
         self.max_stretch = max(self.max_stretch, stretch)
-        self.travel += row_norm(q_next - q)
         self.min_robot_distance = min(self.min_robot_distance, robot_distance)
         self.min_obstacle_distance = min(self.min_obstacle_distance, float(obstacle_distance.min()))
         self.min_body_distance = min(self.min_body_distance, pairwise_min_distance(body))
@@ -244,3 +238,33 @@ class MissionStatistics:
             "lambda2_estimate_error_mean": self.estimate_error_sum / self.estimate_error_count
             if self.estimate_error_count else None,
         }
+
+
+@kernel
+def _link_count(pairs, weights):
+    """Number of pairs (i, j) in ``pairs`` (P, 2) with W_ij > 0: the edges of G^lambda."""
+    count = 0
+    for p in range(pairs.shape[0]):
+        if weights[pairs[p, 0], pairs[p, 1]] > 0:
+            count += 1
+    return count
+
+
+@kernel
+def _stretch_and_travel(q, q_next, explorers, travel):
+    """The largest distance between two explorers (0 with fewer than two), and each robot's step
+    ||q_next - q|| added to ``travel`` (N,); norms summed in np.linalg.norm's order."""
+    stretch = 0.0
+    if explorers.shape[0] > 1:
+        stretch = -np.inf
+        for a in range(explorers.shape[0]):
+            for b in range(explorers.shape[0]):
+                i, j = explorers[a], explorers[b]
+                d0, d1, d2 = q[i, 0] - q[j, 0], q[i, 1] - q[j, 1], q[i, 2] - q[j, 2]
+                distance = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                if distance > stretch or distance != distance:
+                    stretch = distance
+    for i in range(q.shape[0]):
+        d0, d1, d2 = q_next[i, 0] - q[i, 0], q_next[i, 1] - q[i, 1], q_next[i, 2] - q[i, 2]
+        travel[i] += np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    return stretch

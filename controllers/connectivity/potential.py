@@ -36,6 +36,7 @@ from __future__ import annotations
 import numpy as np
 
 from controllers.connectivity.params import ConnectivityParams
+from sim.compiled import kernel
 
 
 def _normalised(lambda2, params: ConnectivityParams) -> np.ndarray:
@@ -53,15 +54,33 @@ def connectivity_potential(lambda2, params: ConnectivityParams) -> np.ndarray:
 
 def connectivity_potential_slope(lambda2, params: ConnectivityParams) -> np.ndarray:
     """dV/dlambda2, J per unit lambda2; -inf at or below lambda2_min, 0 at or above lambda2_null."""
-    x = _normalised(lambda2, params)
-    inside = (x > 0) & (x < 1)
-    safe_x = np.where(inside, x, 1.0)
-    span = params.lambda2_null - params.lambda2_min
-    slope = np.where(inside, params.potential_gain * (1.0 - 1.0 / safe_x) / span, 0.0)
-    return np.where(x <= 0, -np.inf, slope)
+    return _slopes(lambda2, params, -np.inf)
 
 
 def guarded_potential_slope(lambda2, params: ConnectivityParams) -> np.ndarray:
     """dV/dlambda2 with lambda2 floored at lambda2_min + lambda2_guard: always finite."""
-    floor = params.lambda2_min + params.lambda2_guard
-    return connectivity_potential_slope(np.maximum(np.asarray(lambda2, dtype=float), floor), params)
+    return _slopes(lambda2, params, params.lambda2_min + params.lambda2_guard)
+
+
+def _slopes(lambda2, params: ConnectivityParams, floor: float) -> np.ndarray:
+    """dV/dlambda2 at max(lambda2, floor), element by element (compiled: the control tick asks for one or N)."""
+    values = np.asarray(lambda2, dtype=float)
+    slope = np.empty(values.shape)
+    _slope_kernel(values.ravel(), float(floor), float(params.lambda2_min), float(params.lambda2_null),
+                  float(params.potential_gain), slope.reshape(-1))
+    return slope
+
+
+@kernel
+def _slope_kernel(lambda2, floor, lambda2_min, lambda2_null, gain, out):
+    """dV/dlambda2 of each max(lambda2[k], floor) into ``out`` (NaN kept, as np.maximum)."""
+    span = lambda2_null - lambda2_min
+    for k in range(lambda2.shape[0]):
+        value = lambda2[k] if (lambda2[k] != lambda2[k] or lambda2[k] > floor) else floor
+        x = (value - lambda2_min) / span
+        if x <= 0:
+            out[k] = -np.inf
+        elif x < 1:
+            out[k] = gain * (1.0 - 1.0 / x) / span
+        else:
+            out[k] = 0.0

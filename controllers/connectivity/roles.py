@@ -153,8 +153,7 @@ class RoleMachine:
         task_done = np.asarray(task_done, dtype=bool)
         remaining = np.asarray(remaining, dtype=float)
 
-        for i in range(self.n_robots):
-            self._local_transition(i, got_target[i], near_target[i], task_done[i])
+        self._local_transitions(got_target, near_target, task_done)
         for robot, message in self.network.delivered(tick):
             self._receive(robot, message, remaining, tick)
         holder = np.flatnonzero(self.holds_token)
@@ -170,18 +169,20 @@ class RoleMachine:
             became_connector=(roles == CONNECTOR_CODE) & (before != CONNECTOR_CODE),
         )
 
-    def _local_transition(self, i: int, got_target: bool, near_target: bool, task_done: bool) -> None:
-        role = int(self.roles[i])  # a Python int compares with Role members cheaply
-        if role == CONNECTOR_CODE and got_target:
+    def _local_transitions(self, got_target: np.ndarray, near_target: np.ndarray, task_done: np.ndarray) -> None:
+        """Each robot's own role switch, from its role before this tick (one switch per robot per tick)."""
+        roles = self.roles
+        starting = np.flatnonzero((roles == CONNECTOR_CODE) & got_target)
+        arriving = (roles == SECONDARY_CODE) & near_target
+        leaving = (roles == ANCHOR_CODE) & task_done
+        roles[arriving] = ANCHOR_CODE
+        roles[leaving] = CONNECTOR_CODE
+        for i in starting:
             if self.holds_token[i]:
-                self.roles[i] = PRIME_CODE
-                self._close_round(i)  # the host needs no successor any more
+                roles[i] = PRIME_CODE
+                self._close_round(int(i))  # the host needs no successor any more
             else:
-                self.roles[i] = SECONDARY_CODE
-        elif role == SECONDARY_CODE and near_target:
-            self.roles[i] = ANCHOR_CODE
-        elif role == ANCHOR_CODE and task_done:
-            self.roles[i] = CONNECTOR_CODE
+                roles[i] = SECONDARY_CODE
 
     def _receive(self, robot: int, message: Message, remaining: np.ndarray, tick: int) -> None:
         if isinstance(message, Candidacy):

@@ -115,6 +115,14 @@ def smooth_lambda2_gradient(links: LinkWeights, eigenvalues: np.ndarray, eigenve
     modes = np.flatnonzero(slope > _MIN_WEIGHT * slope.max())
     gradient = np.zeros((links.num_robots, 3))
     # One batched eq. (17) for all modes (each bit-identical to the single-vector one), summed in mode order.
-    for k, mode_gradient in zip(modes, links.lambda2_gradients(eigenvectors[:, modes + 1])):
-        gradient += slope[k] * mode_gradient
+    _add_weighted(slope[modes], links.lambda2_gradients(eigenvectors[:, modes + 1]), gradient)
     return s, gradient
+
+
+@kernel
+def _add_weighted(weights, terms, total):
+    """total += weights[m] * terms[m] for each m in order; terms (M, N, 3), total (N, 3)."""
+    for m in range(terms.shape[0]):
+        for i in range(terms.shape[1]):
+            for d in range(3):
+                total[i, d] += weights[m] * terms[m, i, d]
