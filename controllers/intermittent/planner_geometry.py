@@ -27,7 +27,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from sim.geometry import Boxes, point_clearance, segments_free
+from sim.compiled import kernel
+from sim.geometry import Boxes, clearance_at, point_clearance, segments_free
 
 from controllers.intermittent.planner_kernels import segments_hit_boxes
 
@@ -48,13 +49,21 @@ def points_free(
     least ``margin`` inside the bounds and farther than ``margin`` from every
     box (at height ``z``).
     """
-    points = np.atleast_2d(np.asarray(points, dtype=float))
-    inside = np.all((points >= bounds[0] + margin) & (points <= bounds[1] - margin), axis=1)
-    if len(boxes) == 0 or not inside.any():
-        return inside
-    free = inside.copy()
-    free[inside] = point_clearance(boxes, lift(points[inside], z)) > margin
+    points = np.ascontiguousarray(np.atleast_2d(points), dtype=np.float64)
+    assert points.ndim == 2 and points.shape[1] == 2, points.shape
+    lo, hi = bounds[0] + margin, bounds[1] - margin
+    free = np.empty(len(points), dtype=bool)
+    _points_free_kernel(points, float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), float(z), float(margin),
+                        boxes.centers, boxes.half_sizes, np.ascontiguousarray(boxes.rotations), boxes.aligned, free)
     return free
+
+
+@kernel
+def _points_free_kernel(points, lo_x, lo_y, hi_x, hi_y, z, margin, centers, half_sizes, rotations, aligned, free):
+    for p in range(points.shape[0]):
+        x, y = points[p, 0], points[p, 1]
+        free[p] = (x >= lo_x and y >= lo_y and x <= hi_x and y <= hi_y
+                   and clearance_at(x, y, z, centers, half_sizes, rotations, aligned) > margin)
 
 
 def edges_free(boxes: Boxes, a: np.ndarray, b: np.ndarray, z: float, margin: float) -> np.ndarray:
