@@ -345,9 +345,9 @@ def _controller_inputs(params: QuadrotorParams, gains: QuadrotorGains, position,
     """The controller kernel's arguments before its outputs: float64 C arrays, the constants built once."""
     f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
     return (f64(position), f64(velocity), f64(quaternion), f64(angular_velocity), f64(ref_position),
-            f64(ref_velocity), f64(ref_acceleration), f64(ref_yaw),
-            _NO_JERK if ref_jerk is None else f64(ref_jerk), _NO_YAW_RATE if ref_yaw_rate is None else f64(ref_yaw_rate),
-            ref_jerk is not None, ref_yaw_rate is not None, *params.controller_constants, *gains.controller_constants)
+            f64(ref_velocity), f64(ref_acceleration), f64(ref_yaw), _NO_JERK if ref_jerk is None else f64(ref_jerk),
+            _NO_YAW_RATE if ref_yaw_rate is None else f64(ref_yaw_rate), ref_jerk is not None,
+            ref_yaw_rate is not None, *params.controller_constants, *gains.controller_constants)
 
 
 def _state_and_reference(state: QuadrotorState, reference: QuadrotorReference) -> tuple:
