@@ -35,7 +35,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from sim.estimation_observer import EstimationMetrics  # noqa: E402
-from sim.loop import TIMED_STAGES, Simulation, run  # noqa: E402
+from sim.loop import TIMED_STAGES, Simulation, frozen_heap, run  # noqa: E402
 from sim.observers import LinkMetrics, TrackingMetrics  # noqa: E402
 from sim.scenario import load  # noqa: E402
 
@@ -60,6 +60,11 @@ def measure(scenario_name: str, overrides: list[str], seconds: float, warmup_s: 
     """Ratio, real-time factor and stage shares of one scenario (see the module docstring)."""
     simulation = Simulation(load(scenario_name, overrides))
     observers = [EstimationMetrics(), TrackingMetrics(simulation.world.robot_kinds), LinkMetrics()]
+    with frozen_heap():  # as sim.loop.run does around its ticks
+        return _measure_ticks(simulation, observers, scenario_name, overrides, seconds, warmup_s)
+
+
+def _measure_ticks(simulation, observers, scenario_name, overrides, seconds, warmup_s) -> dict:
     for _ in range(int(round(warmup_s / simulation.dt))):
         simulation.tick(info_wanted=False)
     model, world_data = simulation.world.model, simulation.world.data

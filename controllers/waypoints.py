@@ -15,10 +15,12 @@ robots are.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from sim.compiled import kernel
 from sim.config import param, require
 from sim.types import Commands, Observation, WorldInfo
 
@@ -39,15 +41,20 @@ class WaypointParams:
         require(self.dwell_s >= 0, "dwell_s", f"must be non-negative, got {self.dwell_s}")
 
 
-def min_jerk(tau: float) -> tuple[float, float, float]:
-    """s, ds/dtau, d2s/dtau2 of the minimum-jerk blend for tau in [0, 1] (clipped there).
-
-    Python floats: the same libm pow and the same figures as numpy's scalars, without their overhead."""
-    tau = min(max(float(tau), 0.0), 1.0)
-    s = tau**3 * (10 - 15 * tau + 6 * tau**2)
-    ds = 30 * tau**2 * (1 - tau) ** 2
+@kernel
+def _min_jerk(tau, two, three):
+    # Exponents arrive as arguments so that libm's pow is called, as Python's ** does: LLVM turns a
+    # constant exponent into multiplications, whose last bit can differ from pow's.
+    tau = min(max(tau, 0.0), 1.0)
+    s = math.pow(tau, three) * (10 - 15 * tau + 6 * math.pow(tau, two))
+    ds = 30 * math.pow(tau, two) * math.pow(1 - tau, two)
     dds = 60 * tau * (1 - tau) * (1 - 2 * tau)
     return s, ds, dds
+
+
+def min_jerk(tau: float) -> tuple[float, float, float]:
+    """s, ds/dtau, d2s/dtau2 of the minimum-jerk blend for tau in [0, 1] (clipped there)."""
+    return _min_jerk(float(tau), 2.0, 3.0)
 
 
 class Route:
@@ -61,12 +68,6 @@ class Route:
         self.durations = np.where(lengths > 0, _MIN_JERK_PEAK_RATIO * lengths / speed, 0.0)
         self.dwell = dwell
         self.period = float(np.sum(self.durations + dwell))
-        # Per segment (start, end - start, duration) as Python floats, for sample's loop (the same IEEE
-        # double arithmetic as numpy's on (3,) rows, without its per-call overhead).
-        self._segments = [(tuple(start), tuple(e - s for s, e in zip(start, end)), duration)
-                          for start, end, duration in zip(self.starts.tolist(), self.ends.tolist(),
-                                                    self.durations.tolist())]
-        self._first = tuple(self.points[0].tolist())
 
     def progress(self, t: float) -> float:
         """Where on the route time ``t`` falls: ``2k + f`` while resting at
@@ -92,26 +93,70 @@ class Route:
             return before + rest * self.dwell
         return before + self.dwell + (rest - 1.0) * float(self.durations[k])
 
-    def sample(self, t: float) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
-        """Position, velocity and acceleration (each x, y, z as Python floats) at route time ``t``."""
-        zero = (0.0, 0.0, 0.0)
-        if len(self.points) == 1 or self.period == 0:
-            return self._first, zero, zero
-        t = t % self.period
-        for start, delta, duration in self._segments:
-            if t < self.dwell or duration == 0:
-                if t < self.dwell + duration:
-                    return start, zero, zero
-                t -= self.dwell + duration
+    def sample(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Position, velocity and acceleration (3,) at route time ``t``."""
+        position, velocity, acceleration = RouteTable([self]).sample(np.array([t], dtype=float))
+        return position[0], velocity[0], acceleration[0]
+
+
+class RouteTable:
+    """Routes as padded arrays, sampled for all robots in one compiled call."""
+
+    def __init__(self, routes: list[Route]):
+        n = len(routes)
+        longest = max((len(route.durations) for route in routes), default=0)
+        self.starts = np.zeros((n, longest, 3))
+        self.deltas = np.zeros((n, longest, 3))  # end - start of each segment
+        self.durations = np.zeros((n, longest))
+        self.counts = np.array([len(route.durations) for route in routes], dtype=np.int64)
+        self.periods = np.array([route.period for route in routes], dtype=float)
+        self.dwell = routes[0].dwell if routes else 0.0
+        assert all(route.dwell == self.dwell for route in routes)
+        for r, route in enumerate(routes):
+            k = len(route.durations)
+            self.starts[r, :k] = route.starts
+            self.deltas[r, :k] = route.ends - route.starts
+            self.durations[r, :k] = route.durations
+
+    def sample(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Position, velocity, acceleration (N, 3) of every route at its own route time ``times`` (N,), s."""
+        n = len(self.counts)
+        position, velocity, acceleration = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+        _sample_routes(np.ascontiguousarray(times, dtype=float), self.starts, self.deltas, self.durations,
+                       self.counts, self.periods, self.dwell, 2.0, 3.0, position, velocity, acceleration)
+        return position, velocity, acceleration
+
+
+@kernel
+def _sample_routes(times, starts, deltas, durations, counts, periods, dwell, two, three,
+                   position, velocity, acceleration):
+    """Per route: rest at each waypoint for ``dwell``, then a minimum-jerk segment to the next."""
+    for r in range(times.shape[0]):
+        for i in range(3):  # at rest at the first waypoint unless a segment below says otherwise
+            position[r, i] = starts[r, 0, i]
+            velocity[r, i] = acceleration[r, i] = 0.0
+        if counts[r] == 1 or periods[r] == 0:
+            continue
+        t = times[r] % periods[r]
+        for k in range(counts[r]):
+            duration = durations[r, k]
+            if t < dwell or duration == 0:
+                if t < dwell + duration:
+                    for i in range(3):
+                        position[r, i] = starts[r, k, i]
+                    break
+                t -= dwell + duration
                 continue
-            t -= self.dwell
+            t -= dwell
             if t < duration:
-                s, ds, dds = min_jerk(t / duration)
-                v, a = ds / duration, dds / duration**2
-                return (tuple(p + s * d for p, d in zip(start, delta)), tuple(v * d for d in delta),
-                        tuple(a * d for d in delta))
+                s, ds, dds = _min_jerk(t / duration, two, three)
+                v, a = ds / duration, dds / math.pow(duration, two)
+                for i in range(3):
+                    position[r, i] = starts[r, k, i] + s * deltas[r, k, i]
+                    velocity[r, i] = v * deltas[r, k, i]
+                    acceleration[r, i] = a * deltas[r, k, i]
+                break
             t -= duration
-        return self._first, zero, zero
 
 
 class WaypointStrategy:
@@ -120,6 +165,7 @@ class WaypointStrategy:
     def __init__(self, params: WaypointParams):
         self.params = params
         self.routes: list[Route] = []
+        self._table = RouteTable([])
         self._offsets = np.zeros(0)  # per-robot route clock = sim time - offset, s
         self._time_s = 0.0
 
@@ -137,6 +183,7 @@ class WaypointStrategy:
                     p[2] = start[2]
             speed = self.params.ground_speed_mps if self._ground[i] else self.params.speed_mps
             self.routes.append(Route(np.array([start, *waypoints]), speed, self.params.dwell_s))
+        self._table = RouteTable(self.routes)
         self._offsets = np.full(n, initial.time_s)
         self._time_s = initial.time_s
 
@@ -152,15 +199,15 @@ class WaypointStrategy:
             place = old.progress(self._time_s - self._offsets[i])
             self._offsets[i] = self._time_s - new.time_at(place)
             self.routes[i] = new
+        self._table = RouteTable(self.routes)
         self.params = params
         return True
 
     def step(self, observation: Observation) -> Commands:
         self._time_s = observation.time_s
-        samples = [route.sample(observation.time_s - offset) for route, offset in zip(self.routes, self._offsets)]
-        position, velocity, acceleration = (np.array(x) for x in zip(*samples))
+        position, velocity, acceleration = self._table.sample(observation.time_s - self._offsets)
         info = {}
         if observation.info_wanted:
             speed = np.linalg.norm(velocity, axis=1)
             info = {"scalars": {"reference_speed_max_mps": float(speed.max(initial=0.0))}}
-        return Commands(position, velocity, acceleration, np.zeros(len(samples)), info)
+        return Commands(position, velocity, acceleration, np.zeros(len(position)), info)

@@ -38,6 +38,7 @@ Deviations from the paper:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Iterable, KeysView, Mapping, Protocol, Sequence
 
@@ -83,7 +84,7 @@ class RangeMeasurement:
         position = tuple(float(c) for c in self.sensor_position)
         if len(position) != 3:
             raise ValueError(f"sensor_position: need 3 coordinates, got {len(position)}")
-        if not np.all(np.isfinite(position)):
+        if not all(math.isfinite(c) for c in position):  # math's test: numpy's costs ~5 us a record
             raise ValueError(f"sensor_position: must be finite, got {position}")
         if int(self.step) < 0:
             raise ValueError(f"step: must be >= 0, got {self.step}")
@@ -91,7 +92,7 @@ class RangeMeasurement:
             raise ValueError(f"robot: must be >= 0, got {self.robot}")
         if int(self.target) < 0:
             raise ValueError(f"target: must be >= 0, got {self.target}")
-        if not np.isfinite(self.measured_range) or self.measured_range < 0:
+        if not math.isfinite(self.measured_range) or self.measured_range < 0:
             raise ValueError(f"measured_range: must be a finite distance >= 0 m, got {self.measured_range}")
         object.__setattr__(self, "step", int(self.step))
         object.__setattr__(self, "robot", int(self.robot))

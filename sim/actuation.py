@@ -19,6 +19,14 @@ from sim.world import World
 GROUND_POSITION_GAIN = 2.0  # 1/s: pulls the offset point onto the reference
 
 
+def _rows(index):
+    """``index`` (sorted ints) as an equivalent slice when consecutive, else as it is."""
+    index = list(index)
+    if index and index == list(range(index[0], index[-1] + 1)):
+        return slice(index[0], index[-1] + 1)
+    return np.asarray(index, dtype=int)
+
+
 class LowLevelControl:
     def __init__(self, world: World):
         self.world = world
@@ -28,6 +36,8 @@ class LowLevelControl:
         self.quad_params = quadrotor_params(world.model, f"{names[self.quads[0]]}/") if len(self.quads) else None
         self.quad_gains = quadrotor.QuadrotorGains()
         self.ground_params = ground_robot_params(world.model, f"{names[self.grounds[0]]}/") if len(self.grounds) else None
+        # Each kind's rows as a slice where they are consecutive (a view instead of a fancy-index copy).
+        self.quad_rows, self.ground_rows = _rows(self.quads), _rows(self.grounds)
         self.quad_actuators = world.actuator_ids["quadrotor"]
         self.ground_actuators = world.actuator_ids["ground"]
 
@@ -39,19 +49,15 @@ class LowLevelControl:
     def apply(self, observation: Observation, commands: Commands) -> None:
         ctrl = self.world.data.ctrl
         if len(self.quads):
-            q = self.quads
-            state = quadrotor.QuadrotorState(
-                observation.position[q], observation.velocity[q],
-                observation.quaternion[q], observation.angular_velocity[q],
+            q = self.quad_rows
+            ctrl[self.quad_actuators] = quadrotor.track_reference(
+                self.quad_params, self.quad_gains, observation.position[q], observation.velocity[q],
+                observation.quaternion[q], observation.angular_velocity[q], commands.position[q],
+                commands.velocity[q], commands.acceleration[q], commands.yaw[q],
             )
-            reference = quadrotor.QuadrotorReference(
-                commands.position[q], commands.velocity[q], commands.acceleration[q], commands.yaw[q],
-            )
-            ctrl[self.quad_actuators] = quadrotor.rotor_thrusts(self.quad_params, self.quad_gains, state, reference)
         if len(self.grounds):
-            g = self.grounds
-            yaw = ground.yaw_from_quaternion(observation.quaternion[g])
-            cos_sin = np.cos(yaw), np.sin(yaw)
-            point = ground.offset_point(observation.position[g, :2], yaw, cos_sin=cos_sin)
-            u = commands.velocity[g, :2] + GROUND_POSITION_GAIN * (commands.position[g, :2] - point)
-            ctrl[self.ground_actuators] = ground.track_velocity(self.ground_params, u, yaw, cos_sin=cos_sin)
+            g = self.ground_rows
+            ctrl[self.ground_actuators] = ground.track_reference(
+                self.ground_params, observation.position[g], observation.quaternion[g], commands.position[g],
+                commands.velocity[g], GROUND_POSITION_GAIN,
+            )

@@ -82,22 +82,30 @@ def point_clearance(boxes: Boxes, points: np.ndarray) -> np.ndarray:
 
 @kernel
 def _point_clearance_kernel(points, centers, half_sizes, rotations, aligned, out):
-    # Distance to a box = norm of how far each local coordinate exceeds the half extent.
-    excess = np.empty(3)
     for p in range(points.shape[0]):
-        smallest = np.inf
-        for k in range(centers.shape[0]):
-            for j in range(3):
-                if aligned:
-                    local = points[p, j] - centers[k, j]
-                else:
-                    local = ((points[p, 0] - centers[k, 0]) * rotations[k, 0, j] + (points[p, 1] - centers[k, 1])
-                             * rotations[k, 1, j]) + (points[p, 2] - centers[k, 2]) * rotations[k, 2, j]
-                excess[j] = max(abs(local) - half_sizes[k, j], 0.0)
-            # Summed in the order numpy's einsum used before (x^2 + z^2) + y^2: same figures to the bit.
-            squared = (excess[0] * excess[0] + excess[2] * excess[2]) + excess[1] * excess[1]
-            smallest = min(smallest, squared)
-        out[p] = np.sqrt(smallest)
+        out[p] = clearance_at(points[p, 0], points[p, 1], points[p, 2], centers, half_sizes, rotations, aligned)
+
+
+@kernel
+def clearance_at(x, y, z, centers, half_sizes, rotations, aligned):
+    """Distance from the point (x, y, z) to the nearest of the boxes (inf if none); for other kernels."""
+    # Distance to a box = norm of how far each local coordinate exceeds the half extent.
+    smallest = np.inf
+    for k in range(centers.shape[0]):
+        dx, dy, dz = x - centers[k, 0], y - centers[k, 1], z - centers[k, 2]
+        if aligned:
+            local0, local1, local2 = dx, dy, dz
+        else:
+            local0 = (dx * rotations[k, 0, 0] + dy * rotations[k, 1, 0]) + dz * rotations[k, 2, 0]
+            local1 = (dx * rotations[k, 0, 1] + dy * rotations[k, 1, 1]) + dz * rotations[k, 2, 1]
+            local2 = (dx * rotations[k, 0, 2] + dy * rotations[k, 1, 2]) + dz * rotations[k, 2, 2]
+        excess0 = max(abs(local0) - half_sizes[k, 0], 0.0)
+        excess1 = max(abs(local1) - half_sizes[k, 1], 0.0)
+        excess2 = max(abs(local2) - half_sizes[k, 2], 0.0)
+        # Summed in the order numpy's einsum used before (x^2 + z^2) + y^2: same figures to the bit.
+        squared = (excess0 * excess0 + excess2 * excess2) + excess1 * excess1
+        smallest = min(smallest, squared)
+    return np.sqrt(smallest)
 
 
 def inside_any(boxes: Boxes, points: np.ndarray, margin: float = 0.0) -> np.ndarray:

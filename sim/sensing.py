@@ -16,6 +16,7 @@ import mujoco
 import numpy as np
 
 from estimation.range_model import range_sigma
+from sim.compiled import kernel
 from sim.geometry import segment_clearance
 from sim.types import Links
 from sim.world import World, obstacle_geomgroup
@@ -29,7 +30,7 @@ class RaySensors:
         self.noisy = noisy
         self._groups = obstacle_geomgroup()
         self.rays_cast = 0  # for benchmarks
-        self._masks_n = -1
+        self._buffers_n = -1
 
     def sensor_positions(self) -> np.ndarray:
         return self.world.data.site_xpos[self.world.sensor_site_ids].copy()
@@ -49,40 +50,31 @@ class RaySensors:
     def links(self, positions: np.ndarray) -> Links:
         """Pairwise distance, line of sight and adjacency of robots (clearance on demand)."""
         n = len(positions)
-        diff = positions[None, :, :] - positions[:, None, :]
-        distance = np.sqrt(np.add.reduce(diff * diff, axis=-1))  # np.linalg.norm's own sum, without its checks
-        not_self, upper = self._masks(n)
-        in_range = (distance <= self.comm_range) & not_self
-        los = np.zeros((n, n), dtype=bool)
+        positions = np.ascontiguousarray(positions, dtype=np.float64)
+        if self._buffers_n != n:  # the pair buffers, allocated once per team size
+            pairs = n * (n - 1) // 2
+            self._pair_buffers = (np.empty(pairs, dtype=np.int64), np.empty(pairs, dtype=np.int64),
+                                  np.empty(3 * pairs), np.empty(n + 1, dtype=np.int64))
+            self._buffers_n = n
+        first, second, vectors, group_starts = self._pair_buffers
+        distance = np.empty((n, n))
+        in_range = np.empty((n, n), dtype=bool)
         # Every pair i < j in range, grouped by i (row-major): one mj_multiRay per origin robot,
-        # all writing into one buffer, and one comparison for all rays.
-        first, second = np.nonzero(in_range & upper)
-        count = len(first)
-        if count:
-            vectors = (positions[second] - positions[first]).reshape(-1)
-            geomid = np.empty(count, dtype=np.int32)
-            hit = np.empty(count, dtype=np.float64)
-            model, data, groups = self.world.model, self.world.data, self._groups
-            origins = first.tolist()
-            start = 0
-            for end in range(1, count + 1):
-                if end == count or origins[end] != origins[start]:
-                    mujoco.mj_multiRay(model, data, positions[origins[start]], vectors[3 * start : 3 * end], groups,
-                                       1, -1, geomid[start:end], hit[start:end], None, end - start, 1.0)
-                    start = end
-            self.rays_cast += count
-            free = ~((geomid >= 0) & (hit >= 0) & (hit < 1.0))
-            los[first, second] = free
-            los[second, first] = free
-        return Links(distance, los, los & in_range, functools.partial(self._clearance, positions.copy(), in_range))
-
-    def _masks(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """(N, N) bool: off-diagonal, and strictly upper triangle (built once per team size)."""
-        if self._masks_n != n:
-            self._off_diagonal = ~np.eye(n, dtype=bool)
-            self._upper = np.triu(np.ones((n, n), dtype=bool), 1)
-            self._masks_n = n
-        return self._off_diagonal, self._upper
+        # all writing into one buffer.
+        count, groups = _pairs_in_range(positions, self.comm_range, distance, in_range, first, second, vectors,
+                                        group_starts)
+        geomid = np.empty(count, dtype=np.int32)
+        hit = np.empty(count, dtype=np.float64)
+        model, data, mask = self.world.model, self.world.data, self._groups
+        for group in range(groups):
+            start, end = int(group_starts[group]), int(group_starts[group + 1])
+            mujoco.mj_multiRay(model, data, positions[first[start]], vectors[3 * start : 3 * end], mask,
+                               1, -1, geomid[start:end], hit[start:end], None, end - start, 1.0)
+        self.rays_cast += count
+        los = np.zeros((n, n), dtype=bool)
+        adjacency = np.zeros((n, n), dtype=bool)
+        _sight(first, second, geomid, hit, los, adjacency)
+        return Links(distance, los, adjacency, functools.partial(self._clearance, positions.copy(), in_range))
 
     def _clearance(self, positions: np.ndarray, in_range: np.ndarray) -> np.ndarray:
         """(N, N) segment clearance of the pairs in comm range, m; inf elsewhere."""
@@ -110,3 +102,43 @@ class RaySensors:
             seen = ~np.isnan(readings)
             readings[seen] += rng.normal(0.0, range_sigma(readings[seen]))
         return readings
+
+
+@kernel
+def _pairs_in_range(positions, comm_range, distance, in_range, first, second, vectors, group_starts):
+    """Fill ``distance`` and ``in_range`` (N, N, no self-pairs) and list the pairs i < j in range,
+    row-major, with their ray vectors p_j - p_i; ``group_starts`` marks where each origin's run
+    begins. Returns (pairs, origins with pairs)."""
+    n = positions.shape[0]
+    count = groups = 0
+    for i in range(n):
+        distance[i, i] = 0.0
+        in_range[i, i] = False
+        for j in range(n):
+            if j == i:
+                continue
+            dx = positions[j, 0] - positions[i, 0]
+            dy = positions[j, 1] - positions[i, 1]
+            dz = positions[j, 2] - positions[i, 2]
+            d = np.sqrt(dx * dx + dy * dy + dz * dz)
+            distance[i, j] = d
+            in_range[i, j] = d <= comm_range
+            if j > i and d <= comm_range:
+                if count == 0 or first[count - 1] != i:
+                    group_starts[groups] = count
+                    groups += 1
+                first[count], second[count] = i, j
+                vectors[3 * count], vectors[3 * count + 1], vectors[3 * count + 2] = dx, dy, dz
+                count += 1
+    group_starts[groups] = count
+    return count, groups
+
+
+@kernel
+def _sight(first, second, geomid, hit, line_of_sight, adjacency):
+    """Mark the cast pairs free of obstacles (no hit before the far end) in both (N, N) matrices."""
+    for k in range(geomid.shape[0]):
+        free = not (geomid[k] >= 0 and hit[k] >= 0 and hit[k] < 1.0)
+        i, j = first[k], second[k]
+        line_of_sight[i, j] = line_of_sight[j, i] = free
+        adjacency[i, j] = adjacency[j, i] = free

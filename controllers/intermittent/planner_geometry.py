@@ -27,7 +27,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from sim.geometry import Boxes, point_clearance, segments_free
+from sim.compiled import kernel
+from sim.geometry import Boxes, clearance_at, segments_free
 
 from controllers.intermittent.planner_kernels import segments_hit_boxes
 
@@ -48,13 +49,21 @@ def points_free(
     least ``margin`` inside the bounds and farther than ``margin`` from every
     box (at height ``z``).
     """
-    points = np.atleast_2d(np.asarray(points, dtype=float))
-    inside = np.all((points >= bounds[0] + margin) & (points <= bounds[1] - margin), axis=1)
-    if len(boxes) == 0 or not inside.any():
-        return inside
-    free = inside.copy()
-    free[inside] = point_clearance(boxes, lift(points[inside], z)) > margin
+    points = np.ascontiguousarray(np.atleast_2d(points), dtype=np.float64)
+    assert points.ndim == 2 and points.shape[1] == 2, points.shape
+    lo, hi = bounds[0] + margin, bounds[1] - margin
+    free = np.empty(len(points), dtype=bool)
+    _points_free_kernel(points, float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), float(z), float(margin),
+                        boxes.centers, boxes.half_sizes, np.ascontiguousarray(boxes.rotations), boxes.aligned, free)
     return free
+
+
+@kernel
+def _points_free_kernel(points, lo_x, lo_y, hi_x, hi_y, z, margin, centers, half_sizes, rotations, aligned, free):
+    for p in range(points.shape[0]):
+        x, y = points[p, 0], points[p, 1]
+        free[p] = (x >= lo_x and y >= lo_y and x <= hi_x and y <= hi_y
+                   and clearance_at(x, y, z, centers, half_sizes, rotations, aligned) > margin)
 
 
 def edges_free(boxes: Boxes, a: np.ndarray, b: np.ndarray, z: float, margin: float) -> np.ndarray:
@@ -69,21 +78,33 @@ def edges_free(boxes: Boxes, a: np.ndarray, b: np.ndarray, z: float, margin: flo
     Workspace bounds are not checked here: they are convex, so endpoints
     inside suffice.
     """
-    a3 = lift(np.atleast_2d(a), z)
-    b3 = lift(np.atleast_2d(b), z)
-    n = len(a3)
+    a = np.ascontiguousarray(np.atleast_2d(a), dtype=np.float64)
+    b = np.ascontiguousarray(np.atleast_2d(b), dtype=np.float64)
+    n = len(a)
     if len(boxes) == 0 or n == 0:
         return np.ones(n, dtype=bool)
-    mid = 0.5 * (a3 + b3)
-    half = 0.5 * np.linalg.norm(b3 - a3, axis=1)
-    radius = point_clearance(boxes, np.concatenate([a3, mid, b3])).reshape(3, n) - margin
-    r_a, r_mid, r_b = radius
-    free = (r_mid > half) | ((np.minimum(r_a, r_mid) > 0) & (np.minimum(r_b, r_mid) > 0)
-                            & (r_a + r_mid > half) & (r_b + r_mid > half))
+    free = np.empty(n, dtype=bool)
+    _edges_certified(a, b, float(z), float(margin), boxes.centers, boxes.half_sizes,
+                     np.ascontiguousarray(boxes.rotations), boxes.aligned, free)
     rest = ~free
     if rest.any():
-        free[rest] = segments_free(boxes, a3[rest], b3[rest], margin)
+        free[rest] = segments_free(boxes, lift(a[rest], z), lift(b[rest], z), margin)
     return free
+
+
+@kernel
+def _edges_certified(a, b, z, margin, centers, half_sizes, rotations, aligned, free):
+    """The ball certificate of :func:`edges_free` per move (False: not certified, test exactly)."""
+    for p in range(a.shape[0]):
+        ax, ay, bx, by = a[p, 0], a[p, 1], b[p, 0], b[p, 1]
+        dx, dy = bx - ax, by - ay
+        half = 0.5 * np.sqrt(dx * dx + dy * dy)
+        r_a = clearance_at(ax, ay, z, centers, half_sizes, rotations, aligned) - margin
+        r_mid = clearance_at(0.5 * (ax + bx), 0.5 * (ay + by), z, centers, half_sizes, rotations, aligned) - margin
+        r_b = clearance_at(bx, by, z, centers, half_sizes, rotations, aligned) - margin
+        # min(r, r_mid) > 0 written as two tests: a NaN fails them as it fails numpy's minimum.
+        free[p] = r_mid > half or (r_a > 0 and r_mid > 0 and r_b > 0
+                                   and r_a + r_mid > half and r_b + r_mid > half)
 
 
 def segments_blocked(boxes: Boxes, a: np.ndarray, b: np.ndarray) -> np.ndarray:

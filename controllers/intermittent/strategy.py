@@ -181,6 +181,19 @@ def ring_points(center: np.ndarray, n: int, geodesic: GeodesicPlanner, radius: f
     return np.repeat(center[None], n, axis=0)
 
 
+def _farther_than(point: list[float], x: float, y: float, limit: float) -> bool:
+    """Whether np.linalg.norm(point - (x, y)) > limit, decided as numpy would without its arrays.
+
+    The norm's BLAS dot may fuse a multiply-add, so its last bit can differ from this plain sum of
+    squares; only within a relative 1e-9 of the limit is that close enough to matter, and there
+    numpy decides."""
+    dx, dy = point[0] - x, point[1] - y
+    squared, bound = dx * dx + dy * dy, limit * limit
+    if abs(squared - bound) > 1e-9 * bound:
+        return squared > bound
+    return float(np.linalg.norm(np.array((dx, dy)))) > limit
+
+
 class MeetingStrategy(ABC):
     """Teams, schedules, beliefs and meetings on ground robots; subclasses
     design the segments (:meth:`design`)."""
@@ -392,24 +405,27 @@ class MeetingStrategy(ABC):
                 meeting.gathering = True
                 self.events.append(f"team {meeting.team} epoch {meeting.epoch}: not connected "
                                    f"{self.params.gather_after_s:.0f} s after arrival, closing in")
-        n = len(self.queues)
-        positions = np.empty((n, 2))
-        velocities = np.zeros((n, 2))
+        references = []  # per robot (x, y, vx, vy): Python floats, one array at the end
+        body = xy.tolist()
         waiting = 0
         for robot, queue in enumerate(self.queues):
             segment = queue[0]
             if segment.meeting.gathering:
-                positions[robot] = self._gather_reference(segment.meeting, robot, t)
+                x, y = self._gather_reference(segment.meeting, robot, t)
+                vx = vy = 0.0
             else:
-                positions[robot], velocities[robot] = segment.timed.reference(t)
+                (x, y), (vx, vy) = segment.timed.reference_floats(t)
                 if (segment.started and not segment.timed.finished(t)
-                        and np.linalg.norm(xy[robot] - positions[robot]) > LAG_HOLD_M):
+                        and _farther_than(body[robot], x, y, LAG_HOLD_M)):
                     # Time scaling: the body lags (a sharp turn, a push); its path clock waits for it.
                     segment.timed.offset_s += self.world.control_period_s
                     self.held_ticks += 1
-                    positions[robot], velocities[robot] = segment.timed.reference(t)
-                    velocities[robot] = 0.0
+                    (x, y), _ = segment.timed.reference_floats(t)
+                    vx = vy = 0.0
+            references.append((x, y, vx, vy))
             waiting += int(segment.at_end(t))
+        table = np.array(references, dtype=float).reshape(-1, 4)
+        positions, velocities = table[:, :2], table[:, 2:]
         self._scalars["robots_waiting"] = float(waiting)
         positions = separated_references(positions, xy, self.planning, velocities)
         self._track_closest(xy)

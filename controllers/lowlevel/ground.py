@@ -1,11 +1,11 @@
 """Differential-drive ground robot control: single-integrator commands to wheels.
 
-Numpy and small compiled kernels (:mod:`sim.compiled`), never imports
-MuJoCo; batched over all N ground robots (all share one
-:class:`GroundRobotParams`). The heading's trigonometry stays numpy's (its
-vectorised sin/cos/arctan2 differ from libm's in the last bit); the kernels
-do the same elementwise arithmetic as the numpy expressions they replaced,
-so wheel commands are bit-identical to them.
+Small compiled kernels (:mod:`sim.compiled`), never imports MuJoCo; batched
+over all N ground robots (all share one :class:`GroundRobotParams`). The
+simulation's per-tick path is :func:`track_reference`, one compiled pass from
+the body pose to the wheels. The heading is libm's atan2 (numpy's vectorised
+arctan2 differs from it in the last bit on some CPUs, so figures computed
+with numpy's may differ by round-off).
 
 Seed 000 plans for single integrators, p(t+1) = p(t) + u(t). A differential
 drive robot (a unicycle: forward speed v, turn rate omega, heading theta) is
@@ -34,6 +34,7 @@ factor), which keeps the path curvature omega / v and only slows the robot.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,53 +67,67 @@ class GroundRobotParams:
         return self.wheel_radius * self.wheel_speed_max
 
 
+@kernel
+def _heading(w, x, y, z):
+    """Heading of body x about world z, rad, of one quaternion (w, x, y, z)."""
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+@kernel
+def _yaw_kernel(q):
+    yaw = np.empty(q.shape[0])
+    for i in range(q.shape[0]):
+        yaw[i] = _heading(q[i, 0], q[i, 1], q[i, 2], q[i, 3])
+    return yaw
+
+
 def yaw_from_quaternion(q: np.ndarray) -> np.ndarray:
     """(N, 4) quaternions (w, x, y, z), body-to-world -> (N,) heading of body x, rad."""
-    q = np.asarray(q, dtype=float)
+    q = np.ascontiguousarray(q, dtype=np.float64)
     assert q.ndim == 2 and q.shape[1] == 4, q.shape
-    w, x, y, z = q.T
-    return np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return _yaw_kernel(q)
 
 
-def offset_point(position: np.ndarray, yaw: np.ndarray, offset: float = DEFAULT_OFFSET,
-                 cos_sin: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+def offset_point(position: np.ndarray, yaw: np.ndarray, offset: float = DEFAULT_OFFSET) -> np.ndarray:
     """Point P_b (N, 2), m, world frame, ``offset`` m ahead of the axle centre.
 
     position: (N, 2) or (N, 3) robot centre (only x, y are used), m, world frame.
-    yaw: (N,) heading, rad. cos_sin: ``(np.cos(yaw), np.sin(yaw))`` when the caller has them.
+    yaw: (N,) heading, rad.
     """
     position = np.asarray(position, dtype=float)
     yaw = np.asarray(yaw, dtype=float)
     n = len(yaw)
     assert yaw.shape == (n,), yaw.shape
     assert position.ndim == 2 and position.shape[0] == n and position.shape[1] in (2, 3), position.shape
-    c, s = cos_sin if cos_sin is not None else (np.cos(yaw), np.sin(yaw))
-    return position[:, :2] + offset * np.column_stack([c, s])
+    return position[:, :2] + offset * np.column_stack([np.cos(yaw), np.sin(yaw)])
 
 
 @kernel
-def _unicycle_kernel(velocity, c, s, offset):
+def _unicycle(c, s, ux, uy, offset):
+    """v, omega of one robot (heading cos c, sin s) moving its offset point with (ux, uy)."""
+    return c * ux + s * uy, (-s * ux + c * uy) / offset
+
+
+@kernel
+def _unicycle_kernel(velocity, yaw, offset):
     n = velocity.shape[0]
     v, omega = np.empty(n), np.empty(n)
     for i in range(n):
-        v[i] = c[i] * velocity[i, 0] + s[i] * velocity[i, 1]
-        omega[i] = (-s[i] * velocity[i, 0] + c[i] * velocity[i, 1]) / offset
+        v[i], omega[i] = _unicycle(math.cos(yaw[i]), math.sin(yaw[i]), velocity[i, 0], velocity[i, 1], offset)
     return v, omega
 
 
-def unicycle_command(velocity: np.ndarray, yaw: np.ndarray, offset: float = DEFAULT_OFFSET,
-                     cos_sin: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def unicycle_command(velocity: np.ndarray, yaw: np.ndarray,
+                     offset: float = DEFAULT_OFFSET) -> tuple[np.ndarray, np.ndarray]:
     """Forward speed v (N,), m/s, and turn rate omega (N,), rad/s, that move
-    the offset point with ``velocity`` (N, 2), m/s, world frame (``cos_sin``:
-    ``(np.cos(yaw), np.sin(yaw))`` when the caller has them)."""
-    velocity = np.asarray(velocity, dtype=float)
-    yaw = np.asarray(yaw, dtype=float)
+    the offset point with ``velocity`` (N, 2), m/s, world frame; ``yaw`` (N,), rad."""
+    velocity = np.ascontiguousarray(velocity, dtype=np.float64)
+    yaw = np.ascontiguousarray(yaw, dtype=np.float64)
     n = len(yaw)
     assert velocity.shape == (n, 2), velocity.shape
     assert yaw.shape == (n,), yaw.shape
     assert offset > 0.0, offset
-    c, s = cos_sin if cos_sin is not None else (np.cos(yaw), np.sin(yaw))
-    return _unicycle_kernel(velocity, c, s, float(offset))
+    return _unicycle_kernel(velocity, yaw, float(offset))
 
 
 def wheel_speeds(params: GroundRobotParams, v: np.ndarray, omega: np.ndarray) -> np.ndarray:
@@ -131,15 +146,21 @@ def wheel_speeds(params: GroundRobotParams, v: np.ndarray, omega: np.ndarray) ->
 
 
 @kernel
+def _wheels(v, omega, r, half, wheel_max, left_direction, right_direction):
+    """Left and right wheel commands, rad/s, of one robot (see :func:`wheel_speeds`)."""
+    left, right = (v - half * omega) / r, (v + half * omega) / r
+    scale = min(1.0, wheel_max / max(max(abs(left), abs(right)), 1e-12))
+    # np.clip's min(max(.)) for round-off, then the motors' sense.
+    return (min(max(left * scale, -wheel_max), wheel_max) * left_direction,
+            min(max(right * scale, -wheel_max), wheel_max) * right_direction)
+
+
+@kernel
 def _wheel_kernel(v, omega, r, half, wheel_max, left_direction, right_direction):
     n = v.shape[0]
     wheels = np.empty((n, 2))
     for i in range(n):
-        left, right = (v[i] - half * omega[i]) / r, (v[i] + half * omega[i]) / r
-        scale = min(1.0, wheel_max / max(max(abs(left), abs(right)), 1e-12))
-        # np.clip's min(max(.)) for round-off, then the motors' sense.
-        wheels[i, 0] = min(max(left * scale, -wheel_max), wheel_max) * left_direction
-        wheels[i, 1] = min(max(right * scale, -wheel_max), wheel_max) * right_direction
+        wheels[i, 0], wheels[i, 1] = _wheels(v[i], omega[i], r, half, wheel_max, left_direction, right_direction)
     return wheels
 
 
@@ -148,7 +169,6 @@ def track_velocity(
     velocity: np.ndarray,
     yaw: np.ndarray,
     offset: float = DEFAULT_OFFSET,
-    cos_sin: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Wheel angular velocities (N, 2), rad/s (left, right), that move the
     offset point (see :func:`offset_point`) with the single-integrator
@@ -158,8 +178,46 @@ def track_velocity(
     so the offset point then moves slower than asked (and, while turning, not
     exactly along ``velocity``).
     """
-    v, omega = unicycle_command(velocity, yaw, offset, cos_sin)
+    v, omega = unicycle_command(velocity, yaw, offset)
     return wheel_speeds(params, v, omega)
+
+
+@kernel
+def _track_reference_kernel(position, quaternion, ref_position, ref_velocity, gain, offset, r, half, wheel_max,
+                            left_direction, right_direction):
+    wheels = np.empty((position.shape[0], 2))
+    for i in range(position.shape[0]):
+        yaw = _heading(quaternion[i, 0], quaternion[i, 1], quaternion[i, 2], quaternion[i, 3])
+        c, s = math.cos(yaw), math.sin(yaw)
+        ux = ref_velocity[i, 0] + gain * (ref_position[i, 0] - (position[i, 0] + offset * c))
+        uy = ref_velocity[i, 1] + gain * (ref_position[i, 1] - (position[i, 1] + offset * s))
+        v, omega = _unicycle(c, s, ux, uy, offset)
+        wheels[i, 0], wheels[i, 1] = _wheels(v, omega, r, half, wheel_max, left_direction, right_direction)
+    return wheels
+
+
+def track_reference(params: GroundRobotParams, position: np.ndarray, quaternion: np.ndarray,
+                    ref_position: np.ndarray, ref_velocity: np.ndarray, gain: float,
+                    offset: float = DEFAULT_OFFSET) -> np.ndarray:
+    """Wheel angular velocities (N, 2), rad/s (left, right), that make the offset
+    point follow a horizontal reference as a single integrator:
+    u = ref_velocity + gain (ref_position - P_b), then :func:`track_velocity`.
+
+    position: (N, 3) body centre, m; quaternion: (N, 4) body-to-world (w, x, y, z);
+    ref_position, ref_velocity: (N, 2) or (N, 3), m and m/s, world frame (x, y used); gain, 1/s.
+    One compiled pass: the same arithmetic as :func:`yaw_from_quaternion`,
+    :func:`offset_point` and :func:`track_velocity` in sequence.
+    """
+    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+    position, quaternion, ref_position, ref_velocity = (f64(position), f64(quaternion), f64(ref_position),
+                                                        f64(ref_velocity))
+    n = len(position)
+    assert position.shape == (n, 3) and quaternion.shape == (n, 4), (position.shape, quaternion.shape)
+    assert ref_position.shape[0] == n and ref_velocity.shape[0] == n and ref_position.shape[1] >= 2
+    assert gain > 0.0 and offset > 0.0, (gain, offset)
+    return _track_reference_kernel(position, quaternion, ref_position, ref_velocity, float(gain), float(offset),
+                                   params.wheel_radius, params.half_axle, params.wheel_speed_max,
+                                   float(params.wheel_direction[0]), float(params.wheel_direction[1]))
 
 
 def velocity_to_target(

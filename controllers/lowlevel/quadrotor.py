@@ -2,9 +2,9 @@
 
 Pure math, never imports MuJoCo; batched over all N quadrotors of a team (all
 share one :class:`QuadrotorParams`, since they come from one robot file). The
-controller and the mixer are compiled kernels (numba, cached on disk, see
-:mod:`sim.compiled`): at N <= 35 numpy's per-call overhead cost ~20x
-their arithmetic.
+controller (heading trigonometry included, libm's) and the mixer are one
+compiled call (numba, cached on disk, see :mod:`sim.compiled`): at N <= 35
+numpy's per-call overhead cost ~20x their arithmetic.
 
 Frames and conventions
 ----------------------
@@ -59,6 +59,7 @@ the range, so steps 2 and 3 rarely bite.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -107,6 +108,11 @@ class QuadrotorParams:
         hi = np.ascontiguousarray(self.thrust_max, dtype=float)
         return a_inv, lo, hi, float(np.max(lo / per_newton)), float(np.min(hi / per_newton))
 
+    @functools.cached_property
+    def controller_constants(self) -> tuple[float, float, np.ndarray]:
+        """mass (kg), gravity (m/s^2), inertia (3, 3) as the compiled controller takes them."""
+        return float(self.mass), float(self.gravity), np.ascontiguousarray(self.inertia, dtype=np.float64)
+
     @property
     def hover_thrust(self) -> float:
         """Collective thrust that balances gravity, N."""
@@ -139,6 +145,14 @@ class QuadrotorGains:
         assert 0.0 < self.max_tilt < np.pi / 2
         assert 0.0 < self.min_thrust_ratio < 1.0 < self.max_thrust_ratio
         assert 0.0 < self.max_yaw_error < np.pi / 2
+
+    @functools.cached_property
+    def controller_constants(self) -> tuple:
+        """kx, kv, kr (3,), kw (3,), tan(max_tilt), min / max thrust ratio, max_yaw_error, as the
+        compiled controller takes them (built once, not every tick)."""
+        return (float(self.kx), float(self.kv), np.array(self.kr, dtype=np.float64),
+                np.array(self.kw, dtype=np.float64), float(np.tan(self.max_tilt)), float(self.min_thrust_ratio),
+                float(self.max_thrust_ratio), float(self.max_yaw_error))
 
 
 @dataclass(frozen=True)
@@ -222,9 +236,9 @@ def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
 
 @kernel
 def _geometric_control_kernel(position, velocity, quaternion, omega, ref_position, ref_velocity,
-                              ref_acceleration, heading_cos, heading_sin, jerk, yaw_rate, use_jerk, use_yaw_rate,
+                              ref_acceleration, ref_yaw, jerk, yaw_rate, use_jerk, use_yaw_rate,
                               mass, gravity, inertia, kx, kv, kr, kw, tan_tilt, min_thrust_ratio,
-                              max_thrust_ratio, thrust_out, torque_out):
+                              max_thrust_ratio, max_yaw_error, thrust_out, torque_out):
     """Per robot: Lee et al. (2010) eqs. 15-16 with the bounds of :func:`geometric_control`."""
     weight = mass * gravity
     rot = np.empty((3, 3))
@@ -248,6 +262,12 @@ def _geometric_control_kernel(position, velocity, quaternion, omega, ref_positio
         rot[2, 0] = 2 * (x * z - w * y)
         rot[2, 1] = 2 * (y * z + w * x)
         rot[2, 2] = 1 - 2 * (x * x + y * y)
+        # Commanded heading: toward the reference yaw, at most max_yaw_error ahead of the current one
+        # (the error wrapped to (-pi, pi] as the angle of exp(i error)).
+        heading = math.atan2(rot[1, 0], rot[0, 0])
+        yaw_error = ref_yaw[n] - heading
+        yaw_error = math.atan2(math.sin(yaw_error), math.cos(yaw_error))
+        yaw_cmd = heading + min(max(yaw_error, -max_yaw_error), max_yaw_error)
         # Desired force, then the tilt / thrust envelope.
         for i in range(3):
             e_x = position[n, i] - ref_position[n, i]
@@ -266,7 +286,7 @@ def _geometric_control_kernel(position, velocity, quaternion, omega, ref_positio
             force[i] *= shrink
         f_norm = np.sqrt(force[0] * force[0] + force[1] * force[1] + force[2] * force[2])
         b3x, b3y, b3z = force[0] / f_norm, force[1] / f_norm, force[2] / f_norm
-        c1x, c1y = heading_cos[n], heading_sin[n]
+        c1x, c1y = math.cos(yaw_cmd), math.sin(yaw_cmd)
         # b2_d = unit(b3_d x b1_c) with b1_c = (c1x, c1y, 0); b1_d = b2_d x b3_d.
         b2x, b2y, b2z = b3y * 0.0 - b3z * c1y, b3z * c1x - b3x * 0.0, b3x * c1y - b3y * c1x
         b2_norm = np.sqrt(b2x * b2x + b2y * b2y + b2z * b2z)
@@ -315,6 +335,26 @@ def _geometric_control_kernel(position, velocity, quaternion, omega, ref_positio
         torque_out[n, 2] += w0 * jw1 - w1 * jw0
 
 
+_NO_JERK = np.zeros((0, 3))  # stands in for an absent reference jerk (never read)
+_NO_YAW_RATE = np.zeros(0)
+
+
+def _controller_inputs(params: QuadrotorParams, gains: QuadrotorGains, position, velocity, quaternion,
+                       angular_velocity, ref_position, ref_velocity, ref_acceleration, ref_yaw, ref_jerk,
+                       ref_yaw_rate) -> tuple:
+    """The controller kernel's arguments before its outputs: float64 C arrays, the constants built once."""
+    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+    return (f64(position), f64(velocity), f64(quaternion), f64(angular_velocity), f64(ref_position),
+            f64(ref_velocity), f64(ref_acceleration), f64(ref_yaw), _NO_JERK if ref_jerk is None else f64(ref_jerk),
+            _NO_YAW_RATE if ref_yaw_rate is None else f64(ref_yaw_rate), ref_jerk is not None,
+            ref_yaw_rate is not None, *params.controller_constants, *gains.controller_constants)
+
+
+def _state_and_reference(state: QuadrotorState, reference: QuadrotorReference) -> tuple:
+    return (state.position, state.velocity, state.quaternion, state.angular_velocity, reference.position,
+            reference.velocity, reference.acceleration, reference.yaw, reference.jerk, reference.yaw_rate)
+
+
 def geometric_control(
     params: QuadrotorParams,
     gains: QuadrotorGains,
@@ -338,26 +378,8 @@ def geometric_control(
     assert len(reference.position) == n, (len(reference.position), n)
     thrust = np.empty(n)
     torque = np.empty((n, 3))
-    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
-    jerk = reference.jerk if reference.jerk is not None else np.zeros((n, 3))
-    yaw_rate = reference.yaw_rate if reference.yaw_rate is not None else np.zeros(n)
-    # The commanded heading's trigonometry stays numpy's (its vectorised sin/cos/arctan2 differ from
-    # libm's in the last bit; keeping them keeps trajectories bit-identical to the numpy controller).
-    q = np.asarray(state.quaternion, dtype=float)
-    # as quaternion_to_matrix (np.linalg.norm's own sum, without its checks), two entries only
-    w, x, y, z = (q / np.sqrt(np.add.reduce(q * q, axis=1, keepdims=True))).T
-    heading = np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
-    yaw_error = np.angle(np.exp(1j * (reference.yaw - heading)))
-    # np.clip's own min(max(.)) (NaN kept), without its dispatch: half its ~8 us
-    yaw_cmd = heading + np.minimum(np.maximum(yaw_error, -gains.max_yaw_error), gains.max_yaw_error)
-    _geometric_control_kernel(
-        f64(state.position), f64(state.velocity), f64(state.quaternion), f64(state.angular_velocity),
-        f64(reference.position), f64(reference.velocity), f64(reference.acceleration), np.cos(yaw_cmd),
-        np.sin(yaw_cmd), f64(jerk), f64(yaw_rate), reference.jerk is not None, reference.yaw_rate is not None,
-        float(params.mass), float(params.gravity), f64(params.inertia), float(gains.kx), float(gains.kv),
-        f64(gains.kr), f64(gains.kw), float(np.tan(gains.max_tilt)), float(gains.min_thrust_ratio),
-        float(gains.max_thrust_ratio), thrust, torque,
-    )
+    _geometric_control_kernel(*_controller_inputs(params, gains, *_state_and_reference(state, reference)),
+                              thrust, torque)
     return thrust, torque
 
 
@@ -416,5 +438,37 @@ def rotor_thrusts(
     reference: QuadrotorReference,
 ) -> np.ndarray:
     """Controller plus mixer: rotor thrusts (N, 4), N, actuator order thrust1..4."""
-    thrust, torque = geometric_control(params, gains, state, reference)
-    return mix(params, thrust, torque)
+    assert len(reference.position) == len(state.position), (len(reference.position), len(state.position))
+    return track_reference(params, gains, *_state_and_reference(state, reference))
+
+
+def track_reference(params: QuadrotorParams, gains: QuadrotorGains, position: np.ndarray, velocity: np.ndarray,
+                    quaternion: np.ndarray, angular_velocity: np.ndarray, ref_position: np.ndarray,
+                    ref_velocity: np.ndarray, ref_acceleration: np.ndarray, ref_yaw: np.ndarray,
+                    ref_jerk: np.ndarray | None = None, ref_yaw_rate: np.ndarray | None = None) -> np.ndarray:
+    """:func:`rotor_thrusts` on the plain arrays of :class:`QuadrotorState` and
+    :class:`QuadrotorReference` (same shapes and units), without building them:
+    the simulation's per-tick path. Rotor thrusts (N, 4), N."""
+    inputs = _controller_inputs(params, gains, position, velocity, quaternion, angular_velocity, ref_position,
+                                ref_velocity, ref_acceleration, ref_yaw, ref_jerk, ref_yaw_rate)
+    n = len(inputs[0])
+    for array, columns in zip(inputs[:8], (3, 3, 4, 3, 3, 3, 3, 0)):
+        assert array.shape == ((n, columns) if columns else (n,)), (array.shape, n)
+    assert ref_jerk is None or inputs[8].shape == (n, 3), inputs[8].shape
+    assert ref_yaw_rate is None or inputs[9].shape == (n,), inputs[9].shape
+    thrust, torque, rotor = np.empty(n), np.empty((n, 3)), np.empty((n, 4))
+    _rotor_thrusts_kernel(*inputs, thrust, torque, *params.mixer_tables, rotor)
+    return rotor
+
+
+@kernel
+def _rotor_thrusts_kernel(position, velocity, quaternion, omega, ref_position, ref_velocity, ref_acceleration,
+                          ref_yaw, jerk, yaw_rate, use_jerk, use_yaw_rate, mass, gravity, inertia, kx, kv, kr, kw,
+                          tan_tilt, min_thrust_ratio, max_thrust_ratio, max_yaw_error, thrust, torque,
+                          a_inv, lo, hi, t_lo, t_hi, rotor):
+    """Controller and mixer in one compiled call (one call's argument handling instead of two)."""
+    _geometric_control_kernel(position, velocity, quaternion, omega, ref_position, ref_velocity,
+                              ref_acceleration, ref_yaw, jerk, yaw_rate, use_jerk, use_yaw_rate, mass, gravity,
+                              inertia, kx, kv, kr, kw, tan_tilt, min_thrust_ratio, max_thrust_ratio, max_yaw_error,
+                              thrust, torque)
+    _mix_kernel(thrust, torque, a_inv, lo, hi, t_lo, t_hi, rotor)
