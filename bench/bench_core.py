@@ -103,25 +103,17 @@ def _measure_ticks(simulation, observers, scenario_name, overrides, seconds, war
 
 
 def plan_times(plans: int) -> list[str]:
-    """Seed 000's plan time per team size, from bench/bench_intermittent.py's own measurement."""
+    """Seed 000's plan time per team size at the strategy's own samples (n_sample for 2 robots,
+    n_sample * n / 2 for n > 2), from bench/bench_intermittent.py's own measurement."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import bench_intermittent as intermittent
 
-    from controllers.intermittent.params import IntermittentParams
-    from controllers.intermittent.planner import PlannerParams
-
-    _, boxes, bounds, motion = intermittent.workspace()
-    strategy = IntermittentParams()
-    params = PlannerParams(n_sample=strategy.n_sample, n_uniform=strategy.n_uniform,
-                           u_max=strategy.speed_mps * strategy.step_s, comm_range=0.2 - strategy.link_margin_m,
-                           delta=strategy.delta_m2, sensor_height=intermittent.SENSOR_HEIGHT_M,
-                           robot_radius=intermittent.CLEARANCE_M)
+    setup = intermittent.planner_setup()
     lines = []
     for size in (2, 4):
-        rows = intermittent.bench_team(size, plans, params, boxes, bounds, motion, seed=size)
-        found = sum(1 for r in rows if r[0])
-        wall = np.array([r[1] for r in rows])
-        lines.append(f"| {size} robots | {found}/{len(rows)} | {wall.mean():.2f} | {wall.max():.2f} |")
+        result = intermittent.plan_times(size, plans, setup=setup)
+        lines.append(f"| {size} robots | {result['n_sample']} | {result['found']}/{result['plans']} | "
+                     f"{result['mean_s']:.2f} | {result['max_s']:.2f} |")
     return lines
 
 
@@ -139,7 +131,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=2.0, help="simulated seconds measured per row")
     parser.add_argument("--warmup", type=float, default=0.5, help="simulated seconds run before measuring")
-    parser.add_argument("--plans", type=int, default=4, help="seed 000 plans per team size")
+    parser.add_argument("--plans", type=int, default=8, help="seed 000 plans per team size")
     parser.add_argument("--rows", nargs="*", help="only rows whose label contains one of these")
     parser.add_argument("--quick", action="store_true", help="core rows only: no planner, no video")
     args = parser.parse_args()
@@ -162,9 +154,9 @@ def main() -> None:
     if args.quick:
         return
     print()
-    print("seed 000 planner (bench/bench_intermittent.py, default n_sample)")
-    print("| team | plans found | plan time mean (s) | max (s) |")
-    print("| --- | --- | --- | --- |")
+    print("seed 000 planner (bench/bench_intermittent.py, the strategy's samples; thread CPU s)")
+    print("| team | samples | plans found | plan time mean (s) | max (s) |")
+    print("| --- | --- | --- | --- | --- |")
     for line in plan_times(args.plans):
         print(line, flush=True)
     print()
