@@ -33,7 +33,7 @@ SKIPPED = {
     "rerun": "opens the Rerun viewer, a window that stays open",
     "view": "opens MuJoCo's viewer window until closed (tests/test_viewer.py drives it under Xvfb)",
     "tune": "serves the tuning page until Ctrl-C (tests/test_tuning_page.py drives it in a browser)",
-    "sweep": "runs 60 trials of 300 s (the sweep's own tests run small sweeps)",
+    "sweep": "runs 60 to 180 trials of up to 900 s each (the sweep's own tests run small sweeps)",
     "report": "reads a sweep's results folder, which the skipped sweep would have written",
 }
 
