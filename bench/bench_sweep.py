@@ -5,7 +5,7 @@ per simulated second and its honest extrapolation to whole trials; the
 speed-up of 2 pool workers over 1 on the same slice; a local single-node
 Ray cluster against the pool; the driver's memory as rows accumulate.
 
-    .venv/bin/python bench/bench_sweep.py [--out runs/bench_sweep]
+    .venv/bin/python bench/bench_sweep.py [--out runs/bench_sweep] [--parts slices scaling memory]
 
 Extrapolation: each slice trial runs at two durations T1 and T2 = 3 T1; the
 wall time per simulated second is (w2 - w1) / (T2 - T1), the fixed cost
@@ -60,6 +60,10 @@ def main() -> None:
     parser.add_argument("--out", default="runs/bench_sweep")
     parser.add_argument("--slice-s", type=float, default=2.0,
                         help="simulated seconds of the short fig9 slice trial (x3 the long one; table1: x2.5)")
+    parser.add_argument("--parts", nargs="+", default=["slices", "scaling", "memory"],
+                        choices=["slices", "scaling", "memory"],
+                        help="what to measure: slice costs and projections, 1 against 2 workers and Ray, "
+                             "the driver's memory (default: all)")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -77,11 +81,21 @@ def main() -> None:
                           'seeds = [0]\n[grid]\nscenario = ["intermittent-4", "intermittent-8"]\n'
                           '"strategy.kind" = ["all_time", "random_meeting", "intermittent"]\n')
 
+    if "slices" in args.parts:
+        project(out, args.slice_s, slice_file)
+    if "scaling" in args.parts:
+        scaling(out, args.slice_s)
+    if "memory" in args.parts:
+        memory(out)
+    print(f"\nload average at the end {os.getloadavg()[0]:.1f}")
+
+
+def project(out: Path, slice_s: float, slice_file) -> None:
     print("| slice | trial | wall s at T1 / T2 simulated s | fixed s | wall per simulated s | "
           "projected whole trial s |")
     print("| --- | --- | --- | --- | --- | --- |")
     projections = {}
-    for name, short in (("fig9-small", args.slice_s), ("table1", 2.5 * args.slice_s)):
+    for name, short in (("fig9-small", slice_s), ("table1", 2.5 * slice_s)):
         long = 3 * short
         rows = {}
         for duration in (short, long):
@@ -108,12 +122,14 @@ def main() -> None:
           f"fig9-small (180): {180 * projections['fig9-small'] / 3600:.1f} core-hours; "
           f"table1 (60): {60 * projections['table1'] / 3600:.1f} core-hours\n")
 
-    # 2. 1 worker against 2, and 3. Ray against the pool, on one slice.
-    same = sweep_file(out, "scaling", f'scenario = "connected-office"\nduration_s = {args.slice_s}\n'
+
+def scaling(out: Path, slice_s: float) -> None:
+    """1 worker against 2, and Ray against the pool, on the same 6 trials."""
+    same = sweep_file(out, "scaling", f'scenario = "connected-office"\nduration_s = {slice_s}\n'
                       'seeds = [1, 2, 3, 4, 5, 6]\n')
     one, _ = run(out / "scaling1", same, ProcessPool(1))
     two, _ = run(out / "scaling2", same, ProcessPool(2))
-    print(f"- 6 trials (connected-office, 10 robots, {args.slice_s:g} s): 1 worker {one:.1f} s, 2 workers {two:.1f} s "
+    print(f"- 6 trials (connected-office, 10 robots, {slice_s:g} s): 1 worker {one:.1f} s, 2 workers {two:.1f} s "
           f"-> speed-up {one / two:.2f}x")
     try:
         import ray  # noqa: F401
@@ -127,7 +143,9 @@ def main() -> None:
         print(f"- same 6 trials on a local Ray cluster (2 CPUs): {on_ray:.1f} s against the pool's {two:.1f} s "
               f"({on_ray / two:.2f}x; starting the cluster took {ray_start:.0f} s, not counted)")
 
-    # 4. The driver's memory as rows accumulate.
+
+def memory(out: Path) -> None:
+    """The driver's peak memory as rows accumulate."""
     tiny = sweep_file(out, "memory", 'scenario = "hover"\nduration_s = 0.05\nseeds = 120\n')
     samples = {}
 
@@ -137,7 +155,6 @@ def main() -> None:
     run(out / "memory", tiny, ProcessPool(2), on_row=sample)
     marks = [m for m in (1, 10, 30, 60, 120) if m in samples]
     print("- driver peak RSS after " + ", ".join(f"{m} rows: {samples[m]:.0f} MiB" for m in marks))
-    print(f"\nload average at the end {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":
