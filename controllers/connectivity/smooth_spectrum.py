@@ -111,7 +111,10 @@ def smooth_minimum(values: np.ndarray, kappa: float) -> tuple[float, np.ndarray]
 def smooth_lambda2_gradient(links: LinkWeights, eigenvalues: np.ndarray, eigenvectors: np.ndarray,
                             kappa: float) -> tuple[float, np.ndarray]:
     """s and ds/dq (N, 3), 1/m, from the Laplacian's eigh (values ascending, vectors as columns)."""
-    s, slope = smooth_lambda2(eigenvalues, kappa)
+    eigenvalues = np.asarray(eigenvalues, dtype=float)
+    values = eigenvalues[1:] if eigenvalues.flags.c_contiguous else np.ascontiguousarray(eigenvalues[1:])
+    slope = np.empty(len(values))
+    s = float(_smooth_lambda2_kernel(values, float(kappa), slope))
     modes = np.flatnonzero(slope > _MIN_WEIGHT * slope.max())
     gradient = np.zeros((links.num_robots, 3))
     # One batched eq. (17) for all modes (each bit-identical to the single-vector one), summed in mode order.
