@@ -183,6 +183,8 @@ class Simulation:
         return int(sum(number[w] for w in _WARNINGS_THAT_DIVERGE))
 
     def _move_targets(self) -> np.ndarray:
+        if not self.targets.n_targets:  # nothing to move (and no state to draw)
+            return np.zeros((0, 3))
         positions = self.targets.positions(self.time_s)
         if len(positions):
             self.world.data.mocap_pos[self.world.target_mocap_ids] = positions
