@@ -183,6 +183,8 @@ class Simulation:
         return int(sum(number[w] for w in _WARNINGS_THAT_DIVERGE))
 
     def _move_targets(self) -> np.ndarray:
+        if not self.targets.n_targets:  # nothing to move (and no state to draw)
+            return np.zeros((0, 3))
         positions = self.targets.positions(self.time_s)
         if len(positions):
             self.world.data.mocap_pos[self.world.target_mocap_ids] = positions
@@ -225,7 +227,8 @@ class Simulation:
         commands = self.strategy.step(observation)
         planned = time.perf_counter()
         self.control.apply(observation, commands)
-        frame = Frame(observation, commands, self.world.data.mocap_pos[self.world.target_mocap_ids].copy())
+        # (indexing with an index array already copies)
+        frame = Frame(observation, commands, self.world.data.mocap_pos[self.world.target_mocap_ids])
         controlled = time.perf_counter()
         model, data = self.world.model, self.world.data
         for _ in range(self.substeps):

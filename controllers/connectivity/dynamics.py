@@ -32,6 +32,7 @@ import numpy as np
 from controllers.connectivity.estimator import FiedlerEstimate
 from controllers.connectivity.graph import ConnectivityState, connectivity_state, generalized_connectivity_force
 from controllers.connectivity.params import ConnectivityParams
+from sim.compiled import kernel
 from sim.geometry import Boxes
 
 
@@ -65,6 +66,35 @@ def step_virtual_dynamics(
     mass = params.virtual_mass
     new_velocities = (mass * velocities + dt * applied_force) / (mass + dt * params.damping)
     return positions + dt * new_velocities, new_velocities
+
+
+def step_virtual_dynamics_applied(positions: np.ndarray, velocities: np.ndarray, connectivity_force: np.ndarray,
+                                  other_force: np.ndarray, planar: bool, dt: float,
+                                  params: ConnectivityParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The control tick's integration in one compiled pass: the applied force f_lambda + f (its z
+    component dropped when ``planar``), ``step_virtual_dynamics`` and the acceleration (v' - v) / dt,
+    element by element in numpy's order (the same bits). Float (N, 3) arrays; returns (q', v', a)."""
+    if not dt > 0:
+        raise ValueError(f"dt must be positive, got {dt}")
+    new_positions, new_velocities, acceleration = (np.empty(positions.shape) for _ in range(3))
+    _virtual_step_kernel(positions, velocities, connectivity_force, other_force, bool(planar), float(dt),
+                         float(params.virtual_mass), float(params.damping), new_positions, new_velocities,
+                         acceleration)
+    return new_positions, new_velocities, acceleration
+
+
+@kernel
+def _virtual_step_kernel(q, v, f_lambda, f_other, planar, dt, mass, damping, q_out, v_out, a_out):
+    denominator = mass + dt * damping
+    for i in range(q.shape[0]):
+        for k in range(3):
+            applied = f_lambda[i, k] + f_other[i, k]
+            if planar and k == 2:
+                applied = 0.0
+            velocity = (mass * v[i, k] + dt * applied) / denominator
+            v_out[i, k] = velocity
+            q_out[i, k] = q[i, k] + dt * velocity
+            a_out[i, k] = (velocity - v[i, k]) / dt
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,8 @@ from typing import Callable, Union
 
 import numpy as np
 
+from sim.compiled import kernel
+
 # "Never learned" for the per-robot arrival ticks.
 _NEVER = np.iinfo(np.int64).max
 
@@ -112,11 +114,12 @@ class FloodingNetwork:
         in ``adjacency`` (N, N) (bool or weights > 0); it arrives ``latency`` ticks later."""
         if not self.messages:
             return
-        links = np.asarray(adjacency) > 0
-        informed = (self._known_at <= tick).astype(float)
-        reached = (informed @ links.astype(float)) > 0
-        arrival = tick + self.latency_ticks
-        self._known_at = np.where(reached & (self._known_at > arrival), arrival, self._known_at)
+        links = np.asarray(adjacency)
+        if links.dtype != np.bool_:
+            links = links > 0
+        known_at = self._known_at.copy()  # (a new array, as before: callers may hold the old one)
+        _flood(known_at, links, int(tick), int(tick + self.latency_ticks))
+        self._known_at = known_at
 
     def delivered(self, tick: int) -> list[tuple[int, Message]]:
         """(receiver, message) pairs for messages reaching a robot exactly at ``tick``."""
@@ -135,6 +138,22 @@ class FloodingNetwork:
         self.messages = [m for m, k in zip(self.messages, keep) if k]
         self._origins = [o for o, k in zip(self._origins, keep) if k]
         self._known_at = self._known_at[np.array(keep, dtype=bool)] if self.messages else self._known_at[:0]
+
+
+@kernel
+def _flood(known_at, links, tick, arrival):
+    """One exchange in place: robot j learns message m at ``arrival`` if a neighbour i (links[i, j])
+    knows it by ``tick`` and j would not know it earlier. Arrival ticks are > tick, so who is
+    informed does not change during the pass."""
+    n_messages, n = known_at.shape
+    for m in range(n_messages):
+        for j in range(n):
+            if known_at[m, j] <= arrival:
+                continue
+            for i in range(n):
+                if links[i, j] and known_at[m, i] <= tick:
+                    known_at[m, j] = arrival
+                    break
 
 
 @dataclass

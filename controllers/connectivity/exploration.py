@@ -307,7 +307,7 @@ class ExplorationController:
         self.tick += 1
         self.last_time = float(time)
         prime = self.role_machine.prime
-        finished = bool(np.all(roles == CONNECTOR_CODE) and len(self.queues) == 0)
+        finished = len(self.queues) == 0 and bool(np.all(roles == CONNECTOR_CODE))  # (queues first: cheaper)
         target_points, _ = self._targets_now()
         return ExplorationStep(
             forces=forces,

@@ -53,6 +53,7 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.linalg import _umath_linalg
 
 from controllers.connectivity.params import ConnectivityParams
 from controllers.connectivity.potential import guarded_potential_slope
@@ -364,7 +365,19 @@ def link_weights(positions: np.ndarray, boxes: Boxes | None, params: Connectivit
 
 def weighted_laplacian(weights: np.ndarray) -> np.ndarray:
     """L = diag(sum_j W_ij) - W."""
-    return np.diag(weights.sum(axis=1)) - weights
+    laplacian = np.diag(weights.sum(axis=1))
+    np.subtract(laplacian, weights, out=laplacian)  # (one array fewer than ``diag - W``; the same values)
+    return laplacian
+
+
+def _symmetric_eigh(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """np.linalg.eigh of a real symmetric (N, N) float matrix (its lower triangle), through the same
+    LAPACK gufunc without the wrapper's checks and casts (~10 us a call at N = 10); LinAlgError
+    when it does not converge (NaN eigenvalues), as np.linalg.eigh raises."""
+    eigenvalues, eigenvectors = _umath_linalg.eigh_lo(matrix, signature="d->dd")
+    if np.isnan(eigenvalues[0]):
+        raise np.linalg.LinAlgError("Eigenvalues did not converge")
+    return eigenvalues, eigenvectors
 
 
 def _fiedler_sign(vector: np.ndarray) -> np.ndarray:
@@ -421,7 +434,7 @@ def connectivity_state(positions: np.ndarray, boxes: Boxes | None, params: Conne
     Fiedler vector and dlambda2/dq derive from them when read."""
     links = link_weights(positions, boxes, params)
     laplacian = weighted_laplacian(links.weights)
-    eigenvalues, eigenvectors = np.linalg.eigh(laplacian)
+    eigenvalues, eigenvectors = _symmetric_eigh(laplacian)
     return ConnectivityState(links, laplacian, eigenvalues, eigenvectors)
 
 

@@ -166,8 +166,9 @@ class SplinePath:
         best, best_deviation = None, np.inf
         spacing = knot_spacing
         for _ in range(_KNOT_REFINEMENTS + 1):
+            setup = _fit_setup(waypoints, spacing)  # what does not depend on the weight, once per spacing
             for weight in _SMOOTHING_WEIGHTS:
-                spline = _penalised_fit(waypoints, spacing, weight)
+                spline = _penalised_fit(waypoints, spacing, weight, setup)
                 deviation = _max_distance_to_polyline(spline, waypoints, spacing)
                 if deviation < best_deviation:
                     best, best_deviation = spline, deviation
@@ -302,9 +303,9 @@ class SplinePath:
         return self.point(np.linspace(0.0, self.length, count))
 
 
-def _penalised_fit(waypoints: np.ndarray, knot_spacing: float, weight: float) -> BSpline:
-    """Clamped cubic B-spline, ends pinned to the first/last waypoint, fitted to
-    dense polyline samples with a second-difference penalty of relative ``weight``."""
+def _fit_setup(waypoints: np.ndarray, knot_spacing: float) -> tuple:
+    """The parts of ``_penalised_fit`` that do not depend on the weight: knots, the design matrix and
+    the normal equations' data terms (computed as the fit did, so each fit is the same to the bit)."""
     chord = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(waypoints, axis=0), axis=1))])
     total = chord[-1]
     spans = max(1, int(np.ceil(total / knot_spacing)))
@@ -316,21 +317,36 @@ def _penalised_fit(waypoints: np.ndarray, knot_spacing: float, weight: float) ->
     x_samples = np.stack([np.interp(u_samples, chord, waypoints[:, d]) for d in range(3)], axis=1)
     basis = BSpline.design_matrix(u_samples, knots, 3).toarray()
     difference = np.diff(np.eye(n_control), n=2, axis=0)
-    # Penalty relative to the number of samples per control point, so the
-    # weight means the same thing for short and long paths.
-    penalty = weight * len(u_samples) / n_control
     fixed = np.array([0, n_control - 1])
     free = np.arange(1, n_control - 1)
     control = np.zeros((n_control, 3))
     control[0], control[-1] = waypoints[0], waypoints[-1]
+    d_free = normal = data = pinned = None
     if len(free):
         b_free, b_fixed = basis[:, free], basis[:, fixed]
         d_free, d_fixed = difference[:, free], difference[:, fixed]
-        lhs = b_free.T @ b_free + penalty * d_free.T @ d_free
-        rhs = b_free.T @ (x_samples - b_fixed @ control[fixed]) - penalty * d_free.T @ (d_fixed @ control[fixed])
+        normal = b_free.T @ b_free
+        data = b_free.T @ (x_samples - b_fixed @ control[fixed])
+        pinned = d_fixed @ control[fixed]
+    return knots, n_control, len(u_samples), free, control, d_free, normal, data, pinned
+
+
+def _penalised_fit(waypoints: np.ndarray, knot_spacing: float, weight: float, setup: tuple | None = None) -> BSpline:
+    """Clamped cubic B-spline, ends pinned to the first/last waypoint, fitted to
+    dense polyline samples with a second-difference penalty of relative ``weight``
+    (``setup``: ``_fit_setup`` of the same waypoints and spacing, when the caller has it)."""
+    knots, n_control, n_samples, free, control, d_free, normal, data, pinned = (
+        _fit_setup(waypoints, knot_spacing) if setup is None else setup)
+    # Penalty relative to the number of samples per control point, so the
+    # weight means the same thing for short and long paths.
+    penalty = weight * n_samples / n_control
+    control = control.copy()
+    if len(free):
+        lhs = normal + penalty * d_free.T @ d_free
+        rhs = data - penalty * d_free.T @ pinned
         # A tiny ridge keeps the normal equations regular when a span holds no sample.
         control[free] = np.linalg.solve(lhs + 1e-12 * np.eye(len(free)), rhs)
-    return BSpline(knots, control, 3)
+    return BSpline(knots.copy(), control, 3)
 
 
 def _max_distance_to_polyline(spline: BSpline, waypoints: np.ndarray, knot_spacing: float) -> float:

@@ -63,6 +63,7 @@ from controllers.connectivity.election import (
     Reply,
     election_window_ticks,
 )
+from sim.compiled import kernel
 
 
 class Role(IntEnum):
@@ -162,12 +163,11 @@ class RoleMachine:
         self.network.exchange(adjacency, tick)
 
         roles = self.roles.copy()
-        return RoleChanges(
-            roles=roles,
-            became_prime=(roles == PRIME_CODE) & (before != PRIME_CODE),
-            became_anchor=(roles == ANCHOR_CODE) & (before != ANCHOR_CODE),
-            became_connector=(roles == CONNECTOR_CODE) & (before != CONNECTOR_CODE),
-        )
+        n = len(roles)
+        became_prime, became_anchor, became_connector = (np.empty(n, dtype=bool) for _ in range(3))
+        _switches(before, roles, became_prime, became_anchor, became_connector)
+        return RoleChanges(roles=roles, became_prime=became_prime, became_anchor=became_anchor,
+                           became_connector=became_connector)
 
     def _local_transitions(self, got_target: np.ndarray, near_target: np.ndarray, task_done: np.ndarray) -> None:
         """Each robot's own role switch, from its role before this tick (one switch per robot per tick)."""
@@ -236,3 +236,12 @@ class RoleMachine:
             return
         self.rounds[host] = None
         self.network.retire(lambda m: isinstance(m, (Candidacy, Reply)) and m.epoch == current.epoch)
+
+
+@kernel
+def _switches(before, roles, became_prime, became_anchor, became_connector):
+    """Which robots switched into the prime, anchor and connector roles (one pass instead of nine numpy calls)."""
+    for i in range(roles.shape[0]):
+        became_prime[i] = roles[i] == PRIME_CODE and before[i] != PRIME_CODE
+        became_anchor[i] = roles[i] == ANCHOR_CODE and before[i] != ANCHOR_CODE
+        became_connector[i] = roles[i] == CONNECTOR_CODE and before[i] != CONNECTOR_CODE

@@ -33,7 +33,7 @@ import math
 
 import numpy as np
 
-from controllers.connectivity.graph import LinkWeights
+from controllers.connectivity.graph import LinkWeights, _lambda2_gradients_kernel
 from sim.compiled import kernel
 
 # Eigenvalue modes whose soft-min weight is below this are left out of the gradient.
@@ -111,12 +111,49 @@ def smooth_minimum(values: np.ndarray, kappa: float) -> tuple[float, np.ndarray]
 def smooth_lambda2_gradient(links: LinkWeights, eigenvalues: np.ndarray, eigenvectors: np.ndarray,
                             kappa: float) -> tuple[float, np.ndarray]:
     """s and ds/dq (N, 3), 1/m, from the Laplacian's eigh (values ascending, vectors as columns)."""
-    s, slope = smooth_lambda2(eigenvalues, kappa)
-    modes = np.flatnonzero(slope > _MIN_WEIGHT * slope.max())
+    eigenvalues = np.asarray(eigenvalues, dtype=float)
+    values = eigenvalues[1:] if eigenvalues.flags.c_contiguous else np.ascontiguousarray(eigenvalues[1:])
+    slope = np.empty(len(values))
+    s = float(_smooth_lambda2_kernel(values, float(kappa), slope))
     gradient = np.zeros((links.num_robots, 3))
-    # One batched eq. (17) for all modes (each bit-identical to the single-vector one), summed in mode order.
-    _add_weighted(slope[modes], links.lambda2_gradients(eigenvectors[:, modes + 1]), gradient)
+    # One batched eq. (17) for the modes that weigh (each bit-identical to the single-vector one), summed in
+    # mode order: one compiled call.
+    _weighted_mode_gradient(slope, _MIN_WEIGHT, eigenvectors, links.pairs, links.collision_factor,
+                            links.link_factor, links.link_factor_grad_first, links.link_factor_grad_second,
+                            links.collision_log_slope, links.unit, gradient)
     return s, gradient
+
+
+@kernel
+def _weighted_mode_gradient(slope, min_weight, eigenvectors, pairs, collision_factor, link_factor, grad_first,
+                            grad_second, log_slope, unit, gradient):
+    """gradient += sum over modes k with slope[k] > min_weight max(slope), in order, of slope[k] times eq. (17)
+    with eigenvector k + 1: what np.flatnonzero, LinkWeights.lambda2_gradients and _add_weighted did."""
+    top = slope[0]
+    for k in range(1, slope.shape[0]):
+        if slope[k] > top or slope[k] != slope[k]:  # np.max: the largest, NaN if any
+            top = slope[k]
+            if top != top:
+                break
+    threshold = min_weight * top
+    count = 0
+    for k in range(slope.shape[0]):
+        if slope[k] > threshold:
+            count += 1
+    n = eigenvectors.shape[0]
+    vectors = np.empty((n, count))
+    weights = np.empty(count)
+    m = 0
+    for k in range(slope.shape[0]):
+        if slope[k] > threshold:
+            weights[m] = slope[k]
+            for i in range(n):
+                vectors[i, m] = eigenvectors[i, k + 1]
+            m += 1
+    terms = np.empty((count, n, 3))
+    _lambda2_gradients_kernel(pairs, vectors, collision_factor, link_factor, grad_first, grad_second, log_slope,
+                              unit, terms)
+    _add_weighted(weights, terms, gradient)
 
 
 @kernel

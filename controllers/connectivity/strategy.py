@@ -99,7 +99,7 @@ import time
 import numpy as np
 
 from controllers.connectivity.connected_params import ConnectedParams
-from controllers.connectivity.dynamics import step_virtual_dynamics
+from controllers.connectivity.dynamics import step_virtual_dynamics_applied
 from controllers.connectivity.estimator import FiedlerEstimator, SubspaceEstimator, ritz_connectivity_gradient
 from controllers.connectivity.exploration import ExplorationController, ExplorationStep
 from controllers.connectivity.graph import connectivity_state, generalized_connectivity_force
@@ -309,11 +309,9 @@ class ConnectedStrategy:
             f_lambda = generalized_connectivity_force(state.links, state.lambda2, state.fiedler, c)
         middle = time.perf_counter()
         out = self.explorer.step(t, q, v, observation.links.adjacency, f_lambda)
-        applied = f_lambda + out.forces
-        if self.planar:
-            applied[:, 2] = 0.0  # planar virtual dynamics
-        q_next, v_next = step_virtual_dynamics(q, v, applied, self.dt, c)
-        acceleration = (v_next - v) / self.dt
+        # f_lambda + f (z dropped for planar virtual dynamics), integrated; the acceleration (v' - v) / dt.
+        q_next, v_next, acceleration = step_virtual_dynamics_applied(q, v, f_lambda, out.forces, self.planar,
+                                                                     self.dt, c)
         self.timings["lambda2"] += middle - start
         self.timings["forces"] += time.perf_counter() - middle
 

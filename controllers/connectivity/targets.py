@@ -30,6 +30,7 @@ from typing import Sequence
 import numpy as np
 
 from controllers.connectivity.paths import GridPlanner
+from sim.compiled import kernel
 
 # Uniform draws per batch while rejection-sampling free points.
 _SAMPLE_BATCH = 256
@@ -63,6 +64,7 @@ class TargetQueues:
         self.n_robots = n_robots
         self._queues: list[deque[Target]] = [deque() for _ in range(n_robots)]
         self._issued = np.zeros(n_robots, dtype=int)  # targets ever pushed per robot
+        self._sizes = np.zeros(n_robots, dtype=int)  # len of each queue, kept with push and pop (read every tick)
 
     @staticmethod
     def from_lists(positions: Sequence, dwell_time: float | Sequence = 3.0) -> "TargetQueues":
@@ -88,18 +90,22 @@ class TargetQueues:
         target = Target(robot, int(self._issued[robot]), position, float(dwell_time))
         self._issued[robot] += 1
         self._queues[robot].append(target)
+        self._sizes[robot] += 1
         return target
 
     def pop(self, robot: int) -> Target | None:
         """Extract robot ``robot``'s next target (Alg. 1 line 5); None if its queue is empty."""
-        return self._queues[robot].popleft() if self._queues[robot] else None
+        if not self._queues[robot]:
+            return None
+        self._sizes[robot] -= 1
+        return self._queues[robot].popleft()
 
     def pending(self) -> np.ndarray:
         """Boolean (N,): the robot's queue is not empty."""
-        return np.array([bool(q) for q in self._queues])
+        return self._sizes > 0
 
     def __len__(self) -> int:
-        return sum(len(q) for q in self._queues)
+        return int(self._sizes.sum())
 
 
 class DwellClock:
@@ -111,12 +117,32 @@ class DwellClock:
     def update(self, time: float, inside) -> None:
         """``inside`` (N,) bool: being timed and within R_z; clocks outside stop and reset."""
         inside = np.asarray(inside, dtype=bool)
-        self._since = np.where(inside, np.where(np.isnan(self._since), time, self._since), np.nan)
+        since = np.empty(len(self._since))
+        _dwell_update(self._since, inside, float(time), since)
+        self._since = since
 
     def elapsed(self, time: float) -> np.ndarray:
         """Seconds (N,) of the current uninterrupted stay; 0 when not inside."""
-        timed = ~np.isnan(self._since)
-        return np.where(timed, time - np.where(timed, self._since, 0.0), 0.0)
+        out = np.empty(len(self._since))
+        _dwell_elapsed(self._since, float(time), out)
+        return out
+
+
+@kernel
+def _dwell_update(since, inside, time, out):
+    """DwellClock.update, element by element (one call instead of four numpy ones)."""
+    for i in range(since.shape[0]):
+        if inside[i]:
+            out[i] = time if since[i] != since[i] else since[i]
+        else:
+            out[i] = np.nan
+
+
+@kernel
+def _dwell_elapsed(since, time, out):
+    """DwellClock.elapsed, element by element: time - since where timed, else 0."""
+    for i in range(since.shape[0]):
+        out[i] = time - since[i] if since[i] == since[i] else 0.0
 
 
 def monte_carlo_target_counts(n_robots: int) -> list[int]:
