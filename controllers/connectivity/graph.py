@@ -53,7 +53,11 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.linalg import _umath_linalg
+
+try:  # numpy's own LAPACK gufunc behind np.linalg.eigh (a private module: a later numpy may move it)
+    from numpy.linalg._umath_linalg import eigh_lo as _eigh_lo
+except ImportError:  # then the public function, the same LAPACK routine with its checks
+    _eigh_lo = None
 
 from controllers.connectivity.params import ConnectivityParams
 from controllers.connectivity.potential import guarded_potential_slope
@@ -374,7 +378,9 @@ def _symmetric_eigh(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """np.linalg.eigh of a real symmetric (N, N) float matrix (its lower triangle), through the same
     LAPACK gufunc without the wrapper's checks and casts (~10 us a call at N = 10); LinAlgError
     when it does not converge (NaN eigenvalues), as np.linalg.eigh raises."""
-    eigenvalues, eigenvectors = _umath_linalg.eigh_lo(matrix, signature="d->dd")
+    if _eigh_lo is None:
+        return np.linalg.eigh(matrix)
+    eigenvalues, eigenvectors = _eigh_lo(matrix, signature="d->dd")
     if np.isnan(eigenvalues[0]):
         raise np.linalg.LinAlgError("Eigenvalues did not converge")
     return eigenvalues, eigenvectors
