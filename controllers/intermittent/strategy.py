@@ -430,7 +430,10 @@ class MeetingStrategy(ABC):
         positions = separated_references(positions, xy, self.planning, velocities)
         self._track_closest(xy)
         commands = commands_from_plane(observation, positions, velocities)
-        commands.info = self._info(t)
+        if observation.info_wanted:
+            commands.info = self._info(t)
+        else:  # no observer reads the figures and decorations: only the metrics keys (sim.types.Observation)
+            commands.info = dict(self.series.info())
         return commands
 
     def _track_closest(self, xy: np.ndarray) -> None:
