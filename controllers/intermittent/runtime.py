@@ -143,6 +143,7 @@ class TimedPath:
         # numpy's per-call overhead on (2,) arrays was nearly all of its cost.
         self._times = [float(t) for t in self.path.times]
         self._points = [(float(x), float(y)) for x, y in self.path.positions]
+        self.end_step = self._times[-1]  # path.end_time as a float (the path never changes)
 
     def tau(self, t: float) -> float:
         return (t - self.offset_s) / self.step_s
@@ -161,8 +162,11 @@ class TimedPath:
 
     def reference_floats(self, t: float) -> tuple[tuple[float, float], tuple[float, float]]:
         """:meth:`reference` as Python floats ((x, y), (vx, vy)): the per-tick path, without arrays."""
+        return self.reference_at_tau((t - self.offset_s) / self.step_s)
+
+    def reference_at_tau(self, tau: float) -> tuple[tuple[float, float], tuple[float, float]]:
+        """:meth:`reference_floats` at path step ``tau`` (:meth:`tau` of the sim time)."""
         times = self._times
-        tau = self.tau(t)
         if tau <= times[0]:
             return self._points[0], (0.0, 0.0)
         if tau >= times[-1]:
