@@ -225,7 +225,7 @@ class Simulation:
         commands = self.strategy.step(observation)
         planned = time.perf_counter()
         self.control.apply(observation, commands)
-        frame = Frame(observation, commands, self.world.data.mocap_pos[self.world.target_mocap_ids].copy())
+        frame = Frame(observation, commands, self.world.data.mocap_pos[self.world.target_mocap_ids])  # a copy (index array)
         controlled = time.perf_counter()
         model, data = self.world.model, self.world.data
         for _ in range(self.substeps):

@@ -36,7 +36,7 @@ class RaySensors:
         self._bounds = None  # the obstacles' bounding boxes for culling rays (_obstacle_bounds), on first use
 
     def sensor_positions(self) -> np.ndarray:
-        return self.world.data.site_xpos[self.world.sensor_site_ids].copy()
+        return self.world.data.site_xpos[self.world.sensor_site_ids]  # a copy (index array)
 
     def _blocked(self, origin: np.ndarray, ends: np.ndarray) -> np.ndarray:
         """Boolean (K,): the segment origin -> ends[k] hits an obstacle."""
