@@ -271,13 +271,16 @@ def _separation_kernel(body_xy, velocity, moving, distance, gain, offsets):
 
 
 def separated_references(references: np.ndarray, body_xy: np.ndarray, planning: PlanningWorld,
-                         velocity: np.ndarray | None = None) -> np.ndarray:
+                         velocity: np.ndarray | None = None, closest: float | None = None) -> np.ndarray:
     """References plus :func:`separation_offsets`, except pushes that would
-    put a reference within ``WALL_KEEP_M`` of a wall (those are dropped)."""
+    put a reference within ``WALL_KEEP_M`` of a wall (those are dropped).
+    ``closest``: ``pairwise_min_distance(body_xy)`` when the caller has it."""
     body_xy = np.ascontiguousarray(body_xy, dtype=float)
     out = np.array(references, dtype=float, copy=True)
     n = len(body_xy)
-    if n < 2 or pairwise_min_distance(body_xy) >= SEPARATION_M:  # no pair closer: the usual tick, compiled
+    if closest is None:
+        closest = pairwise_min_distance(body_xy)
+    if n < 2 or closest >= SEPARATION_M:  # no pair closer: the usual tick, compiled
         return out
     moving = velocity is not None
     velocity = np.ascontiguousarray(velocity, dtype=float) if moving else body_xy

@@ -390,7 +390,8 @@ class MeetingStrategy(ABC):
             segment = queue[0]
             meeting = segment.meeting
             heads[id(meeting)] = meeting
-            if robot not in meeting.arrivals and segment.at_end(t) and (
+            if robot not in meeting.arrivals and segment.started and (  # Segment.at_end inline
+                    (t - segment.timed.offset_s) / segment.timed.step_s >= segment.arrive_step - 1e-9) and (
                     np.linalg.norm(xy[robot] - meeting.point_of(robot)) <= self.params.arrival_tolerance_m):
                 meeting.arrivals[robot] = t
         for meeting in sorted(heads.values(), key=lambda m: m.epoch):
@@ -431,8 +432,9 @@ class MeetingStrategy(ABC):
         table = np.array(references, dtype=float).reshape(-1, 4)
         positions, velocities = table[:, :2], table[:, 2:]
         self._scalars["robots_waiting"] = float(waiting)
-        positions = separated_references(positions, xy, self.planning, velocities)
-        self._track_closest(xy)
+        closest = pairwise_min_distance(xy)
+        positions = separated_references(positions, xy, self.planning, velocities, closest)
+        self.closest_m = min(self.closest_m, closest)
         commands = commands_from_plane(observation, positions, velocities)
         if observation.info_wanted:
             commands.info = self._info(t)
@@ -448,9 +450,6 @@ class MeetingStrategy(ABC):
             if segment.meeting is not meeting or not segment.at_end(t):
                 return False
         return True
-
-    def _track_closest(self, xy: np.ndarray) -> None:
-        self.closest_m = min(self.closest_m, pairwise_min_distance(xy))
 
     # ---------------------------------------------------------------- outputs
     def _refresh_visual(self) -> None:
