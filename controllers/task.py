@@ -19,6 +19,8 @@ EKF from the same prior and report the same e_g and lambda-bar:
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -65,12 +67,14 @@ def check_time_base(world: WorldInfo, params) -> None:
 
 def measurement_records(observation: Observation, step: int) -> list[list[RangeMeasurement]]:
     """Per robot, its readings of this step (one record per visible target)."""
-    ranges = observation.target_ranges
+    # Python floats from tolist() (the values of float(v)); math.isfinite as np.isfinite.
+    ranges = np.asarray(observation.target_ranges, dtype=float).tolist()
+    sensors = np.asarray(observation.sensor_position, dtype=float).tolist()
     out: list[list[RangeMeasurement]] = []
-    for robot in range(len(ranges)):
-        sensor = tuple(float(v) for v in observation.sensor_position[robot])
-        seen = np.flatnonzero(np.isfinite(ranges[robot]))
-        out.append([RangeMeasurement(step, robot, sensor, int(a), float(max(ranges[robot, a], 0.0))) for a in seen])
+    for robot, row in enumerate(ranges):
+        sensor = tuple(sensors[robot])
+        out.append([RangeMeasurement(step, robot, sensor, a, max(r, 0.0)) for a, r in enumerate(row)
+                    if math.isfinite(r)])
     return out
 
 

@@ -32,7 +32,7 @@ from sim.scenario import Scenario, StrategyConfig
 from sim.sensing import RaySensors
 from sim.targets import TargetDriver, nominal_path_samples
 from sim.types import Observation, WorldInfo
-from sim.validate import NON_FINITE, check_output_folder, check_scenario, tick_sanity, tick_violation
+from sim.validate import NON_FINITE, check_output_folder, check_scenario, sanity_limits, tick_sanity, tick_violation
 from sim.world import World, build_world
 
 _WARNINGS_THAT_DIVERGE = tuple(int(w) for w in (
@@ -126,6 +126,9 @@ class Simulation:
         self.divergence = ""  # why the last unhealthy tick was unhealthy
         self._next_reading_s = 0.0
         self._warning_numbers = self.world.data.warning.number  # (mjNWARNING,) view, updated by mj_step
+        # Views of MjData's arrays kept once (each attribute read builds a new array object).
+        self._qpos, self._qvel, self._mocap_pos = self.world.data.qpos, self.world.data.qvel, self.world.data.mocap_pos
+        self._sanity_limits = sanity_limits(self.world)
         self._warnings = self._warning_count()
         # Index arrays for reading every robot's free-joint state in one fancy-index each.
         self._qpos_adr = np.asarray(self.world.qpos_adr, dtype=np.int64)
@@ -187,15 +190,15 @@ class Simulation:
             return np.zeros((0, 3))
         positions = self.targets.positions(self.time_s)
         if len(positions):
-            self.world.data.mocap_pos[self.world.target_mocap_ids] = positions
+            self._mocap_pos[self.world.target_mocap_ids] = positions
         return positions
 
     def observe(self, read_targets: bool = True, info_wanted: bool = True) -> Observation:
         """Read the state and sense; target ranges only at reading instants
         (every ``sensing.period_s``) and when ``read_targets``. ``info_wanted``
         goes into the observation (see :class:`sim.types.Observation`)."""
-        world, data = self.world, self.world.data
-        qpos, qvel = data.qpos, data.qvel
+        world = self.world
+        qpos, qvel = self._qpos, self._qvel
         position = qpos[self._position_index]
         quaternion = qpos[self._quaternion_index]
         velocity = qvel[self._velocity_index]
@@ -203,7 +206,7 @@ class Simulation:
         sensors = self.sensors.sensor_positions()
         ranges, step = None, None
         if read_targets and self.targets.n_targets and self.time_s + 1e-9 >= self._next_reading_s:
-            ranges = self.sensors.target_ranges(sensors, data.mocap_pos[world.target_mocap_ids], self.rng)
+            ranges = self.sensors.target_ranges(sensors, self._mocap_pos[world.target_mocap_ids], self.rng)
             step = int(round(self.time_s / self.scenario.target_motion.step_s))
             self._next_reading_s += self.scenario.sensing.period_s
         return Observation(
@@ -227,8 +230,7 @@ class Simulation:
         commands = self.strategy.step(observation)
         planned = time.perf_counter()
         self.control.apply(observation, commands)
-        # (indexing with an index array already copies)
-        frame = Frame(observation, commands, self.world.data.mocap_pos[self.world.target_mocap_ids])
+        frame = Frame(observation, commands, self._mocap_pos[self.world.target_mocap_ids])  # a copy (index array)
         controlled = time.perf_counter()
         model, data = self.world.model, self.world.data
         for _ in range(self.substeps):
@@ -249,15 +251,15 @@ class Simulation:
         physics, a MuJoCo warning, a robot out of the scene, fallen or tipped
         over (sim.validate), or the strategy's own invariant (its optional
         ``violation(commands)``)."""
-        data = self.world.data
-        code, robot = tick_sanity(self.world, data.qpos, data.qvel, self._qpos_adr, self._start_height)
+        code, robot = tick_sanity(self.world, self._qpos, self._qvel, self._qpos_adr, self._start_height,
+                                  self._sanity_limits)
         if code == NON_FINITE:
             return "physics: non-finite state"
         count = self._warning_count()
         if count != self._warnings:
             self._warnings = count
             return "physics: " + (_mujoco_warnings[-1] if _mujoco_warnings else "MuJoCo warning")
-        reason = tick_violation(self.world, code, robot, data.qpos, self._qpos_adr)
+        reason = tick_violation(self.world, code, robot, self._qpos, self._qpos_adr)
         if reason:
             return reason
         violation = getattr(self.strategy, "violation", None)

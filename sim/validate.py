@@ -170,14 +170,21 @@ def _tick_sanity(qpos, qvel, qpos_adr, lo, hi, ground, start_height):
     return 0, -1
 
 
+def sanity_limits(world) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lo, hi, ground robots' indices) of :func:`tick_sanity` for ``world``: the scene bounds
+    widened by ``BOUNDS_MARGIN_M``, m."""
+    return world.bounds[0] - BOUNDS_MARGIN_M, world.bounds[1] + BOUNDS_MARGIN_M, world.kind_index["ground"]
+
+
 def tick_sanity(world, qpos: np.ndarray, qvel: np.ndarray, qpos_adr: np.ndarray,
-                start_height: np.ndarray) -> tuple[int, int]:
+                start_height: np.ndarray, limits: tuple | None = None) -> tuple[int, int]:
     """One compiled pass over MuJoCo's ``qpos`` / ``qvel``: ``(0, -1)`` if the
     state is sane, ``(NON_FINITE, -1)`` if an entry is NaN or inf, else a code
     and the robot for :func:`tick_violation` to name (``qpos_adr``: each
-    robot's free-joint qpos address, int64)."""
-    lo, hi = world.bounds[0] - BOUNDS_MARGIN_M, world.bounds[1] + BOUNDS_MARGIN_M
-    return _tick_sanity(qpos, qvel, qpos_adr, lo, hi, world.kind_index["ground"], start_height)
+    robot's free-joint qpos address, int64). ``limits``: :func:`sanity_limits`
+    of ``world`` when the caller keeps them (computed here otherwise)."""
+    lo, hi, ground = limits if limits is not None else sanity_limits(world)
+    return _tick_sanity(qpos, qvel, qpos_adr, lo, hi, ground, start_height)
 
 
 def tick_violation(world, code: int, robot: int, qpos: np.ndarray, qpos_adr: np.ndarray) -> str | None:

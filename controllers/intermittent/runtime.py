@@ -34,7 +34,7 @@ from controllers.intermittent.planner_geometry import points_free
 from controllers.task import EstimateSeries, check_time_base, measurement_records, prior_state  # noqa: F401
 from sim.compiled import kernel
 from sim.config import ConfigError
-from sim.geometry import Boxes, boxes_reaching, pairwise_min_distance
+from sim.geometry import Boxes, boxes_reaching, clearance_at, pairwise_min_distance
 from sim.types import Commands, Observation, WorldInfo
 
 PATH_HEIGHT_M = 0.01  # drawn paths lie this high above the floor, m
@@ -143,6 +143,7 @@ class TimedPath:
         # numpy's per-call overhead on (2,) arrays was nearly all of its cost.
         self._times = [float(t) for t in self.path.times]
         self._points = [(float(x), float(y)) for x, y in self.path.positions]
+        self.end_step = self._times[-1]  # path.end_time as a float (the path never changes)
 
     def tau(self, t: float) -> float:
         return (t - self.offset_s) / self.step_s
@@ -161,8 +162,11 @@ class TimedPath:
 
     def reference_floats(self, t: float) -> tuple[tuple[float, float], tuple[float, float]]:
         """:meth:`reference` as Python floats ((x, y), (vx, vy)): the per-tick path, without arrays."""
+        return self.reference_at_tau((t - self.offset_s) / self.step_s)
+
+    def reference_at_tau(self, tau: float) -> tuple[tuple[float, float], tuple[float, float]]:
+        """:meth:`reference_floats` at path step ``tau`` (:meth:`tau` of the sim time)."""
         times = self._times
-        tau = self.tau(t)
         if tau <= times[0]:
             return self._points[0], (0.0, 0.0)
         if tau >= times[-1]:
@@ -198,8 +202,11 @@ def lifted(points: np.ndarray, z: float = PATH_HEIGHT_M) -> np.ndarray:
 def commands_from_plane(observation: Observation, positions: np.ndarray, velocities: np.ndarray):
     """Commands for ground robots from plane references (z kept at the body)."""
     n = len(positions)
-    position = np.concatenate([positions, observation.position[:, 2:3]], axis=1)
-    velocity = np.concatenate([velocities, np.zeros((n, 1))], axis=1)
+    position = np.empty((n, 3))
+    position[:, :2] = positions
+    position[:, 2] = observation.position[:, 2]
+    velocity = np.zeros((n, 3))
+    velocity[:, :2] = velocities
     return Commands(position, velocity, np.zeros((n, 3)), np.zeros(n))
 
 
@@ -264,16 +271,37 @@ def _separation_kernel(body_xy, velocity, moving, distance, gain, offsets):
 
 
 def separated_references(references: np.ndarray, body_xy: np.ndarray, planning: PlanningWorld,
-                         velocity: np.ndarray | None = None) -> np.ndarray:
+                         velocity: np.ndarray | None = None, closest: float | None = None) -> np.ndarray:
     """References plus :func:`separation_offsets`, except pushes that would
-    put a reference within ``WALL_KEEP_M`` of a wall (those are dropped)."""
-    offsets = separation_offsets(body_xy, velocity)
+    put a reference within ``WALL_KEEP_M`` of a wall (those are dropped).
+    ``closest``: ``pairwise_min_distance(body_xy)`` when the caller has it."""
+    body_xy = np.ascontiguousarray(body_xy, dtype=float)
     out = np.array(references, dtype=float, copy=True)
-    if not offsets.any():  # the usual tick: no pair close (the method, not np.any: a tenth of its cost)
+    n = len(body_xy)
+    if closest is None:
+        closest = pairwise_min_distance(body_xy)
+    if n < 2 or closest >= SEPARATION_M:  # no pair closer: the usual tick, compiled
         return out
-    moved = np.flatnonzero(np.any(offsets != 0.0, axis=1))
-    if len(moved):
-        candidate = out[moved] + offsets[moved]
-        ok = points_free(planning.boxes, planning.bounds, candidate, planning.sensor_height, WALL_KEEP_M)
-        out[moved[ok]] = candidate[ok]
+    moving = velocity is not None
+    velocity = np.ascontiguousarray(velocity, dtype=float) if moving else body_xy
+    boxes = planning.boxes
+    _separated_kernel(body_xy, velocity, moving, SEPARATION_M, SEPARATION_GAIN, np.zeros((n, 2)), out,
+                      planning.bounds, float(planning.sensor_height), WALL_KEEP_M, boxes.centers, boxes.half_sizes,
+                      np.ascontiguousarray(boxes.rotations), boxes.aligned)
     return out
+
+
+@kernel
+def _separated_kernel(body_xy, velocity, moving, distance, gain, offsets, out, bounds, z, margin,
+                      centers, half_sizes, rotations, aligned):
+    """:func:`separated_references` in one pass: the pushes (``offsets``, zeroed), then each pushed
+    reference kept where :func:`points_free` (bounds shrunk by ``margin``, clearance above it) allows."""
+    _separation_kernel(body_xy, velocity, moving, distance, gain, offsets)
+    lo_x, lo_y = bounds[0, 0] + margin, bounds[0, 1] + margin
+    hi_x, hi_y = bounds[1, 0] - margin, bounds[1, 1] - margin
+    for i in range(out.shape[0]):
+        if offsets[i, 0] != 0.0 or offsets[i, 1] != 0.0:
+            x, y = out[i, 0] + offsets[i, 0], out[i, 1] + offsets[i, 1]
+            if (x >= lo_x and y >= lo_y and x <= hi_x and y <= hi_y
+                    and clearance_at(x, y, z, centers, half_sizes, rotations, aligned) > margin):
+                out[i, 0], out[i, 1] = x, y

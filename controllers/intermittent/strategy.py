@@ -390,12 +390,12 @@ class MeetingStrategy(ABC):
             segment = queue[0]
             meeting = segment.meeting
             heads[id(meeting)] = meeting
-            if robot not in meeting.arrivals and segment.at_end(t) and (
+            if robot not in meeting.arrivals and segment.started and (  # Segment.at_end inline
+                    (t - segment.timed.offset_s) / segment.timed.step_s >= segment.arrive_step - 1e-9) and (
                     np.linalg.norm(xy[robot] - meeting.point_of(robot)) <= self.params.arrival_tolerance_m):
                 meeting.arrivals[robot] = t
         for meeting in sorted(heads.values(), key=lambda m: m.epoch):
-            ready = all(self.queues[r][0].meeting is meeting and self.queues[r][0].at_end(t) for r in meeting.members)
-            if not ready:
+            if not self._ready(meeting, t):
                 continue
             if team_connected(observation.links.adjacency, meeting.members):
                 self._hold(meeting, observation)
@@ -410,31 +410,46 @@ class MeetingStrategy(ABC):
         waiting = 0
         for robot, queue in enumerate(self.queues):
             segment = queue[0]
+            timed = segment.timed
+            # TimedPath.tau, finished and Segment.at_end inline: the same arithmetic, once per robot
+            tau = (t - timed.offset_s) / timed.step_s
             if segment.meeting.gathering:
                 x, y = self._gather_reference(segment.meeting, robot, t)
                 vx = vy = 0.0
             else:
-                (x, y), (vx, vy) = segment.timed.reference_floats(t)
-                if (segment.started and not segment.timed.finished(t)
+                (x, y), (vx, vy) = timed.reference_at_tau(tau)
+                if (segment.started and not tau >= timed.end_step - 1e-9
                         and _farther_than(body[robot], x, y, LAG_HOLD_M)):
                     # Time scaling: the body lags (a sharp turn, a push); its path clock waits for it.
-                    segment.timed.offset_s += self.world.control_period_s
+                    timed.offset_s += self.world.control_period_s
                     self.held_ticks += 1
-                    (x, y), _ = segment.timed.reference_floats(t)
+                    tau = (t - timed.offset_s) / timed.step_s
+                    (x, y), _ = timed.reference_at_tau(tau)
                     vx = vy = 0.0
             references.append((x, y, vx, vy))
-            waiting += int(segment.at_end(t))
+            if segment.started and tau >= segment.arrive_step - 1e-9:
+                waiting += 1
         table = np.array(references, dtype=float).reshape(-1, 4)
         positions, velocities = table[:, :2], table[:, 2:]
         self._scalars["robots_waiting"] = float(waiting)
-        positions = separated_references(positions, xy, self.planning, velocities)
-        self._track_closest(xy)
+        closest = pairwise_min_distance(xy)
+        positions = separated_references(positions, xy, self.planning, velocities, closest)
+        self.closest_m = min(self.closest_m, closest)
         commands = commands_from_plane(observation, positions, velocities)
-        commands.info = self._info(t)
+        if observation.info_wanted:
+            commands.info = self._info(t)
+        else:  # no observer reads the figures and decorations: only the metrics keys (sim.types.Observation)
+            commands.info = dict(self.series.info())
         return commands
 
-    def _track_closest(self, xy: np.ndarray) -> None:
-        self.closest_m = min(self.closest_m, pairwise_min_distance(xy))
+    def _ready(self, meeting: Meeting, t: float) -> bool:
+        """Every member's current segment leads to ``meeting`` and has reached its end."""
+        queues = self.queues
+        for r in meeting.members:
+            segment = queues[r][0]
+            if segment.meeting is not meeting or not segment.at_end(t):
+                return False
+        return True
 
     # ---------------------------------------------------------------- outputs
     def _refresh_visual(self) -> None:
