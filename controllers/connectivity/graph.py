@@ -62,7 +62,7 @@ except ImportError:  # then the public function, the same LAPACK routine with it
 from controllers.connectivity.params import ConnectivityParams
 from controllers.connectivity.potential import guarded_potential_slope
 from sim.compiled import kernel
-from sim.geometry import CONTACT_TOLERANCE_M, Boxes, segment_box_distance, world_half_extents
+from sim.geometry import CONTACT_TOLERANCE_M, Boxes, segment_box_distance_into, world_half_extents
 
 
 def half_cosine_rise(x, start: float, end: float) -> tuple[np.ndarray, np.ndarray]:
@@ -221,12 +221,13 @@ def _lambda2_gradients_kernel(pairs, vectors, collision_factor, link_factor, gra
 
 
 @kernel
-def _line_of_sight(a, b, centers, half_sizes, rotations, world_half, aligned, r_o, r_o_full, grad_a, grad_b):
+def _line_of_sight(a, b, centers, half_sizes, rotations, world_half, aligned, r_o, r_o_full, grad_a, grad_b,
+                   la, lb, point, seg, knots):
     """beta(d_ijo) of the segment [a, b] (3,) and its gradients (written to grad_a, grad_b).
 
     Only boxes whose world bounding box is within R'_o of the segment's are
-    measured (a cheap lower bound of their distance): beyond it beta = 1."""
-    la, lb, point = np.empty(3), np.empty(3), np.empty(3)
+    measured (a cheap lower bound of their distance): beyond it beta = 1.
+    la, lb, point, seg (3,) and knots (8,) are scratch (no allocation a call)."""
     best_distance, best_s, best_box = np.inf, 0.0, -1
     for k in range(centers.shape[0]):
         gap = 0.0
@@ -246,7 +247,7 @@ def _line_of_sight(a, b, centers, half_sizes, rotations, world_half, aligned, r_
                          + (a[2] - centers[k, 2]) * rotations[k, 2, j])
                 lb[j] = ((b[0] - centers[k, 0]) * rotations[k, 0, j] + (b[1] - centers[k, 1]) * rotations[k, 1, j]
                          + (b[2] - centers[k, 2]) * rotations[k, 2, j])
-        s, distance = segment_box_distance(la, lb, half_sizes[k])
+        s, distance = segment_box_distance_into(la, lb, half_sizes[k], seg, knots)
         if distance < CONTACT_TOLERANCE_M:
             distance = 0.0
         if distance < best_distance:
@@ -299,6 +300,7 @@ def _link_weights_kernel(positions, r_s_full, r_s, r_c, r_c_full, r_o, r_o_full,
             product *= delta[i, j]
         collision_factor[i] = product
     sight_a, sight_b = np.empty(3), np.empty(3)
+    la, lb, point, seg, knots = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(8)
     count = 0
     for i in range(n):
         for j in range(i + 1, n):
@@ -312,7 +314,7 @@ def _link_weights_kernel(positions, r_s_full, r_s, r_c, r_c_full, r_o, r_o_full,
             range_factor, range_slope = 1.0 - rise, -rise_slope
             if centers.shape[0]:
                 sight = _line_of_sight(positions[i], positions[j], centers, half_sizes, rotations, world_half,
-                                       aligned, r_o, r_o_full, sight_a, sight_b)
+                                       aligned, r_o, r_o_full, sight_a, sight_b, la, lb, point, seg, knots)
             else:
                 sight = 1.0
                 sight_a[:] = 0.0
