@@ -188,7 +188,15 @@ def segment_box_distance_into(la, lb, half, d, knots):
         below_at, above_at = (-half[i] - la[i]) / d[i], (half[i] - la[i]) / d[i]  # +-inf / NaN if d_i = 0
         knots[1 + i] = min(max(below_at, 0.0), 1.0) if np.isfinite(below_at) else 0.0
         knots[4 + i] = min(max(above_at, 0.0), 1.0) if np.isfinite(above_at) else 0.0
-    knots.sort()
+    # knots.sort() as numba sorts 8 floats (an insertion sort; no NaN here), without the
+    # partition stack its quicksort allocates each call.
+    for m in range(1, 8):
+        value = knots[m]
+        j = m
+        while j > 0 and value < knots[j - 1]:
+            knots[j] = knots[j - 1]
+            j -= 1
+        knots[j] = value
     best_s, best_distance = 0.0, np.inf
     for m in range(7):
         start, end = knots[m], knots[m + 1]
