@@ -238,6 +238,10 @@ def _line_of_sight(a, b, centers, half_sizes, rotations, world_half, aligned, r_
             gap += excess * excess
         if not np.sqrt(gap) < r_o_full:
             continue
+        if np.sqrt(gap) > best_distance + 1e-9:
+            # The bounding boxes' gap is a lower bound of this box's distance: beyond the best
+            # box's (more than rounding), the strict comparison below would not pick it.
+            continue
         for j in range(3):
             if aligned:
                 la[j] = a[j] - centers[k, j]
