@@ -291,13 +291,15 @@ def _link_weights_kernel(positions, r_s_full, r_s, r_c, r_c_full, r_o, r_o_full,
     delta = np.ones((n, n))
     delta_slope = np.zeros((n, n))
     for i in range(n):
-        for j in range(n):
+        distance[i, i] = 0.0  # the diagonal is not a pair: delta = 1
+        for j in range(i + 1, n):
+            # (p_j - p_i = -(p_i - p_j) exactly, the same squares: one pass fills both triangles)
             dx = positions[i, 0] - positions[j, 0]
             dy = positions[i, 1] - positions[j, 1]
             dz = positions[i, 2] - positions[j, 2]
-            distance[i, j] = np.sqrt(dx * dx + dy * dy + dz * dz)
-            if i != j:  # the diagonal is not a pair: delta = 1
-                delta[i, j], delta_slope[i, j] = _half_cosine_rise(distance[i, j], r_c, r_c_full)
+            distance[i, j] = distance[j, i] = np.sqrt(dx * dx + dy * dy + dz * dz)
+            delta[i, j], delta_slope[i, j] = _half_cosine_rise(distance[i, j], r_c, r_c_full)
+            delta[j, i], delta_slope[j, i] = delta[i, j], delta_slope[i, j]
     for i in range(n):
         product = delta[i, 0]
         for j in range(1, n):
