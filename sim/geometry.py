@@ -174,14 +174,29 @@ def segment_box_distance(la, lb, half):
     form and clamped to the interval; the best interval wins (the first one
     on ties).
     """
-    d = lb - la
-    knots = np.empty(8)
+    return segment_box_distance_into(la, lb, half, np.empty(3), np.empty(8))
+
+
+@kernel
+def segment_box_distance_into(la, lb, half, d, knots):
+    """:func:`segment_box_distance` with caller-owned scratch arrays ``d`` (3,)
+    and ``knots`` (8,) (no allocation a call; the same values)."""
+    for i in range(3):
+        d[i] = lb[i] - la[i]
     knots[0], knots[7] = 0.0, 1.0
     for i in range(3):
         below_at, above_at = (-half[i] - la[i]) / d[i], (half[i] - la[i]) / d[i]  # +-inf / NaN if d_i = 0
         knots[1 + i] = min(max(below_at, 0.0), 1.0) if np.isfinite(below_at) else 0.0
         knots[4 + i] = min(max(above_at, 0.0), 1.0) if np.isfinite(above_at) else 0.0
-    knots.sort()
+    # knots.sort() as numba sorts 8 floats (an insertion sort; no NaN here), without the
+    # partition stack its quicksort allocates each call.
+    for m in range(1, 8):
+        value = knots[m]
+        j = m
+        while j > 0 and value < knots[j - 1]:
+            knots[j] = knots[j - 1]
+            j -= 1
+        knots[j] = value
     best_s, best_distance = 0.0, np.inf
     for m in range(7):
         start, end = knots[m], knots[m + 1]
@@ -220,6 +235,7 @@ def _segment_clearance_kernel(a, b, centers, half_sizes, rotations, world_half, 
     la = np.empty(3)
     lb = np.empty(3)
     point = np.empty(3)
+    d, knots = np.empty(3), np.empty(8)  # segment_box_distance_into's scratch
     for p in range(a.shape[0]):
         # Upper bound of the clearance: that of the segment's ends and middle.
         bound = np.inf
@@ -258,7 +274,7 @@ def _segment_clearance_kernel(a, b, centers, half_sizes, rotations, world_half, 
                              * rotations[k, 1, j]) + (a[p, 2] - centers[k, 2]) * rotations[k, 2, j]
                     lb[j] = ((b[p, 0] - centers[k, 0]) * rotations[k, 0, j] + (b[p, 1] - centers[k, 1])
                              * rotations[k, 1, j]) + (b[p, 2] - centers[k, 2]) * rotations[k, 2, j]
-            s, distance = segment_box_distance(la, lb, half_sizes[k])
+            s, distance = segment_box_distance_into(la, lb, half_sizes[k], d, knots)
             if distance < CONTACT_TOLERANCE_M:
                 distance = 0.0
             if distance < best_distance:

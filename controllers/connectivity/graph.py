@@ -62,7 +62,7 @@ except ImportError:  # then the public function, the same LAPACK routine with it
 from controllers.connectivity.params import ConnectivityParams
 from controllers.connectivity.potential import guarded_potential_slope
 from sim.compiled import kernel
-from sim.geometry import CONTACT_TOLERANCE_M, Boxes, segment_box_distance, world_half_extents
+from sim.geometry import CONTACT_TOLERANCE_M, Boxes, segment_box_distance_into, world_half_extents
 
 
 def half_cosine_rise(x, start: float, end: float) -> tuple[np.ndarray, np.ndarray]:
@@ -221,21 +221,31 @@ def _lambda2_gradients_kernel(pairs, vectors, collision_factor, link_factor, gra
 
 
 @kernel
-def _line_of_sight(a, b, centers, half_sizes, rotations, world_half, aligned, r_o, r_o_full, grad_a, grad_b):
+def _line_of_sight(a, b, centers, half_sizes, rotations, box_low, box_high, aligned, r_o, r_o_full, grad_a, grad_b,
+                   la, lb, point, seg, knots):
     """beta(d_ijo) of the segment [a, b] (3,) and its gradients (written to grad_a, grad_b).
 
     Only boxes whose world bounding box is within R'_o of the segment's are
-    measured (a cheap lower bound of their distance): beyond it beta = 1."""
-    la, lb, point = np.empty(3), np.empty(3), np.empty(3)
+    measured (a cheap lower bound of their distance): beyond it beta = 1.
+    la, lb, point, seg (3,) and knots (8,) are scratch (no allocation a call); box_low and
+    box_high (K, 3) are centers -/+ the world half extents."""
+    a_low0, a_low1, a_low2 = min(a[0], b[0]), min(a[1], b[1]), min(a[2], b[2])
+    a_high0, a_high1, a_high2 = max(a[0], b[0]), max(a[1], b[1]), max(a[2], b[2])
     best_distance, best_s, best_box = np.inf, 0.0, -1
     for k in range(centers.shape[0]):
-        gap = 0.0
-        for i in range(3):
-            low = min(a[i], b[i]) - (centers[k, i] + world_half[k, i])
-            high = (centers[k, i] - world_half[k, i]) - max(a[i], b[i])
-            excess = max(low, 0.0) + max(high, 0.0)
-            gap += excess * excess
-        if not np.sqrt(gap) < r_o_full:
+        # (the segment's and the box's world bounding boxes: the same values as computed in place)
+        excess = max(a_low0 - box_high[k, 0], 0.0) + max(box_low[k, 0] - a_high0, 0.0)
+        gap = 0.0 + excess * excess
+        excess = max(a_low1 - box_high[k, 1], 0.0) + max(box_low[k, 1] - a_high1, 0.0)
+        gap += excess * excess
+        excess = max(a_low2 - box_high[k, 2], 0.0) + max(box_low[k, 2] - a_high2, 0.0)
+        gap += excess * excess
+        gap = np.sqrt(gap)
+        if not gap < r_o_full:
+            continue
+        if gap > best_distance + 1e-9:
+            # The bounding boxes' gap is a lower bound of this box's distance: beyond the best
+            # box's (more than rounding), the strict comparison below would not pick it.
             continue
         for j in range(3):
             if aligned:
@@ -246,7 +256,7 @@ def _line_of_sight(a, b, centers, half_sizes, rotations, world_half, aligned, r_
                          + (a[2] - centers[k, 2]) * rotations[k, 2, j])
                 lb[j] = ((b[0] - centers[k, 0]) * rotations[k, 0, j] + (b[1] - centers[k, 1]) * rotations[k, 1, j]
                          + (b[2] - centers[k, 2]) * rotations[k, 2, j])
-        s, distance = segment_box_distance(la, lb, half_sizes[k])
+        s, distance = segment_box_distance_into(la, lb, half_sizes[k], seg, knots)
         if distance < CONTACT_TOLERANCE_M:
             distance = 0.0
         if distance < best_distance:
@@ -286,19 +296,27 @@ def _link_weights_kernel(positions, r_s_full, r_s, r_c, r_c_full, r_o, r_o_full,
     delta = np.ones((n, n))
     delta_slope = np.zeros((n, n))
     for i in range(n):
-        for j in range(n):
+        distance[i, i] = 0.0  # the diagonal is not a pair: delta = 1
+        for j in range(i + 1, n):
+            # (p_j - p_i = -(p_i - p_j) exactly, the same squares: one pass fills both triangles)
             dx = positions[i, 0] - positions[j, 0]
             dy = positions[i, 1] - positions[j, 1]
             dz = positions[i, 2] - positions[j, 2]
-            distance[i, j] = np.sqrt(dx * dx + dy * dy + dz * dz)
-            if i != j:  # the diagonal is not a pair: delta = 1
-                delta[i, j], delta_slope[i, j] = _half_cosine_rise(distance[i, j], r_c, r_c_full)
+            distance[i, j] = distance[j, i] = np.sqrt(dx * dx + dy * dy + dz * dz)
+            delta[i, j], delta_slope[i, j] = _half_cosine_rise(distance[i, j], r_c, r_c_full)
+            delta[j, i], delta_slope[j, i] = delta[i, j], delta_slope[i, j]
     for i in range(n):
         product = delta[i, 0]
         for j in range(1, n):
             product *= delta[i, j]
         collision_factor[i] = product
     sight_a, sight_b = np.empty(3), np.empty(3)
+    la, lb, point, seg, knots = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(8)
+    box_low, box_high = np.empty(centers.shape), np.empty(centers.shape)
+    for k in range(centers.shape[0]):
+        for m in range(3):
+            box_low[k, m] = centers[k, m] - world_half[k, m]
+            box_high[k, m] = centers[k, m] + world_half[k, m]
     count = 0
     for i in range(n):
         for j in range(i + 1, n):
@@ -311,8 +329,8 @@ def _link_weights_kernel(positions, r_s_full, r_s, r_c, r_c_full, r_o, r_o_full,
             rise, rise_slope = _half_cosine_rise(d, r_s_full, r_s)
             range_factor, range_slope = 1.0 - rise, -rise_slope
             if centers.shape[0]:
-                sight = _line_of_sight(positions[i], positions[j], centers, half_sizes, rotations, world_half,
-                                       aligned, r_o, r_o_full, sight_a, sight_b)
+                sight = _line_of_sight(positions[i], positions[j], centers, half_sizes, rotations, box_low,
+                                       box_high, aligned, r_o, r_o_full, sight_a, sight_b, la, lb, point, seg, knots)
             else:
                 sight = 1.0
                 sight_a[:] = 0.0
