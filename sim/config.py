@@ -22,6 +22,7 @@ import sys
 import tokenize
 import types
 import typing
+from pathlib import Path
 from typing import Any, get_args, get_origin, get_type_hints
 
 
@@ -47,6 +48,28 @@ class ConfigError(ValueError):
         super().__init__(f"{field}: {problem}")
         self.field = field
         self.problem = problem
+
+
+def builtin_descriptions(folder: Path) -> dict[str, str]:
+    """Built-in name -> its file's ``description``, for every TOML file in ``folder``."""
+    import tomllib
+
+    out = {}
+    for path in sorted(folder.glob("*.toml")):
+        with open(path, "rb") as f:
+            out[path.stem] = tomllib.load(f).get("description", "")
+    return out
+
+
+def builtin_or_file(name_or_path: str, folder: Path, what: str) -> Path:
+    """``folder/NAME.toml`` for a built-in name, else the file at the path; ConfigError (field
+    ``what``) naming the built-ins when it is neither."""
+    builtin = folder / f"{name_or_path}.toml"
+    path = builtin if builtin.is_file() else Path(name_or_path).expanduser()
+    if not path.is_file():
+        names = ", ".join(builtin_descriptions(folder))
+        raise ConfigError(what, f"'{name_or_path}' is neither a built-in {what} ({names}) nor a file")
+    return path
 
 
 def _type_name(tp: Any) -> str:

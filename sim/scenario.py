@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from sim.config import ConfigError, build, require, to_table
+from sim.config import ConfigError, build, builtin_descriptions, builtin_or_file, require, to_table
 from sim.registry import strategy_params_class, strategy_kinds
 
 SCENARIO_DIR = Path(__file__).parent / "scenarios"
@@ -223,11 +223,7 @@ def builtin_scenes() -> list[str]:
 
 def builtin_scenarios() -> dict[str, str]:
     """Built-in scenario name -> one-line description."""
-    out = {}
-    for path in sorted(SCENARIO_DIR.glob("*.toml")):
-        with open(path, "rb") as f:
-            out[path.stem] = tomllib.load(f).get("description", "")
-    return out
+    return builtin_descriptions(SCENARIO_DIR)
 
 
 def _parse_value(text: str) -> Any:
@@ -266,11 +262,7 @@ def apply_override(table: dict, assignment: str) -> None:
 
 def read_table(name_or_path: str) -> tuple[dict, str]:
     """The raw TOML table of a built-in name or a file, and its source path."""
-    builtin = SCENARIO_DIR / f"{name_or_path}.toml"
-    path = builtin if builtin.is_file() else Path(name_or_path).expanduser()
-    if not path.is_file():
-        names = ", ".join(builtin_scenarios())
-        raise ConfigError("scenario", f"'{name_or_path}' is neither a built-in scenario ({names}) nor a file")
+    path = builtin_or_file(name_or_path, SCENARIO_DIR, "scenario")
     try:
         with open(path, "rb") as f:
             raw = f.read(MAX_SCENARIO_BYTES + 1)

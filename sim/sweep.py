@@ -57,7 +57,7 @@ from itertools import product
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from sim.config import ConfigError
+from sim.config import ConfigError, builtin_descriptions, builtin_or_file
 
 SWEEP_DIR = Path(__file__).parent / "sweeps"
 FORMAT = "tether-sweep/1"  # sweep.json's format tag: anything else is a foreign folder
@@ -115,19 +115,11 @@ class Sweep:
 
 def builtin_sweeps() -> dict[str, str]:
     """Built-in sweep name -> description."""
-    out = {}
-    for path in sorted(SWEEP_DIR.glob("*.toml")):
-        with open(path, "rb") as f:
-            out[path.stem] = tomllib.load(f).get("description", "")
-    return out
+    return builtin_descriptions(SWEEP_DIR)
 
 
 def _read_sweep_table(name_or_path: str) -> tuple[dict, Path]:
-    builtin = SWEEP_DIR / f"{name_or_path}.toml"
-    path = builtin if builtin.is_file() else Path(name_or_path).expanduser()
-    if not path.is_file():
-        names = ", ".join(builtin_sweeps())
-        raise ConfigError("sweep", f"'{name_or_path}' is neither a built-in sweep ({names}) nor a file")
+    path = builtin_or_file(name_or_path, SWEEP_DIR, "sweep")
     try:
         with open(path, "rb") as f:
             return tomllib.load(f), path
@@ -586,8 +578,8 @@ def _alive(pid: int) -> bool:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except PermissionError:
-        return True
+    except PermissionError:  # exists, owned by someone else
+        pass
     return True
 
 
