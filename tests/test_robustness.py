@@ -10,6 +10,7 @@ exits 0, 1 or 2 without a traceback and never leaves a half-written folder.
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -386,9 +387,9 @@ def mutated_tables(draw):
         if action == "delete":
             del parent[path[-1]]
         elif action == "extra" and isinstance(parent, dict):
-            parent[draw(st.sampled_from(["extra", "count", "end", "start", "radius_m"]))] = draw(VALUES)
-        else:
-            parent[path[-1]] = draw(VALUES)
+            parent[draw(st.sampled_from(["extra", "count", "end", "start", "radius_m"]))] = copy.deepcopy(draw(VALUES))
+        else:  # a copy: a later mutation must not change VALUES' shared list or dict for the next examples
+            parent[path[-1]] = copy.deepcopy(draw(VALUES))
     return table
 
 
