@@ -445,6 +445,10 @@ def run(
                                tick=sim.tick_count)
             closed = True
             closing = time.perf_counter()
+            for observer in observers:  # work that can go on while the others close (plots' painters)
+                start_closing = getattr(observer, "start_closing", None)
+                if start_closing is not None:
+                    start_closing(status)
             for observer in observers:
                 observer.close(status)
             closing_s = time.perf_counter() - closing

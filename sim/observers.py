@@ -31,7 +31,9 @@ class Observer(Protocol):
     ``frame.commands.info`` beyond the metrics keys on the tick that starts at
     ``time_s``; the loop asks the strategy for its figures and decorations only
     when some observer does. An observer without it is assumed to read them
-    every tick.
+    every tick. ``start_closing(status)``, called on every observer before
+    the first ``close``: start closing work that can go on while the other
+    observers close (the plots' painters draw while the video is encoded).
     """
 
     def on_tick(self, frame: Frame) -> None: ...

@@ -9,8 +9,8 @@ axis from ``commands.info['robot_scalar_levels']``), so a user can look
 instead of reading JSON. NaN (undefined, e.g. t*(t) before the first
 agreement) is a gap, never a value. Sampled every ``period_s`` of sim time; pages of
 ``PANELS_PER_FIGURE`` panels: ``timeseries.png``, ``timeseries_2.png``, ...
-Drawn by a :class:`Painter` process that imports matplotlib while the run
-goes on, so a run's end waits for the drawing only.
+Drawn by painter processes (viz.painter) that build the pages' figures
+while the run goes on, so a run's end waits only for filling them in.
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from sim.observers import Frame, tracking_errors
+from viz.painter import Painters, panel_layout
 
 PANELS_PER_FIGURE = 6
-LEGEND_MAX_ROBOTS = 12  # per-robot panels name their lines up to this many robots
 PER_ROBOT_SUFFIX = " (per robot)"
 
 
@@ -38,8 +38,10 @@ class PlotRecorder:
         self.robot_series: dict[str, list[tuple[float, np.ndarray]]] = defaultdict(list)
         self._next_time = 0.0
         self.files: list[str] = []
-        self._painter = Painter()
         self.levels: dict[str, dict[float, str]] = {}  # coded per-robot series: value -> label
+        self._painters = Painters(robot_names)
+        self._planned: tuple[int, int, int] = (0, 0, 0)  # series, per-robot series, levels: when planned
+        self._closing = False
 
     def reads_info(self, time_s: float) -> bool:
         """The strategy's scalars are read only on sampled ticks."""
@@ -59,12 +61,28 @@ class PlotRecorder:
             self.robot_series[name].append((t, np.array(values, dtype=float)))
         for name, levels in frame.commands.info.get("robot_scalar_levels", {}).items():
             self.levels[name] = levels
+        if (len(self.series), len(self.robot_series), len(self.levels)) != self._planned:
+            # Series only ever appear: a new count is a new layout for the painters to build.
+            self._planned = (len(self.series), len(self.robot_series), len(self.levels))
+            self._painters.plan([(path, tuple(panel_layout(p) for p in panels)) for path, panels in self._pages()])
 
     def panels(self) -> list[str]:
         """Panel titles in drawing order: the series, then the per-robot series."""
         return list(self.series) + [name + PER_ROBOT_SUFFIX for name in self.robot_series]
 
+    def start_closing(self, status: str) -> None:
+        """Hand the data to the painters; they draw while the other observers close."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self._painters.start(self._pages(), f"run {status}")
+        self._closing = True
+
     def close(self, status: str) -> None:
+        if not self._closing:
+            self.start_closing(status)
+        self.files += self._painters.finish()
+
+    def _pages(self) -> list[tuple[str, list]]:
+        """[(png path, panels)], ``PANELS_PER_FIGURE`` panels a page (see viz.painter.Panel)."""
         pages = []
         names = self.panels()
         for page, start in enumerate(range(0, len(names), PANELS_PER_FIGURE)):
@@ -79,98 +97,4 @@ class PlotRecorder:
                     panels.append((name, np.array([t for t, _ in samples]), np.array([v for _, v in samples]), levels))
             path = self.folder / ("timeseries.png" if page == 0 else f"timeseries_{page + 1}.png")
             pages.append((str(path), panels))
-        self.folder.mkdir(parents=True, exist_ok=True)
-        self.files += self._painter.draw(pages, f"run {status}", self.robot_names)
-
-
-class Painter:
-    """Draws plot pages in a process of its own, started when the run starts.
-
-    Importing matplotlib costs about a second of CPU, more than drawing a
-    run's pages: the child pays it while the simulation runs, so the end of a
-    run only waits for the drawing. Where no child process can be started
-    (a daemonic pool worker, say) the pages are drawn in this process.
-    """
-
-    def __init__(self):
-        import multiprocessing
-
-        self._conn = self._process = None
-        try:
-            context = multiprocessing.get_context("spawn")
-            self._conn, child = context.Pipe()
-            self._process = context.Process(target=_paint_worker, args=(child,), daemon=True, name="plot-painter")
-            self._process.start()
-            child.close()
-        except (AssertionError, OSError, RuntimeError):  # no child processes here
-            self._conn = self._process = None
-
-    def draw(self, pages, title: str, robot_names) -> list[str]:
-        """Draw ``pages`` [(png path, [(panel title, times or (T, 2) series, None or (T, N) values)])]."""
-        if self._process is not None:
-            try:
-                self._conn.send((pages, title, robot_names))
-                files = self._conn.recv()
-                self._process.join()
-                return files
-            except (EOFError, OSError, BrokenPipeError):  # the child died: draw here instead
-                self._process = None
-        return draw_pages(pages, title, robot_names)
-
-
-def _paint_worker(conn) -> None:
-    _matplotlib()  # the expensive import, while the run goes on
-    try:
-        pages, title, robot_names = conn.recv()
-    except EOFError:  # the run ended without plots
-        return
-    conn.send(draw_pages(pages, title, robot_names))
-
-
-def _matplotlib():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib.figure import Figure
-
-    return Figure
-
-
-def draw_pages(pages, title: str, robot_names) -> list[str]:
-    """Write one PNG per page; returns the paths. A panel is (title, data,
-    values, levels): data (T, 2) [time, value] for a series, or times (T,)
-    with values (T, N) for a per-robot series, whose codes ``levels``
-    [(value, label)] (or None) are named on the axis."""
-    figure_class = _matplotlib()
-    files = []
-    for path, panels in pages:
-        height = 1.9 * len(panels) + 0.6
-        # The Figure API (no pyplot state) and fixed margins: tight_layout took a fifth of the drawing.
-        fig = figure_class(figsize=(8, height))
-        axes = fig.subplots(len(panels), 1, sharex=True, squeeze=False)
-        fig.subplots_adjust(left=0.11, right=0.98, top=1.0 - 0.35 / height, bottom=0.45 / height, hspace=0.12)
-        legend = True  # on the first per-robot panel of a page
-        for ax, (name, data, values, levels) in zip(axes[:, 0], panels):
-            if values is None:
-                ax.plot(data[:, 0], data[:, 1], lw=1.2)
-            else:
-                _draw_per_robot(ax, data, values, robot_names, legend)
-                legend = False
-                if levels:  # codes (e.g. roles): name each level on the axis
-                    ax.set_yticks([v for v, _ in levels], [label for _, label in levels], fontsize=7)
-                    ax.set_ylim(levels[0][0] - 0.5, levels[-1][0] + 0.5)
-            ax.set_ylabel(name, fontsize=8)
-            ax.grid(alpha=0.3)
-        axes[-1, 0].set_xlabel("sim time (s)")
-        fig.suptitle(title, fontsize=9)
-        fig.savefig(path, dpi=110, pil_kwargs={"compress_level": 1})  # zlib level 6 took an eighth of the drawing
-        files.append(path)
-    return files
-
-
-def _draw_per_robot(ax, times: np.ndarray, values: np.ndarray, robot_names, legend: bool) -> None:
-    for robot in range(values.shape[1]):
-        label = robot_names[robot] if robot_names is not None else f"robot {robot}"
-        ax.plot(times, values[:, robot], lw=1.0, label=label)
-    if legend and robot_names is not None and values.shape[1] <= LEGEND_MAX_ROBOTS:
-        ax.legend(fontsize=6, ncol=min(values.shape[1], 6), loc="upper right")
+        return pages

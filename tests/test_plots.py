@@ -1,0 +1,136 @@
+"""The plot pages: painter processes draw what this process would draw, pixel
+for pixel, whether their figures were built ahead of the data or not, when the
+layout changes after it was planned, when a painter dies, and where no child
+process can be started (a daemonic pool worker)."""
+
+import multiprocessing
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from viz.painter import Painters, build_page, draw_pages, fill_page, panel_layout, save_page
+
+ROBOTS = ("quad0", "quad1", "quad2")
+ROLES = [(0.0, "prime traveler"), (1.0, "secondary traveler"), (2.0, "anchor")]
+
+
+def _pages(folder, n_series: int = 7, n_samples: int = 120) -> list:
+    """Series with NaN gaps (undefined at first), then a coded per-robot series: two pages."""
+    rng = np.random.default_rng(0)
+    times = np.arange(n_samples) * 0.1
+    panels = []
+    for k in range(n_series):
+        values = np.cumsum(rng.normal(size=n_samples)) * (k + 1)
+        values[: 5 * k] = np.nan  # t*(t)-like: a gap until first defined
+        panels.append((f"series {k} (m)", np.column_stack([times, values]), None, None))
+    roles = rng.integers(0, 3, size=(n_samples, len(ROBOTS))).astype(float)
+    panels.append(("role (per robot)", times, roles, ROLES))
+    return [(str(folder / "timeseries.png"), panels[:6]), (str(folder / "timeseries_2.png"), panels[6:])]
+
+
+def _layouts(pages) -> list:
+    return [(path, tuple(panel_layout(p) for p in panels)) for path, panels in pages]
+
+
+def _pixels(path) -> np.ndarray:
+    return np.asarray(Image.open(path).convert("RGBA"))
+
+
+def _reference(tmp_path, pages, title: str) -> list[np.ndarray]:
+    """The same pages drawn in this process, from scratch."""
+    folder = tmp_path / "reference"
+    folder.mkdir()
+    moved = [(str(folder / os.path.basename(path)), panels) for path, panels in pages]
+    return [_pixels(path) for path in draw_pages(moved, title, ROBOTS)]
+
+
+def test_a_page_built_and_drawn_before_its_data_comes_out_the_same(tmp_path):
+    pages = _pages(tmp_path)
+    reference = _reference(tmp_path, pages, "run completed")
+    for (path, panels), expected in zip(pages, reference):
+        page = build_page(tuple(panel_layout(p) for p in panels), ROBOTS)
+        page.figure.canvas.draw()  # what a painter does while the run goes on: empty axes, default limits
+        fill_page(page, panels, "run completed")
+        np.testing.assert_array_equal(_pixels(save_page(page, path)), expected)
+
+
+def test_painters_draw_the_planned_pages_in_parallel_as_this_process_would(tmp_path):
+    pages = _pages(tmp_path)
+    painters = Painters(ROBOTS, max_painters=2)
+    painters.plan(_layouts(pages))
+    assert len(painters._painters) == 2  # one per page
+    time.sleep(3.0)  # let them build ahead (the result must not depend on it)
+    painters.start(pages, "run completed")
+    files = painters.finish()
+    assert files == [path for path, _ in pages]
+    for path, expected in zip(files, _reference(tmp_path, pages, "run completed")):
+        np.testing.assert_array_equal(_pixels(path), expected)
+
+
+def test_a_layout_that_changes_after_the_plan_is_drawn_from_scratch(tmp_path):
+    pages = _pages(tmp_path)
+    painters = Painters(ROBOTS, max_painters=2)
+    painters.plan(_layouts(_pages(tmp_path, n_series=4)))  # fewer series when planned: one page
+    painters.plan(_layouts(_pages(tmp_path, n_series=5)))
+    painters.start(pages, "run time limit")
+    files = painters.finish()
+    assert files == [path for path, _ in pages]
+    for path, expected in zip(files, _reference(tmp_path, pages, "run time limit")):
+        np.testing.assert_array_equal(_pixels(path), expected)
+
+
+def test_pages_of_a_painter_that_died_are_drawn_here(tmp_path):
+    pages = _pages(tmp_path)
+    painters = Painters(ROBOTS, max_painters=2)
+    painters.plan(_layouts(pages))
+    victim = painters._painters[1][0]
+    os.kill(victim.pid, signal.SIGKILL)
+    victim.join(timeout=30)
+    painters.start(pages, "run completed")
+    files = painters.finish()
+    assert files == [path for path, _ in pages]
+    for path, expected in zip(files, _reference(tmp_path, pages, "run completed")):
+        np.testing.assert_array_equal(_pixels(path), expected)
+
+
+def test_a_run_that_ends_before_plotting_leaves_no_painter_behind(tmp_path):
+    painters = Painters(ROBOTS, max_painters=2)
+    processes = [process for process, _ in painters._painters]
+    assert painters.finish() == []
+    for process in processes:
+        process.join(timeout=30)
+        assert not process.is_alive()
+
+
+def _draw_in_a_daemonic_worker(folder) -> tuple[int, list[str]]:
+    from pathlib import Path
+
+    painters = Painters(ROBOTS)
+    pages = _pages(Path(folder))
+    painters.plan(_layouts(pages))
+    painters.start(pages, "run completed")
+    return len(painters._painters), painters.finish()
+
+
+def test_a_daemonic_pool_worker_draws_its_pages_itself(tmp_path):
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        n_painters, files = pool.apply(_draw_in_a_daemonic_worker, (str(tmp_path),))
+    assert n_painters == 0  # a daemonic process may not have children
+    pages = _pages(tmp_path)
+    assert files == [path for path, _ in pages]
+    for path, expected in zip(files, _reference(tmp_path, pages, "run completed")):
+        np.testing.assert_array_equal(_pixels(path), expected)
+
+
+@pytest.mark.parametrize("robot_names", [ROBOTS, None])
+def test_per_robot_lines_are_named_by_robot(robot_names):
+    page = build_page((("role (per robot)", 3, tuple(ROLES)),), robot_names)
+    labels = [line.get_label() for line in page.lines[0]]
+    assert labels == (list(ROBOTS) if robot_names else ["robot 0", "robot 1", "robot 2"])
+    assert (page.axes[0].get_legend() is not None) == (robot_names is not None)
+    assert [t.get_text() for t in page.axes[0].get_yticklabels()] == ["prime\ntraveler", "secondary\ntraveler",
+                                                                       "anchor"]

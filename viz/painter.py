@@ -1,0 +1,239 @@
+"""Plot pages drawn by painter processes: figures built during the run, filled at its end.
+
+A page is a column of panels; a panel is one series (times, values) or one
+line per robot. What a page shows (its panels' titles, line counts and coded
+levels: its *layout*) is known a few ticks into a run, its data only at the
+end. Most of a page's cost is matplotlib's: importing it (about a second of
+CPU), building the axes and their ticks, rasterising the fonts. So
+:class:`Painters` starts painter processes that pay for all of that while the
+simulation runs, each for its share of the pages (one process per page, up
+to the CPUs this process may use), and at the end of the run only set the
+lines' data and write the PNGs, in parallel. Where no child process can be
+started (a daemonic pool worker, say), or a painter dies, pages are drawn in
+this process by :func:`draw_pages`, through the same three steps.
+
+This module imports only numpy at the top: a painter process starts from it.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any, NamedTuple
+
+import numpy as np
+
+SAVE_DPI = 110
+LEGEND_MAX_ROBOTS = 12  # per-robot panels name their lines up to this many robots
+MAX_PAINTERS = 4  # beyond this, another process's import costs more than the pages it would draw
+
+# A panel's data: (title, data, values, levels). data is (T, 2) [time, value] for
+# a series (values None), or times (T,) with values (T, N) for a per-robot series,
+# whose codes ``levels`` [(value, label)] (or None) are named on the axis.
+Panel = tuple[str, np.ndarray, "np.ndarray | None", "list[tuple[float, str]] | None"]
+# A panel's layout: (title, lines per robot or None for one series, levels or None).
+PanelLayout = tuple[str, "int | None", "tuple[tuple[float, str], ...] | None"]
+
+
+def panel_layout(panel: Panel) -> PanelLayout:
+    title, _, values, levels = panel
+    return title, None if values is None else int(values.shape[1]), tuple(levels) if levels else None
+
+
+class Page(NamedTuple):
+    figure: Any
+    axes: list[Any]
+    lines: list[list[Any]]  # per panel, its lines
+
+
+def build_page(layout: tuple[PanelLayout, ...], robot_names: tuple[str, ...] | None) -> Page:
+    """The figure of one page, with empty lines, labels, legend and coded levels."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
+
+    height = 1.9 * len(layout) + 0.6
+    # The Figure API (no pyplot state) and fixed margins: tight_layout took a fifth of the drawing.
+    figure = Figure(figsize=(8, height), dpi=SAVE_DPI)  # drawn at the dpi it is saved at: caches stay valid
+    FigureCanvasAgg(figure)
+    axes = list(figure.subplots(len(layout), 1, sharex=True, squeeze=False)[:, 0])
+    figure.subplots_adjust(left=0.11, right=0.98, top=1.0 - 0.35 / height, bottom=0.45 / height, hspace=0.12)
+    lines = []
+    legend = True  # on the first per-robot panel of a page
+    for ax, (title, n_lines, levels) in zip(axes, layout):
+        if n_lines is None:
+            lines.append(ax.plot([], [], lw=1.2))
+        else:
+            names = robot_names if robot_names is not None else [f"robot {i}" for i in range(n_lines)]
+            lines.append([ax.plot([], [], lw=1.0, label=names[i])[0] for i in range(n_lines)])
+            if legend and robot_names is not None and n_lines <= LEGEND_MAX_ROBOTS:
+                ax.legend(fontsize=6, ncol=min(n_lines, 6), loc="upper right")
+            legend = False
+            if levels:  # codes (e.g. roles): name each level on the axis
+                # One word a line: "secondary traveler" on one line ran past the page's left edge.
+                ax.set_yticks([v for v, _ in levels], [label.replace(" ", "\n") for _, label in levels], fontsize=7)
+                ax.set_ylim(levels[0][0] - 0.5, levels[-1][0] + 0.5)
+        ax.set_ylabel(title, fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("sim time (s)")
+    # Six time ticks, not nine: the ticks and their grid lines are most of a page's drawing (shared by all panels).
+    axes[0].xaxis.set_major_locator(MaxNLocator(nbins=6, steps=[1, 2, 2.5, 5, 10]))
+    figure.suptitle("run", fontsize=9)
+    return Page(figure, axes, lines)
+
+
+def fill_page(page: Page, panels: list[Panel], title: str) -> None:
+    """Give the page's lines their data (NaN is a gap) and its axes their limits."""
+    for ax, lines, (_, data, values, _) in zip(page.axes, page.lines, panels):
+        if values is None:
+            lines[0].set_data(data[:, 0], data[:, 1])
+        else:
+            for robot, line in enumerate(lines):
+                line.set_data(data, values[:, robot])
+        ax.relim()
+        ax.autoscale_view()
+    page.figure.suptitle(title, fontsize=9)
+
+
+def save_page(page: Page, path: str) -> str:
+    page.figure.savefig(path, dpi=SAVE_DPI, pil_kwargs={"compress_level": 1})  # zlib level 6 took an eighth
+    return path
+
+
+def draw_pages(pages: list[tuple[str, list[Panel]]], title: str, robot_names: tuple[str, ...] | None) -> list[str]:
+    """Write one PNG per page [(path, panels)], in this process; returns the paths."""
+    _matplotlib()
+    return [save_page(_filled(build_page(_layout(panels), robot_names), panels, title), path)
+            for path, panels in pages]
+
+
+def _layout(panels: list[Panel]) -> tuple[PanelLayout, ...]:
+    return tuple(panel_layout(panel) for panel in panels)
+
+
+def _filled(page: Page, panels: list[Panel], title: str) -> Page:
+    fill_page(page, panels, title)
+    return page
+
+
+def _matplotlib() -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+
+
+def usable_cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+class Painters:
+    """Painter processes for one run's pages; page ``i`` is drawn by painter ``i % n``.
+
+    ``plan(layouts)`` (cheap, any number of times: the latest wins) tells the
+    painters what the pages will look like, starting more painters when there
+    are more pages; ``start(pages, title)`` hands them the data and returns at
+    once; ``finish()`` waits for the PNGs.
+    """
+
+    def __init__(self, robot_names: tuple[str, ...] | None, max_painters: int | None = None):
+        self.robot_names = robot_names
+        self.max_painters = max_painters if max_painters is not None else min(MAX_PAINTERS, usable_cpus())
+        self._painters: list[tuple[Any, Any]] = []  # (process, connection)
+        self._can_spawn = True
+        self._started: list[tuple[str, list[Panel]]] | None = None
+        self._title = ""
+        self._add_painter()  # at once: its matplotlib import runs alongside the simulation
+
+    def plan(self, layouts: list[tuple[str, tuple[PanelLayout, ...]]]) -> None:
+        while len(self._painters) < min(len(layouts), self.max_painters) and self._add_painter():
+            pass
+        self._send_shares("layout", layouts)
+
+    def start(self, pages: list[tuple[str, list[Panel]]], title: str) -> None:
+        self._started, self._title = pages, title
+        self._send_shares("draw", pages, title)
+
+    def finish(self) -> list[str]:
+        """The PNG paths in page order; a painter that died has its pages drawn here."""
+        if self._started is None:  # nothing to draw: the painters see their pipe close and end
+            for process, connection in self._painters:
+                connection.close()
+                process.join()
+            self._painters = []
+            return []
+        pages, title = self._started, self._title
+        files: list[str | None] = [None] * len(pages)
+        n = len(self._painters)
+        for index, (process, connection) in enumerate(self._painters):
+            share = list(range(index, len(pages), n))
+            try:
+                drawn = connection.recv()
+            except (EOFError, OSError):  # the painter died: draw its share here
+                drawn = draw_pages([pages[i] for i in share], title, self.robot_names)
+            for i, path in zip(share, drawn):
+                files[i] = path
+            process.join()
+        if not self._painters:
+            files = draw_pages(pages, title, self.robot_names)
+        self._painters = []
+        return [path for path in files if path is not None]
+
+    def _send_shares(self, kind: str, pages: list, *extra: Any) -> None:
+        n = len(self._painters)
+        for index, (_, connection) in enumerate(self._painters):
+            try:
+                connection.send((kind, pages[index::n], *extra))
+            except (OSError, BrokenPipeError):  # a dead painter: finish() draws its share here
+                pass
+
+    def _add_painter(self) -> bool:
+        if not self._can_spawn:
+            return False
+        import multiprocessing
+
+        try:
+            context = multiprocessing.get_context("spawn")
+            connection, child = context.Pipe()
+            process = context.Process(target=_paint, args=(child, self.robot_names), daemon=True,
+                                      name=f"plot-painter-{len(self._painters)}")
+            process.start()
+            child.close()
+        except (AssertionError, OSError, RuntimeError):  # no child processes here (e.g. a daemonic worker)
+            self._can_spawn = False
+            return False
+        self._painters.append((process, connection))
+        return True
+
+
+def _paint(connection, robot_names) -> None:
+    """A painter process: build (and draw once, which creates the ticks and
+    rasterises the fonts) the figures of the pages it is planned, then fill
+    and save them when the data comes."""
+    _matplotlib()
+    from matplotlib.figure import Figure  # noqa: F401  (the expensive import, while the run goes on)
+
+    built: dict[str, tuple[tuple[PanelLayout, ...], Page]] = {}
+    while True:
+        try:
+            kind, pages, *extra = connection.recv()
+        except EOFError:  # the run ended without plots
+            return
+        if kind == "layout":
+            for path, layout in pages:
+                if connection.poll():  # newer news (a new layout or the data): that first
+                    break
+                if path not in built or built[path][0] != layout:
+                    page = build_page(layout, robot_names)
+                    page.figure.canvas.draw()
+                    built[path] = (layout, page)
+            continue
+        (title,) = extra
+        files = []
+        for path, panels in pages:
+            layout = _layout(panels)
+            page = built[path][1] if path in built and built[path][0] == layout else build_page(layout, robot_names)
+            files.append(save_page(_filled(page, panels, title), path))
+        connection.send(files)
+        os._exit(0)  # at once: a normal exit tears down the figures while the run waits in join
