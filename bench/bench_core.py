@@ -12,8 +12,11 @@ timed with this thread's CPU time, interleaved, so the ratio
 survives a shared, busy machine. The real-time factor is simulated seconds
 per wall second of the full ticks; the stage shares come from the loop's own
 ``timing`` (metrics.json's block). Then: seed 000's plan time for 2- and
-4-robot teams (bench/bench_intermittent.py's measurement) and ``--video``'s
-real-time factor against headless.
+4-robot teams (bench/bench_intermittent.py's measurement), ``--video``'s
+real-time factor against headless, and the fixed costs of a run as a user
+starts it (``tether run NAME --duration 20 --out DIR``, a fresh process):
+imports and start-up, set-up (world, strategy, a-priori plans), the ticks and
+the closing (the end-of-run plots and files), in wall seconds.
 
     make bench            # or: .venv/bin/python bench/bench_core.py [--seconds S] [--quick]
 """
@@ -21,7 +24,9 @@ real-time factor against headless.
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -127,13 +132,33 @@ def video_factor(seconds: float) -> tuple[float, float]:
     return headless, video
 
 
+FIXED_COST_RUNS = ("hover", "connected-office", "intermittent-8")
+
+
+def fixed_costs(name: str, duration_s: float) -> dict:
+    """Wall seconds of one ``tether run`` as a user starts it, split with metrics.json's timing block."""
+    with tempfile.TemporaryDirectory() as out:
+        start = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "sim.cli", "run", name, "--duration", f"{duration_s:g}",
+                        "--out", out, "--quiet"], check=True, capture_output=True)
+        command_s = time.perf_counter() - start
+        metrics = json.loads((Path(out) / "metrics.json").read_text())
+        pages = len(list((Path(out) / "plots").glob("*.png")))
+    timing = metrics["timing"]
+    run_s = metrics["wall_time_s"]
+    return {"command_s": command_s, "start_s": command_s - run_s, "setup_s": timing["setup_s"],
+            "ticks_s": run_s - timing["setup_s"] - timing["closing_s"], "closing_s": timing["closing_s"],
+            "pages": pages}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=2.0, help="simulated seconds measured per row")
     parser.add_argument("--warmup", type=float, default=0.5, help="simulated seconds run before measuring")
     parser.add_argument("--plans", type=int, default=8, help="seed 000 plans per team size")
     parser.add_argument("--rows", nargs="*", help="only rows whose label contains one of these")
-    parser.add_argument("--quick", action="store_true", help="core rows only: no planner, no video")
+    parser.add_argument("--quick", action="store_true", help="core rows only: no planner, no video, no fixed costs")
+    parser.add_argument("--fixed-duration", type=float, default=20.0, help="simulated seconds of the fixed-cost runs")
     args = parser.parse_args()
 
     load_average = os.getloadavg()
@@ -163,6 +188,15 @@ def main() -> None:
     headless, video = video_factor(2 * args.seconds)
     print(f"hover, {2 * args.seconds:g} s: real-time factor headless {headless:.2f}, --video {video:.2f} "
           f"(video / headless {video / headless:.2f})")
+    print()
+    print(f"fixed costs: `tether run NAME --duration {args.fixed_duration:g} --out DIR` in a fresh process "
+          "(wall s; start = imports, CLI and exit; closing = end-of-run plots and files)")
+    print("| run | command | start | set-up | ticks | closing | plot pages |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    for name in FIXED_COST_RUNS:
+        cost = fixed_costs(name, args.fixed_duration)
+        print(f"| {name} | {cost['command_s']:.2f} | {cost['start_s']:.2f} | {cost['setup_s']:.2f} | "
+              f"{cost['ticks_s']:.2f} | {cost['closing_s']:.2f} | {cost['pages']} |", flush=True)
 
 
 if __name__ == "__main__":
