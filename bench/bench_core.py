@@ -37,7 +37,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import sim  # noqa: E402,F401  (GL backend before mujoco)
 import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
 
 from sim.estimation_observer import EstimationMetrics  # noqa: E402
 from sim.loop import TIMED_STAGES, Simulation, frozen_heap, run  # noqa: E402

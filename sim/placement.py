@@ -43,7 +43,7 @@ from sim.config import ConfigError, build
 from sim.geometry import Boxes, point_clearance, segment_clearance
 from sim.scenario import SCENE_DIR, Scenario, TargetConfig, from_table, load_table, resolve_scene
 from sim.targets import nominal_path_samples
-from sim.world import ROBOT_PREFIX, ROBOT_RADIUS_M, extract_obstacles, load_scene_spec, scene_bounds
+from sim.world import ROBOT_PREFIX, extract_obstacles, load_scene_spec, scene_bounds
 
 # Clearance of each start from obstacles, m. Quadrotors: the connected method's
 # full-weight line-of-sight clearance in the office (R'_o = 0.6 m), so the

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from connected_helpers import run_checked
-from helpers import TickLog, recorded_ticks, rrd_chunks, rrd_column, rrd_rows, rrd_scalars, rrd_texts
+from helpers import TickLog, recorded_ticks, rrd_chunks, rrd_column, rrd_scalars, rrd_texts
 from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.estimator import SubspaceEstimator
 from controllers.connectivity.roles import Role

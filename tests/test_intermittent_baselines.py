@@ -5,7 +5,6 @@ teams, plans, meetings and estimates."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from helpers import rrd_chunks
 from intermittent_helpers import room_scenario

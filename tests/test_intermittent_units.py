@@ -12,7 +12,6 @@ import pytest
 from controllers.baselines.geodesic import GeodesicPlanner, timed_waypoints
 from controllers.intermittent.params import IntermittentParams
 from controllers.intermittent.planner import RobotPath
-from controllers.intermittent.planner_geometry import edges_free
 from controllers.intermittent.runtime import TimedPath, separation_offsets
 from controllers.intermittent.strategy import Segment, team_connected
 from sim.geometry import Boxes, segments_free

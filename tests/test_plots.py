@@ -48,6 +48,13 @@ def _reference(tmp_path, pages, title: str) -> list[np.ndarray]:
     return [_pixels(path) for path in draw_pages(moved, title, ROBOTS)]
 
 
+def _assert_drawn_as_here(tmp_path, files, pages, title: str) -> None:
+    """``files`` are the pages' PNGs, in order, pixel for pixel what this process draws from scratch."""
+    assert files == [path for path, _ in pages]
+    for path, expected in zip(files, _reference(tmp_path, pages, title)):
+        np.testing.assert_array_equal(_pixels(path), expected)
+
+
 def test_a_page_built_and_drawn_before_its_data_comes_out_the_same(tmp_path):
     pages = _pages(tmp_path)
     reference = _reference(tmp_path, pages, "run completed")
@@ -65,10 +72,7 @@ def test_painters_draw_the_planned_pages_in_parallel_as_this_process_would(tmp_p
     assert len(painters._painters) == 2  # one per page
     time.sleep(3.0)  # let them build ahead (the result must not depend on it)
     painters.start(pages, "run completed")
-    files = painters.finish()
-    assert files == [path for path, _ in pages]
-    for path, expected in zip(files, _reference(tmp_path, pages, "run completed")):
-        np.testing.assert_array_equal(_pixels(path), expected)
+    _assert_drawn_as_here(tmp_path, painters.finish(), pages, "run completed")
 
 
 def test_a_layout_that_changes_after_the_plan_is_drawn_from_scratch(tmp_path):
@@ -77,10 +81,7 @@ def test_a_layout_that_changes_after_the_plan_is_drawn_from_scratch(tmp_path):
     painters.plan(_layouts(_pages(tmp_path, n_series=4)))  # fewer series when planned: one page
     painters.plan(_layouts(_pages(tmp_path, n_series=5)))
     painters.start(pages, "run time limit")
-    files = painters.finish()
-    assert files == [path for path, _ in pages]
-    for path, expected in zip(files, _reference(tmp_path, pages, "run time limit")):
-        np.testing.assert_array_equal(_pixels(path), expected)
+    _assert_drawn_as_here(tmp_path, painters.finish(), pages, "run time limit")
 
 
 def test_pages_of_a_painter_that_died_are_drawn_here(tmp_path):
@@ -91,10 +92,7 @@ def test_pages_of_a_painter_that_died_are_drawn_here(tmp_path):
     os.kill(victim.pid, signal.SIGKILL)
     victim.join(timeout=30)
     painters.start(pages, "run completed")
-    files = painters.finish()
-    assert files == [path for path, _ in pages]
-    for path, expected in zip(files, _reference(tmp_path, pages, "run completed")):
-        np.testing.assert_array_equal(_pixels(path), expected)
+    _assert_drawn_as_here(tmp_path, painters.finish(), pages, "run completed")
 
 
 def test_a_run_that_ends_before_plotting_leaves_no_painter_behind(tmp_path):
@@ -120,10 +118,7 @@ def test_a_daemonic_pool_worker_draws_its_pages_itself(tmp_path):
     with multiprocessing.get_context("spawn").Pool(1) as pool:
         n_painters, files = pool.apply(_draw_in_a_daemonic_worker, (str(tmp_path),))
     assert n_painters == 0  # a daemonic process may not have children
-    pages = _pages(tmp_path)
-    assert files == [path for path, _ in pages]
-    for path, expected in zip(files, _reference(tmp_path, pages, "run completed")):
-        np.testing.assert_array_equal(_pixels(path), expected)
+    _assert_drawn_as_here(tmp_path, files, _pages(tmp_path), "run completed")
 
 
 @pytest.mark.parametrize("robot_names", [ROBOTS, None])

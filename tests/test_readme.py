@@ -16,7 +16,6 @@ import re
 import shlex
 from pathlib import Path
 
-import pytest
 
 from sim.cli import _parser, main
 from sim.placement import INTERMITTENT_KINDS

@@ -39,7 +39,6 @@ import datetime
 import shutil
 import socket
 import subprocess
-import sys
 import time
 import uuid
 from pathlib import Path

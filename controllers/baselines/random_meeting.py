@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 
 from controllers.intermittent.strategy import MeetingStrategy, TeamDesign, ring_points
 from controllers.baselines.geodesic import GeodesicPlanner

@@ -29,7 +29,6 @@ import numpy as np
 
 from controllers.intermittent.params import IntermittentParams
 from controllers.intermittent.planner import PlannerParams, RobotPath
-from controllers.intermittent.planner_geometry import points_free
 # Seed 000's task as every method sees it (re-exported: the strategies import it from here).
 from controllers.task import EstimateSeries, check_time_base, measurement_records, prior_state  # noqa: F401
 from sim.compiled import kernel
