@@ -349,3 +349,28 @@ def test_rest_keyframe_is_at_rest():
     assert abs(data.qpos[2] - PARAMS.wheel_radius) < 1e-3
     assert np.abs(data.qvel).max() < 1e-3
     assert sum(w.number for w in data.warning) == 0
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.03, 0.06])
+@pytest.mark.parametrize("angle_deg", [0, 60, 90, 135, 180])
+def test_a_robot_driving_into_another_never_climbs_or_tips_it(angle_deg, offset):
+    """Robot 0 drives at full wheel speed for 5 s into robot 1 (standing, heading +y),
+    approaching at ``angle_deg`` with its line ``offset`` m beside robot 1's centre.
+    With the chassis' default friction the 6 cm offsets turned a robot over."""
+    fleet = Fleet.make(2)
+    heading = np.radians(angle_deg)
+    start = -0.2 * np.array([np.cos(heading), np.sin(heading)]) + offset * np.array([-np.sin(heading), np.cos(heading)])
+    fleet.place(np.array([start, [0.0, 0.0]]), np.array([heading, np.pi / 2]))
+    full = PARAMS.wheel_speed_max
+    highest, most_tilted = 0.0, 1.0
+    for _ in range(int(round(5.0 / CONTROL_PERIOD))):
+        fleet.apply(np.array([[full, full], [0.0, 0.0]]))
+        for address in fleet.qpos:
+            w, x, y, _ = fleet.data.qpos[address + 3 : address + 7]
+            most_tilted = min(most_tilted, 1.0 - 2.0 * (x * x + y * y))  # the body's up axis, z component
+            highest = max(highest, fleet.data.qpos[address + 2] - PARAMS.wheel_radius)
+    centres, _ = fleet.pose()
+    assert np.linalg.norm(centres[0, :2] - centres[1, :2]) > 0.065  # they did meet, and neither is on the other
+    assert most_tilted > 0.97, f"tilted to an up-axis z of {most_tilted:.3f}"
+    assert highest < 0.005, f"a body rose {highest * 1000:.1f} mm"
+
