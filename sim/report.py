@@ -217,7 +217,7 @@ def _table1_cells(rows: list[dict]) -> dict:
     for r in rows:
         if r.get("status") in FINISHED and _number(r.get("e_g_mean_m")) is not None \
                 and _number(r.get("lambda_bar_mean_m2")) is not None:
-            groups[(int(r.get("n_targets") or 0), r.get("strategy"))].append(r)
+            groups[(_moving_targets(r), r.get("strategy"))].append(r)
     for key, chosen in groups.items():
         e_g = np.array([r["e_g_mean_m"] for r in chosen])
         lam = np.array([r["lambda_bar_mean_m2"] for r in chosen])
@@ -232,12 +232,21 @@ def _table1_cells(rows: list[dict]) -> dict:
     return cells
 
 
+def _moving_targets(row: dict) -> int:
+    """The trial's number of moving targets: metrics.json's ``n_moving_targets``
+    (``n_targets`` in tables written before it was renamed)."""
+    value = row.get("n_moving_targets")
+    if value is None:
+        value = row.get("n_targets")
+    return int(value or 0)
+
+
 def _paired_wins(rows: list[dict], n_targets: int) -> list[str]:
     """Per baseline and metric: in how many seeds (same scenario, same seed)
     the intermittent method is lower."""
     value = {}
     for r in rows:
-        if r.get("status") in FINISHED and int(r.get("n_targets") or 0) == n_targets:
+        if r.get("status") in FINISHED and _moving_targets(r) == n_targets:
             value[(r.get("strategy"), r.get("scenario"), r.get("seed"))] = r
     out = []
     for key, name in (("e_g_mean_m", "e_g"), ("lambda_bar_mean_m2", "lambda-bar")):
@@ -266,7 +275,7 @@ def table1_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
     if not with_e_g:
         return [], []
     cells = _table1_cells(with_e_g)
-    targets = sorted({int(r.get("n_targets") or 0) for r in with_e_g})
+    targets = sorted({_moving_targets(r) for r in with_e_g})
     methods = [m for m in METHOD_ORDER if any(r.get("strategy") == m for r in with_e_g)]
     lines = ["## Seed 000, Table I", "",
              "Ours: mean over trials of each run's time average, +- the mean over trials of each run's std "
@@ -387,7 +396,7 @@ def teams_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
     mine = [r for r in rows if r.get("strategy") == "intermittent" and "e_g_mean_m" in r]
     by_targets = defaultdict(set)
     for r in mine:
-        by_targets[r.get("n_targets")].add(_label(r["scenario"]))
+        by_targets[_moving_targets(r)].add(_label(r["scenario"]))
     compared = {n: s for n, s in by_targets.items() if len(s) >= 2}
     if not compared:
         return [], []

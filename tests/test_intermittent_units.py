@@ -168,7 +168,7 @@ def test_table1_report_tabulates_the_methods_beside_the_paper(tmp_path):
         for method, level in (("intermittent", 0.5), ("random_meeting", 1.0), ("all_time", 2.0)):
             rows.append({"trial_id": f"{method}{seed}", "trial_index": len(rows), "attempt": 1, "status": "completed",
                          "error": "", "scenario": "intermittent-8", "strategy.kind": method, "strategy": method,
-                         "seed": seed, "n_targets": 8, "e_g_mean_m": level + 0.01 * seed, "e_g_std_m": 0.1,
+                         "seed": seed, "n_moving_targets": 8, "e_g_mean_m": level + 0.01 * seed, "e_g_std_m": 0.1,
                          "lambda_bar_mean_m2": level / 4, "lambda_bar_std_m2": 0.01})
     pq.write_table(pa.Table.from_pylist(rows), tmp_path / "results.parquet")
     write_report(tmp_path)

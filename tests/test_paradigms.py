@@ -251,7 +251,7 @@ def test_report_section_of_the_range_sweep(tmp_path):
         for rng in (0.2, 2.0):
             for seed in (0, 1):
                 rows.append({"status": "completed", "strategy": method, "sensing.comm_range_m": rng, "seed": seed,
-                             "n_targets": 8, "e_g_mean_m": 1.0 + k + rng + 0.1 * seed,
+                             "n_moving_targets": 8, "e_g_mean_m": 1.0 + k + rng + 0.1 * seed,
                              "lambda_bar_mean_m2": 0.1 * (1 + k) + 0.01 * seed})
     rows.append({"status": "error", "strategy": "connected_tracking", "sensing.comm_range_m": 0.2, "seed": 2,
                  "error": "ConfigError: robots: the starting graph is disconnected"})

@@ -264,12 +264,12 @@ def fixture_table(folder: Path) -> Path:
     for scenario, targets in (("intermittent-4", 4), ("intermittent-8", 8)):
         for method in ("all_time", "random_meeting", "intermittent"):
             for seed in range(3):
-                row(scenario=scenario, strategy=method, n_targets=targets, seed=seed,
+                row(scenario=scenario, strategy=method, n_moving_targets=targets, seed=seed,
                     e_g_mean_m=1 + rng.random(), e_g_std_m=0.4, lambda_bar_mean_m2=0.2 + rng.random() / 5,
                     lambda_bar_std_m2=0.1, delay_bound_epochs=5, max_delay_epochs_observed=4,
                     t_star_lag_mean_s=10.0, t_star_lag_max_s=20.0)
     for seed in range(3):
-        row(scenario="intermittent-8-dense", strategy="intermittent", n_targets=8, seed=seed,
+        row(scenario="intermittent-8-dense", strategy="intermittent", n_moving_targets=8, seed=seed,
             e_g_mean_m=1.1 + rng.random() / 5, e_g_std_m=0.5, lambda_bar_mean_m2=0.5, lambda_bar_std_m2=0.1,
             delay_bound_epochs=4, max_delay_epochs_observed=3, t_star_lag_mean_s=8.0, t_star_lag_max_s=16.0)
     columns = list(dict.fromkeys(key for r in rows for key in r))  # from_pylist reads the first row's keys only
@@ -299,10 +299,19 @@ def test_report_on_a_fixture_table_writes_figures_and_tables(tmp_path, capsys):
     # Fig. 9: the 35-robot cells have one trial stopped at its time limit: no completion time,
     # but its distance, stretch and lambda2 count.
     assert "| 35 | " in report and "(n=3/4, 1 capped)" in report and "(n=4/4)" in report
-    # Table I beside the paper, with n per cell.
+    # Table I beside the paper, per target count (metrics.json's n_moving_targets), with n per cell.
+    assert "**4 targets**" in report and "**8 targets**" in report and "**0 targets**" not in report
     assert "0.929 ± 0.561" in report and "2.517 ± 0.810" in report and "n=3)" in report
     # Team graphs beside the paper's figures.
     assert "G_T^1" in report and "G_T^2" in report and "1.127" in report and "0.532" in report
+
+
+def test_report_reads_the_target_count_of_tables_written_before_its_rename():
+    from sim.report import _moving_targets
+
+    assert _moving_targets({"n_moving_targets": 8}) == 8
+    assert _moving_targets({"n_targets": 4}) == 4  # results.parquet of an older sweep
+    assert _moving_targets({"n_moving_targets": 0, "n_targets": None}) == 0
 
 
 def test_report_names_an_unknown_column(tmp_path, capsys):
