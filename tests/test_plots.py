@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from viz.painter import Painters, build_page, draw_pages, fill_page, panel_layout, save_page
+from viz.painter import Painters, build_page, draw_pages, fill_page, page_layout, save_page
 
 ROBOTS = ("quad0", "quad1", "quad2")
 ROLES = [(0.0, "prime traveler"), (1.0, "secondary traveler"), (2.0, "anchor")]
@@ -33,7 +33,7 @@ def _pages(folder, n_series: int = 7, n_samples: int = 120) -> list:
 
 
 def _layouts(pages) -> list:
-    return [(path, tuple(panel_layout(p) for p in panels)) for path, panels in pages]
+    return [(path, page_layout(panels)) for path, panels in pages]
 
 
 def _pixels(path) -> np.ndarray:
@@ -59,7 +59,7 @@ def test_a_page_built_and_drawn_before_its_data_comes_out_the_same(tmp_path):
     pages = _pages(tmp_path)
     reference = _reference(tmp_path, pages, "run completed")
     for (path, panels), expected in zip(pages, reference):
-        page = build_page(tuple(panel_layout(p) for p in panels), ROBOTS)
+        page = build_page(page_layout(panels), ROBOTS)
         page.figure.canvas.draw()  # what a painter does while the run goes on: empty axes, default limits
         fill_page(page, panels, "run completed")
         np.testing.assert_array_equal(_pixels(save_page(page, path)), expected)

@@ -120,20 +120,24 @@ def save_page(page: Page, path: str) -> str:
     return path
 
 
-def draw_pages(pages: list[tuple[str, list[Panel]]], title: str, robot_names: tuple[str, ...] | None) -> list[str]:
-    """Write one PNG per page [(path, panels)], in this process; returns the paths."""
-    _matplotlib()
-    return [save_page(_filled(build_page(_layout(panels), robot_names), panels, title), path)
-            for path, panels in pages]
-
-
-def _layout(panels: list[Panel]) -> tuple[PanelLayout, ...]:
+def page_layout(panels: list[Panel]) -> tuple[PanelLayout, ...]:
     return tuple(panel_layout(panel) for panel in panels)
 
 
-def _filled(page: Page, panels: list[Panel], title: str) -> Page:
-    fill_page(page, panels, title)
-    return page
+def draw_pages(pages: list[tuple[str, list[Panel]]], title: str, robot_names: tuple[str, ...] | None,
+               built: dict[str, tuple[tuple[PanelLayout, ...], Page]] | None = None) -> list[str]:
+    """Write one PNG per page [(path, panels)]; returns the paths. A page in ``built``
+    (path -> (layout, page), a painter's figures built ahead) is filled if its layout
+    still holds, else built here."""
+    _matplotlib()
+    files = []
+    for path, panels in pages:
+        layout = page_layout(panels)
+        ahead = (built or {}).get(path)
+        page = ahead[1] if ahead is not None and ahead[0] == layout else build_page(layout, robot_names)
+        fill_page(page, panels, title)
+        files.append(save_page(page, path))
+    return files
 
 
 def _matplotlib() -> None:
@@ -251,10 +255,5 @@ def _paint(connection, robot_names) -> None:
                     built[path] = (layout, page)
             continue
         (title,) = extra
-        files = []
-        for path, panels in pages:
-            layout = _layout(panels)
-            page = built[path][1] if path in built and built[path][0] == layout else build_page(layout, robot_names)
-            files.append(save_page(_filled(page, panels, title), path))
-        connection.send(files)
+        connection.send(draw_pages(pages, title, robot_names, built))
         os._exit(0)  # at once: a normal exit tears down the figures while the run waits in join

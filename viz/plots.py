@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.observers import Frame, tracking_errors
-from viz.painter import Painters, panel_layout
+from viz.painter import Painters, page_layout
 
 PANELS_PER_FIGURE = 6
 PER_ROBOT_SUFFIX = " (per robot)"
@@ -64,7 +64,7 @@ class PlotRecorder:
         if (len(self.series), len(self.robot_series), len(self.levels)) != self._planned:
             # Series only ever appear: a new count is a new layout for the painters to build.
             self._planned = (len(self.series), len(self.robot_series), len(self.levels))
-            self._painters.plan([(path, tuple(panel_layout(p) for p in panels)) for path, panels in self._pages()])
+            self._painters.plan([(path, page_layout(panels)) for path, panels in self._pages()])
 
     def panels(self) -> list[str]:
         """Panel titles in drawing order: the series, then the per-robot series."""
