@@ -39,7 +39,8 @@ import sim  # noqa: E402,F401  (GL backend before mujoco)
 import mujoco  # noqa: E402
 
 from sim.estimation_observer import EstimationMetrics  # noqa: E402
-from sim.loop import TIMED_STAGES, Simulation, frozen_heap, run  # noqa: E402
+from sim.loop import TIMED_STAGES, frozen_heap
+from tether.runner import build_simulation, run  # noqa: E402
 from sim.observers import LinkMetrics, TrackingMetrics  # noqa: E402
 from sim.scenario import load  # noqa: E402
 
@@ -62,7 +63,7 @@ ROWS = (
 
 def measure(scenario_name: str, overrides: list[str], seconds: float, warmup_s: float) -> dict:
     """Ratio, real-time factor and stage shares of one scenario (see the module docstring)."""
-    simulation = Simulation(load(scenario_name, overrides))
+    simulation = build_simulation(load(scenario_name, overrides))
     observers = [EstimationMetrics(), TrackingMetrics(simulation.world.robot_kinds), LinkMetrics()]
     with frozen_heap():  # as sim.loop.run does around its ticks
         return _measure_ticks(simulation, observers, scenario_name, overrides, seconds, warmup_s)
@@ -138,7 +139,7 @@ def fixed_costs(name: str, duration_s: float) -> dict:
     """Wall seconds of one ``tether run`` as a user starts it, split with metrics.json's timing block."""
     with tempfile.TemporaryDirectory() as out:
         start = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "sim.cli", "run", name, "--duration", f"{duration_s:g}",
+        subprocess.run([sys.executable, "-m", "tether.cli", "run", name, "--duration", f"{duration_s:g}",
                         "--out", out, "--quiet"], check=True, capture_output=True)
         command_s = time.perf_counter() - start
         metrics = json.loads((Path(out) / "metrics.json").read_text())

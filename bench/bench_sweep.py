@@ -28,7 +28,7 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from sim.sweep import (ProcessPool, RayCluster, ResultsFolder, load_sweep, local_ray_cluster,  # noqa: E402
+from tether.sweep import (ProcessPool, RayCluster, ResultsFolder, load_sweep, local_ray_cluster,  # noqa: E402
                        read_results, run_sweep)
 
 # Typical simulated seconds of a whole trial (README, seed 1-4 measurements):

@@ -23,6 +23,7 @@ import numpy as np
 from sim.compiled import kernel
 from sim.config import param, require
 from sim.types import Commands, Observation, WorldInfo
+from sim.strategy import Strategy
 
 _MIN_JERK_PEAK_RATIO = 1.875  # peak / mean speed of s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5
 Vec3 = tuple[float, float, float]
@@ -159,7 +160,7 @@ def _sample_routes(times, starts, deltas, durations, counts, periods, dwell, two
             t -= duration
 
 
-class WaypointStrategy:
+class WaypointStrategy(Strategy):
     """Loops every robot through [its start, *its route]."""
 
     def __init__(self, params: WaypointParams):

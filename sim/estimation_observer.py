@@ -22,10 +22,10 @@ from typing import Any
 
 import numpy as np
 
-from sim.observers import Frame
+from sim.observers import Frame, Observer
 
 
-class EstimationMetrics:
+class EstimationMetrics(Observer):
     def __init__(self):
         self.steps: list[int] = []
         self.errors: list[float] = []

@@ -1,6 +1,9 @@
 """The step loop: sense -> strategy -> low-level control -> physics -> observers.
 
-``run`` is importable and headless; the CLI is a thin layer over it. One
+:class:`Simulation` is composed, not hard-wired: it is handed a strategy
+factory (parameters -> :class:`sim.strategy.Strategy`) and a low-level
+control factory (world -> :class:`LowLevel`), and :func:`run_ticks` is handed
+the observers; the application (``tether.runner``) picks them. One
 ``np.random.Generator`` (seeded from the scenario) is created here and passed
 down in a fixed order: target motion noise, range noise, then the strategy.
 Observers only read, so video and recording never change the trajectory.
@@ -17,22 +20,19 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Protocol, Sequence
 
 import mujoco
 import numpy as np
 
-from sim.actuation import LowLevelControl
-from sim.estimation_observer import EstimationMetrics
-from sim.observers import Frame, LinkMetrics, Observer, TrackingMetrics
-from sim.outputs import ProgressFile, Staging, json_safe, non_finite_fields, write_json
-from sim.registry import strategy_class
 from sim.config import ConfigError
+from sim.observers import Frame, Observer
 from sim.scenario import Scenario, StrategyConfig
 from sim.sensing import RaySensors
+from sim.strategy import Status, Strategy
 from sim.targets import TargetDriver, nominal_path_samples
-from sim.types import Observation, WorldInfo
-from sim.validate import NON_FINITE, check_output_folder, check_scenario, sanity_limits, tick_sanity, tick_violation
+from sim.types import Commands, Observation, WorldInfo
+from sim.validate import NON_FINITE, sanity_limits, tick_sanity, tick_violation
 from sim.world import World, build_world
 
 _WARNINGS_THAT_DIVERGE = tuple(int(w) for w in (
@@ -43,7 +43,7 @@ _WARNINGS_THAT_DIVERGE = tuple(int(w) for w in (
 ))
 
 
-_mujoco_warnings: list[str] = []
+mujoco_warnings: list[str] = []  # this run's MuJoCo warnings, newest last (cleared by the runner)
 
 # Stages of a control tick timed by the loop (wall seconds, time.perf_counter),
 # reported as metrics.json's ``timing`` block.
@@ -53,19 +53,24 @@ TIMED_STAGES = ("physics", "sensing", "strategy", "lowlevel", "observers")
 def _collect_warning(text: str) -> None:
     # MuJoCo would print and append to MUJOCO_LOG.TXT in the working folder;
     # the loop reports divergence itself, with the first warning's text.
-    _mujoco_warnings.append(text.strip())
+    mujoco_warnings.append(text.strip())
 
 
 mujoco.set_mju_user_warning(_collect_warning)
 
 
-@dataclass
-class RunResult:
-    status: str  # "completed" | "time limit" | "diverged" | "interrupted" (see end_of_run)
-    metrics: dict[str, Any]
-    out_dir: Path | None
-    files: dict[str, str] = field(default_factory=dict)
-    trajectory: np.ndarray | None = None  # (ticks, N, 3) body positions, when asked
+class LowLevel(Protocol):
+    """Turns references into actuator commands (``data.ctrl``) for every robot."""
+
+    def hover_ctrl(self) -> None:
+        """Initial actuator commands, before the first tick."""
+
+    def apply(self, observation: Observation, commands: Commands) -> None:
+        """Write ``data.ctrl`` for the references in ``commands``."""
+
+
+StrategyFactory = Callable[[Any], Strategy]  # validated parameters -> a fresh strategy (not reset)
+LowLevelFactory = Callable[[World], LowLevel]
 
 
 @contextlib.contextmanager
@@ -85,31 +90,31 @@ def frozen_heap():
         gc.unfreeze()
 
 
-def end_of_run(strategy: Any, mission_ended: bool, duration_s: float, time_s: float) -> tuple[str, str]:
-    """Status word and message of a run that did not diverge.
+def end_of_run(strategy: Strategy, mission_ended: bool, duration_s: float, time_s: float) -> tuple[Status, str]:
+    """Status and message of a run that did not diverge.
 
-    A strategy with a ``finished`` attribute has a mission that can end (every
-    target visited); if the duration runs out first the run stopped at its
-    "time limit", which a user must not read as "completed". A strategy
-    without one (waypoints, the intermittent methods' tracking over
-    [0, t_end]) has done its job when it ran the full duration. The optional
-    ``progress() -> str`` says how far the mission got (e.g. "7/25 targets
-    visited") in either case.
+    A strategy whose mission can end (:attr:`Strategy.mission_can_end`) and
+    whose duration ran out first stopped at its "time limit", which a user
+    must not read as "completed"; any other strategy has done its job when it
+    ran the full duration. :meth:`Strategy.progress` says how far the
+    mission got (e.g. "7/25 targets visited") in either case.
     """
-    progress = strategy.progress() if callable(getattr(strategy, "progress", None)) else ""
+    progress = strategy.progress()
     detail = f": {progress}" if progress else ""
     if mission_ended:
-        return "completed", f"mission completed at t = {time_s:.1f} s{detail}"
-    if hasattr(strategy, "finished"):
-        return "time limit", f"stopped at the {duration_s:g} s time limit before the mission ended{detail}"
-    return "completed", f"ran the full {duration_s:g} s{detail}"
+        return Status.COMPLETED, f"mission completed at t = {time_s:.1f} s{detail}"
+    if strategy.mission_can_end:
+        return Status.TIME_LIMIT, f"stopped at the {duration_s:g} s time limit before the mission ended{detail}"
+    return Status.COMPLETED, f"ran the full {duration_s:g} s{detail}"
 
 
 class Simulation:
     """Owns the world and the per-tick pieces; ``tick()`` advances one control period."""
 
-    def __init__(self, scenario: Scenario, rng: np.random.Generator | None = None):
+    def __init__(self, scenario: Scenario, strategy_factory: StrategyFactory, lowlevel_factory: LowLevelFactory,
+                 rng: np.random.Generator | None = None):
         self.scenario = scenario
+        self.strategy_factory = strategy_factory
         self.rng = rng if rng is not None else np.random.default_rng(scenario.seed)
         self.targets = TargetDriver(scenario, self.rng)
         starts = self.targets.positions(0.0)
@@ -117,7 +122,7 @@ class Simulation:
         self.world: World = build_world(scenario, starts, samples)
         self.sensors = RaySensors(self.world, scenario.sensing.comm_range_m, scenario.sensing.target_range_m,
                                   scenario.sensing.range_noise)
-        self.control = LowLevelControl(self.world)
+        self.control = lowlevel_factory(self.world)
         self.substeps = scenario.physics.substeps
         self.world.model.opt.timestep = scenario.physics.timestep_s
         self.dt = scenario.physics.control_period_s
@@ -150,23 +155,22 @@ class Simulation:
         self.control.hover_ctrl()
         mujoco.mj_forward(self.world.model, self.world.data)
         self._start_height = np.array([self.world.data.qpos[a + 2] for a in self.world.qpos_adr])
-        self.strategy = strategy_class(scenario.strategy.kind)(scenario.strategy.params)
+        self.strategy: Strategy = strategy_factory(scenario.strategy.params)
         self.strategy.reset(self.info, self.observe(read_targets=False), self.rng)
 
     def set_strategy_params(self, params: Any) -> str:
         """Swap the running strategy's parameters between ticks (the next tick
-        uses them): the strategy's own ``update_params`` when it has one and
-        accepts them ("updated"), else a fresh strategy reset at the current
-        state ("restarted"). ``params`` must already be validated (built
+        uses them): the strategy's own ``update_params`` when it accepts them
+        ("updated"), else a fresh strategy reset at the current state
+        ("restarted"). ``params`` must already be validated (built
         through sim.config.build); ConfigError if the strategy refuses them,
         in which case the running strategy is kept unchanged."""
         kind = self.scenario.strategy.kind
-        update = getattr(self.strategy, "update_params", None)
         try:
-            if callable(update) and update(params):
+            if self.strategy.update_params(params):
                 how = "updated"
             else:
-                fresh = strategy_class(kind)(params)
+                fresh = self.strategy_factory(params)
                 fresh.reset(self.info, self.observe(read_targets=False), self.rng)
                 self.strategy = fresh
                 how = "restarted"
@@ -249,8 +253,8 @@ class Simulation:
     def _check(self, commands) -> str:
         """Why the state after this tick is not sane ("" if it is): non-finite
         physics, a MuJoCo warning, a robot out of the scene, fallen or tipped
-        over (sim.validate), or the strategy's own invariant (its optional
-        ``violation(commands)``)."""
+        over (sim.validate), or the strategy's own invariant
+        (:meth:`Strategy.violation`)."""
         code, robot = tick_sanity(self.world, self._qpos, self._qvel, self._qpos_adr, self._start_height,
                                   self._sanity_limits)
         if code == NON_FINITE:
@@ -258,14 +262,11 @@ class Simulation:
         count = self._warning_count()
         if count != self._warnings:
             self._warnings = count
-            return "physics: " + (_mujoco_warnings[-1] if _mujoco_warnings else "MuJoCo warning")
+            return "physics: " + (mujoco_warnings[-1] if mujoco_warnings else "MuJoCo warning")
         reason = tick_violation(self.world, code, robot, self._qpos, self._qpos_adr)
         if reason:
             return reason
-        violation = getattr(self.strategy, "violation", None)
-        if callable(violation):
-            return violation(commands) or ""
-        return ""
+        return self.strategy.violation(commands) or ""
 
 
 def timing_summary(timing: dict[str, float], setup_s: float, closing_s: float) -> dict[str, float | None]:
@@ -316,104 +317,45 @@ class _Interrupts:
             signal.signal(sig, handler)
 
 
-def _observers(sim: Simulation, folder: Path | None, video: bool, rrd: bool, live: Any,
-               final: Callable[[str], str]) -> tuple[list[Any], dict[str, Any], dict[str, str]]:
-    """The run's observers, writing into ``folder`` (the staging folder);
-    ``final(name)`` is where a file ends up. Returns (observers, named
-    observers, files)."""
-    scenario = sim.scenario
-    estimation = EstimationMetrics()  # first: it adds e_g to the frame's scalars for the observers after it
-    named: dict[str, Any] = {"estimation": estimation, "tracking": TrackingMetrics(sim.world.robot_kinds),
-                             "links": LinkMetrics()}
-    observers: list[Any] = list(named.values())
-    files: dict[str, str] = {}
-    if folder is None:
-        return observers, named, files
-    from viz.plots import PlotRecorder
+@dataclass
+class TickOutcome:
+    """How :func:`run_ticks` ended."""
 
-    named["plots"] = PlotRecorder(sim.world.robot_kinds, folder / "plots", robot_names=sim.world.robot_names)
-    named["progress"] = ProgressFile(folder / "progress.json")
-    observers += [named["plots"], named["progress"]]
-    if video:
-        from viz.video import VideoRecorder
-
-        files["video"] = final("video.mp4")
-        observers.append(VideoRecorder(sim.world, scenario.video, str(folder / "video.mp4"), sim.dt))
-    if rrd or live is not None:
-        from viz.recording import RerunRecorder
-
-        files["recording"] = final("run.rrd")
-        named["recorder"] = RerunRecorder(sim.world, str(folder / "run.rrd"), scenario.name, live_stream=live)
-        observers.append(named["recorder"])
-    return observers, named, files
+    status: Status
+    message: str
+    closing_s: float  # wall s spent closing the observers
+    trajectory: np.ndarray | None = None  # (ticks, N, 3) body positions, when asked
 
 
-def run(
-    scenario: Scenario,
-    out_dir: str | Path | None = None,
-    video: bool = False,
-    rrd: bool = False,
-    live: Any = None,
-    keep_trajectory: bool = False,
-    progress: Callable[[Simulation], None] | None = None,
-    extra_observers: Sequence[Observer] = (),
-) -> RunResult:
-    """Run a scenario headless; write metrics.json (+ video.mp4, run.rrd, plots/) to out_dir.
+def run_ticks(sim: Simulation, observers: Sequence[Observer], duration_s: float,
+              progress: Callable[[Simulation], None] | None = None, keep_trajectory: bool = False,
+              on_closed: Callable[[Status, str], None] | None = None) -> TickOutcome:
+    """Tick ``sim`` for ``duration_s`` with ``observers``, then close them.
 
-    Every input is checked first (ConfigError, nothing built or written:
-    sim.validate). The run writes into a staging folder beside ``out_dir``
-    and moves its files into place when it ends (sim.outputs), so a refused
-    or crashed run leaves earlier results untouched. Status: "completed" or
-    "time limit" (see :func:`end_of_run`), "diverged" (physics, a robot out
-    of the scene, fallen or tipped over, or the strategy's invariant;
-    ``message`` says which) or "interrupted" (SIGINT / SIGTERM, stopped at
-    the next tick). ``extra_observers`` see every tick after the built-in
-    ones and are closed with them. ``progress`` is called with the
-    :class:`Simulation` every 100 ticks (e.g. :class:`sim.progress.RunProgress`).
+    Stops early when the strategy's mission ends (:attr:`Strategy.finished`),
+    the state diverges (``sim.divergence``) or SIGINT / SIGTERM arrives (the
+    run stops at the next tick: "interrupted"). ``progress`` is called every
+    100 ticks. ``on_closed(status, message, closing_s)`` runs after every observer
+    closed, still under the signal guard (the caller writes its files
+    there). On an exception the observers are closed "failed" and it
+    propagates.
     """
-    wall_start = time.perf_counter()
-    _mujoco_warnings.clear()
-    out = Path(out_dir) if out_dir is not None else None
-    if out is None and (video or rrd or live is not None):
-        raise ConfigError("--out", "a video or a recording needs an output folder")
-    if out is not None:
-        check_output_folder(out)
-    check_scenario(scenario)
-    sim = Simulation(scenario)
-    if video:
-        from viz.video import resolve_camera
-
-        resolve_camera(sim.world.model, scenario.video.camera)  # refuse before writing anything
-    staging = Staging(out) if out is not None else None
-    try:
-        observers, named, files = _observers(sim, staging.path if staging else None, video, rrd, live,
-                                             staging.final if staging else str)
-    except BaseException:
-        if staging is not None:
-            staging.discard()
-        raise
-    observers += list(extra_observers)
-    recorder = named.get("recorder")
-
-    n_ticks = int(round(scenario.duration_s / sim.dt))
-    status = "completed"
+    n_ticks = int(round(duration_s / sim.dt))
+    status, message = Status.COMPLETED, ""
     mission_ended = False
     trajectory = [] if keep_trajectory else None
-    message = ""
-    info_readers = [getattr(observer, "reads_info", None) for observer in observers]
-    always_info = any(reader is None for reader in info_readers)
+    readers = [observer.reads_info for observer in observers]
     timing = sim.timing
-    setup_s = time.perf_counter() - wall_start
     closed = False
     try:
         with _Interrupts() as interrupts, frozen_heap():
             try:
                 for _ in range(n_ticks):
                     if interrupts.requested:
-                        status = "interrupted"
+                        status = Status.INTERRUPTED
                         message = f"interrupted ({interrupts.requested}) at t = {sim.time_s:.3f} s"
                         break
-                    info_wanted = always_info or any(reader(sim.time_s) for reader in info_readers)
+                    info_wanted = any(reader(sim.time_s) for reader in readers)
                     frame, healthy = sim.tick(info_wanted)
                     observed = time.perf_counter()
                     for observer in observers:
@@ -422,88 +364,42 @@ def run(
                     if trajectory is not None:
                         trajectory.append(frame.observation.position)
                     if not healthy:
-                        status = "diverged"
+                        status = Status.DIVERGED
                         message = f"diverged at t = {sim.time_s:.3f} s: {sim.divergence}"
                         break
                     if progress is not None and sim.tick_count % 100 == 0:
                         progress(sim)
-                    if getattr(sim.strategy, "finished", False):
-                        # The strategy's mission is over (e.g. every target visited): stop early.
-                        if recorder is not None:
-                            recorder.event(sim.time_s, f"strategy finished at t = {sim.time_s:.2f} s",
-                                           tick=sim.tick_count)
+                    if sim.strategy.finished:
+                        for observer in observers:
+                            observer.on_event(sim.time_s, f"strategy finished at t = {sim.time_s:.2f} s",
+                                              tick=sim.tick_count)
                         mission_ended = True
                         break
             except KeyboardInterrupt:  # a second Ctrl-C, or one before the handlers were in place
-                status = "interrupted"
+                status = Status.INTERRUPTED
                 message = f"interrupted (SIGINT) at t = {sim.time_s:.3f} s"
-            if status == "completed":  # ran to its end: the mission's end or the time limit
-                status, message = end_of_run(sim.strategy, mission_ended, scenario.duration_s, sim.time_s)
+            if status == Status.COMPLETED:  # ran to its end: the mission's end or the time limit
+                status, message = end_of_run(sim.strategy, mission_ended, duration_s, sim.time_s)
             interrupts.closing = True
-            if status in ("diverged", "interrupted") and recorder is not None:
-                recorder.event(sim.time_s, message, level="ERROR" if status == "diverged" else "WARN",
-                               tick=sim.tick_count)
+            if status in (Status.DIVERGED, Status.INTERRUPTED):
+                level = "ERROR" if status == Status.DIVERGED else "WARN"
+                for observer in observers:
+                    observer.on_event(sim.time_s, message, level=level, tick=sim.tick_count)
             closed = True
             closing = time.perf_counter()
             for observer in observers:  # work that can go on while the others close (plots' painters)
-                start_closing = getattr(observer, "start_closing", None)
-                if start_closing is not None:
-                    start_closing(status)
+                observer.start_closing(status)
             for observer in observers:
                 observer.close(status)
             closing_s = time.perf_counter() - closing
-            metrics = _metrics(scenario, sim, status, message, time.perf_counter() - wall_start, named,
-                               timing_summary(timing, setup_s, closing_s))
-            if staging is not None:
-                write_json(staging.path / "metrics.json", metrics)
-                staging.commit()
-    except BaseException:  # a bug (or a forced stop): close what is open, keep the earlier results
+            if on_closed is not None:
+                on_closed(status, message, closing_s)
+    except BaseException:  # a bug (or a forced stop): close what is open
         if not closed:
             for observer in observers:
                 try:
-                    observer.close("failed")
+                    observer.close(Status.FAILED)
                 except Exception:  # noqa: BLE001 (the first error is the one to report)
                     pass
-        if staging is not None:
-            staging.discard()
         raise
-    if staging is not None:
-        if named["plots"].files:
-            files["plots"] = staging.final("plots")
-        files["metrics"] = staging.final("metrics.json")
-    return RunResult(status, metrics, out, files, np.array(trajectory) if trajectory is not None else None)
-
-
-def _metrics(scenario: Scenario, sim: Simulation, status: str, message: str, wall: float,
-             named: dict[str, Any], timing: dict[str, Any]) -> dict[str, Any]:
-    """The run's metrics.json: the foundation's figures and the strategy's
-    summary; a non-finite figure becomes null and the message names it."""
-    metrics: dict[str, Any] = {
-        "scenario": scenario.name,
-        "strategy": scenario.strategy.kind,
-        "seed": scenario.seed,
-        "status": status,
-        "message": message,
-        "sim_time_s": sim.time_s,
-        "wall_time_s": wall,
-        "real_time_factor": sim.time_s / wall if wall > 0 else None,
-        "n_robots": sim.world.n_robots,
-        "n_quadrotors": int(len(sim.world.kind_index["quadrotor"])),
-        "n_ground_robots": int(len(sim.world.kind_index["ground"])),
-        # The scene's moving targets ([[targets]], tracked by range sensors), not
-        # the connected method's points to visit (its targets_to_visit).
-        "n_moving_targets": sim.targets.n_targets,
-        "control_ticks": sim.tick_count,
-        "timing": timing,
-        **named["tracking"].summary(),
-        **named["links"].summary(),
-        **named["estimation"].summary(),
-    }
-    summary = getattr(sim.strategy, "summary", None)
-    if callable(summary):
-        metrics.update(summary())
-    missing = non_finite_fields(metrics)
-    if missing:
-        note = f"not finite, written as null: {', '.join(missing)}"
-        metrics["message"] = f"{message}; {note}" if message else note
-    return json_safe(metrics)
+    return TickOutcome(status, message, closing_s, np.array(trajectory) if trajectory is not None else None)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
@@ -24,21 +24,32 @@ class Frame:
     target_positions: np.ndarray  # (M, 3) true positions, m
 
 
-class Observer(Protocol):
-    """Sees every tick's frame; ``close`` once at the end.
+class Observer:
+    """Sees every tick's frame and never changes the simulation; closed once at the end.
 
-    Optional: ``reads_info(time_s) -> bool``, whether it will read
-    ``frame.commands.info`` beyond the metrics keys on the tick that starts at
-    ``time_s``; the loop asks the strategy for its figures and decorations only
-    when some observer does. An observer without it is assumed to read them
-    every tick. ``start_closing(status)``, called on every observer before
-    the first ``close``: start closing work that can go on while the other
-    observers close (the plots' painters draw while the video is encoded).
+    Subclasses implement :meth:`on_tick` and :meth:`close`; the other hooks
+    have defaults.
     """
 
-    def on_tick(self, frame: Frame) -> None: ...
+    def reads_info(self, time_s: float) -> bool:
+        """Whether it reads ``frame.commands.decorations`` or the strategy's
+        figures on the tick that starts at ``time_s``; the loop asks the
+        strategy to build them only when some observer does."""
+        return True
 
-    def close(self, status: str) -> None: ...
+    def on_tick(self, frame: Frame) -> None:
+        """One control tick: ``frame`` is the state before the step."""
+
+    def on_event(self, time_s: float, text: str, level: str = "INFO", tick: int | None = None) -> None:
+        """Something happened that the run reports (a mission's end, a divergence, an interruption)."""
+
+    def start_closing(self, status: str) -> None:
+        """Called on every observer before the first :meth:`close`: start
+        closing work that can go on while the other observers close (the
+        plots' painters draw while the video is encoded)."""
+
+    def close(self, status: str) -> None:
+        """The run is over with ``status``; finish writing."""
 
 
 def tracking_errors(robot_kinds: tuple[str, ...], position: np.ndarray, reference: np.ndarray) -> np.ndarray:
@@ -66,7 +77,7 @@ def _tracking_errors(ground, position, reference, error):
         error[i] = np.sqrt(dx * dx + dy * dy + dz * dz)
 
 
-class TrackingMetrics:
+class TrackingMetrics(Observer):
     """Body vs reference ("virtual point") error: 3D for quadrotors, horizontal
     for ground robots (their reference height is meaningless)."""
 
@@ -95,7 +106,7 @@ class TrackingMetrics:
         return {"tracking_error_mean_m": mean, "tracking_error_max_m": self._max if self._count else None}
 
 
-class LinkMetrics:
+class LinkMetrics(Observer):
     """Communication-graph figures over the run."""
 
     def __init__(self):

@@ -25,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from sim.observers import Observer
+
 # The files and folders a run writes; a reused output folder loses those of an earlier run.
 RUN_FILES = ("metrics.json", "progress.json", "video.mp4", "run.rrd", "plots", "run.rrd.segments")
 PARTIAL_SUFFIX = ".partial-"
@@ -118,7 +120,7 @@ def _remove(path: Path) -> None:
         path.unlink()
 
 
-class ProgressFile:
+class ProgressFile(Observer):
     """Observer: ``progress.json`` with the latest tick's figures (time,
     tick, links, the strategy's scalars), rewritten every ``period_s`` of
     wall time, so a run killed outright still says how far it got."""

@@ -1,7 +1,7 @@
 """Scenario files: TOML -> a validated, frozen :class:`Scenario`.
 
-A scenario is a built-in name (``sim/scenarios/NAME.toml``) or a path to a
-TOML file. ``--set key=value`` overrides use dotted keys; list entries are
+A scenario is a built-in name (a ``NAME.toml`` in the folder the application
+registers: :func:`register_scenario_folder`) or a path to a TOML file. ``--set key=value`` overrides use dotted keys; list entries are
 addressed by index (``robots.0.count=6``). Checks that need the compiled
 world (robots inside walls, outside the scene) happen in :mod:`sim.world`.
 """
@@ -17,11 +17,23 @@ from pathlib import Path
 from typing import Any, Literal
 
 from sim.config import ConfigError, build, builtin_descriptions, builtin_or_file, require, to_table
-from sim.registry import strategy_params_class, strategy_kinds
+from sim.strategy import strategy_kinds, strategy_params_class
+from models import MODELS_DIR
 
-SCENARIO_DIR = Path(__file__).parent / "scenarios"
-MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 SCENE_DIR = MODELS_DIR / "scenes"
+# The folder of built-in scenarios (NAME.toml), registered by the application
+# (tether.catalog), which owns them: they name its strategy kinds.
+_builtin_scenario_folder: list[Path] = []
+
+
+def register_scenario_folder(folder: Path) -> None:
+    """Make every ``folder/NAME.toml`` a built-in scenario ``NAME``."""
+    _builtin_scenario_folder[:] = [Path(folder)]
+
+
+def builtin_scenario_folder() -> Path:
+    """The registered folder of built-in scenarios (a folder that does not exist before one is)."""
+    return _builtin_scenario_folder[0] if _builtin_scenario_folder else MODELS_DIR / "no-builtin-scenarios"
 
 Vec3 = tuple[float, float, float]
 
@@ -223,7 +235,7 @@ def builtin_scenes() -> list[str]:
 
 def builtin_scenarios() -> dict[str, str]:
     """Built-in scenario name -> one-line description."""
-    return builtin_descriptions(SCENARIO_DIR)
+    return builtin_descriptions(builtin_scenario_folder())
 
 
 def _parse_value(text: str) -> Any:
@@ -262,7 +274,7 @@ def apply_override(table: dict, assignment: str) -> None:
 
 def read_table(name_or_path: str) -> tuple[dict, str]:
     """The raw TOML table of a built-in name or a file, and its source path."""
-    path = builtin_or_file(name_or_path, SCENARIO_DIR, "scenario")
+    path = builtin_or_file(name_or_path, builtin_scenario_folder(), "scenario")
     try:
         with open(path, "rb") as f:
             raw = f.read(MAX_SCENARIO_BYTES + 1)

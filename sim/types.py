@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol
+from typing import Any, Callable
 
 import numpy as np
 
@@ -104,36 +104,3 @@ class Commands:
         for name in ("position", "velocity", "acceleration"):
             assert getattr(self, name).shape == (n, 3), (name, getattr(self, name).shape)
         assert self.yaw.shape == (n,), self.yaw.shape
-
-
-class Strategy(Protocol):
-    """What the loop needs from a method; it never knows which one runs.
-
-    Optional: ``update_params(params) -> bool`` takes new parameters (same
-    dataclass, already validated) from the next tick on and returns True; a
-    strategy without it, or returning False, is rebuilt with the new
-    parameters and reset at the current state
-    (:meth:`sim.loop.Simulation.set_strategy_params`).
-
-    Optional: a ``finished`` attribute (bool); once it reads True after a
-    tick, :func:`sim.loop.run` stops early (e.g. every target visited), and a
-    run whose duration runs out first ends with status "time limit".
-    Optional: ``progress() -> str``, how far the mission got ("7/25 targets
-    visited"), for the run's status message.
-    Optional: ``summary() -> dict``, merged into metrics.json.
-    Optional: ``violation(commands) -> str | None``, the strategy's own
-    invariant after each tick (None: kept); a reason stops the run
-    "diverged" with it (and pauses the tuning page). ``update_params`` may
-    raise ValueError("field: problem") to refuse a change that would break
-    it at the current state.
-
-    ``step`` may skip building ``Commands.info``'s figures and decorations
-    when ``observation.info_wanted`` is False (no observer reads them this
-    tick); the metrics keys stay.
-    """
-
-    def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
-        """Prepare for a run starting at ``initial``; keep ``rng`` for all randomness."""
-
-    def step(self, observation: Observation) -> Commands:
-        """References for every robot for the next control period."""

@@ -10,6 +10,7 @@ from controllers.connectivity.graph import connectivity_state
 from controllers.connectivity.roles import Role
 from sim.geometry import point_clearance
 from sim.loop import Simulation
+from tether.runner import build_simulation
 
 
 class InvariantLog:
@@ -48,7 +49,7 @@ class InvariantLog:
 def run_checked(scenario, duration_s: float | None = None) -> tuple[Simulation, InvariantLog]:
     """Tick ``scenario`` for ``duration_s`` (default: its own) or until the strategy
     finishes, checking the invariants and that the physics stays healthy."""
-    sim = Simulation(scenario)
+    sim = build_simulation(scenario)
     log = InvariantLog(sim)
     ticks = int(round((duration_s or scenario.duration_s) / sim.dt))
     for _ in range(ticks):

@@ -5,6 +5,8 @@ from __future__ import annotations
 import textwrap
 from pathlib import Path
 
+from sim.observers import Observer
+
 WALL_SCENE = """
 <mujoco model="one_wall">
   <custom><numeric name="tether_bounds" data="0 0 0 10 10 5"/></custom>
@@ -89,9 +91,9 @@ def recorded_ticks(n_ticks: int, ticks_per_row: int) -> list[int]:
     return sorted(set(range(0, n_ticks, ticks_per_row)) | {n_ticks - 1})
 
 
-class TickLog:
+class TickLog(Observer):
     """An observer keeping, for every tick, a copy of ``info['scalars']`` and
-    the number of communication links (pass it to ``sim.loop.run`` as an
+    the number of communication links (pass it to ``tether.runner.run`` as an
     extra observer)."""
 
     def __init__(self):

@@ -26,7 +26,7 @@ def scenario_text(scene="scene.xml", start="[2.0, 2.0, 1.0]", extra_top="", extr
 
 
 def run_cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "sim.cli", *args], capture_output=True, text=True, cwd=cwd,
+    return subprocess.run([sys.executable, "-m", "tether.cli", *args], capture_output=True, text=True, cwd=cwd,
                           timeout=120)
 
 

@@ -19,7 +19,7 @@ from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.estimator import SubspaceEstimator
 from controllers.connectivity.roles import Role
 from sim.config import ConfigError, build, to_table
-from sim.loop import Simulation, run
+from tether.runner import build_simulation, run
 from sim.scenario import load
 
 CONNECTED_SCENARIOS = ("connected-office", "connected-empty", "connected-town")
@@ -78,7 +78,7 @@ def test_bad_parameters_name_the_field(table, field):
 
 
 def run_cli(*args):
-    return subprocess.run([sys.executable, "-m", "sim.cli", "run", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "tether.cli", "run", *args], capture_output=True, text=True,
                           timeout=300)
 
 
@@ -116,7 +116,7 @@ def test_cli_refuses_bad_connected_input(tmp_path, overrides, expected):
 )
 def test_refused_set_ups_name_the_field(overrides, field, expected):
     with pytest.raises(ConfigError) as err:
-        Simulation(load("connected-office", overrides))
+        build_simulation(load("connected-office", overrides))
     assert err.value.field == field
     assert expected in err.value.problem, err.value.problem
 
@@ -124,7 +124,7 @@ def test_refused_set_ups_name_the_field(overrides, field, expected):
 def test_robot_count_from_10_to_35_starts_connected():
     for count in (10, 20, 35):
         scenario = load("connected-office", [f"robots.0.count={count}"])
-        sim = Simulation(scenario)
+        sim = build_simulation(scenario)
         assert len(sim.strategy.q) == count
         assert sim.strategy.targets_total == 25  # the paper's 5 x 3 + 5 x 2 targets
         assert sim.strategy.explorers.tolist() == list(range(10))
@@ -136,7 +136,7 @@ def test_robot_count_from_10_to_35_starts_connected():
 def test_same_seed_same_targets_whatever_the_robot_count():
     targets = []
     for count in (10, 35):
-        sim = Simulation(load("connected-office", [f"robots.0.count={count}"], seed=4))
+        sim = build_simulation(load("connected-office", [f"robots.0.count={count}"], seed=4))
         queues = sim.strategy.queues
         targets.append(np.array([t.position for q in queues._queues for t in q]))
     np.testing.assert_array_equal(targets[0], targets[1])
@@ -162,7 +162,7 @@ def test_invariants_hold_on_every_tick_of_each_builtin_scenario(name, duration):
 def test_estimator_mode_tracks_lambda2_and_reports_its_error():
     # Only the first second (the defaults: two tracked modes, speedup 10); whole missions are
     # compared in the README (estimator vs exact) and in the slow tests.
-    sim = Simulation(load("connected-office", ['strategy.lambda2_source="estimator"']))
+    sim = build_simulation(load("connected-office", ['strategy.lambda2_source="estimator"']))
     assert isinstance(sim.strategy.estimator, SubspaceEstimator)  # two modes: the Ritz estimate
     for tick in range(100):
         frame, healthy = sim.tick()
@@ -309,7 +309,7 @@ def test_recording_entity_tree_colours_events_and_static_data(small_mission):
     chunks = rrd_chunks(out / "run.rrd")
     check_static_once_and_both_timelines(chunks, CONTROL_PERIOD_S)
     # The scene's walls: static boxes, logged once.
-    world = Simulation(load("connected-office", SMALL_MISSION)).world
+    world = build_simulation(load("connected-office", SMALL_MISSION)).world
     (walls,) = chunks["/world/obstacles"]
     assert walls.is_static and walls.num_rows == 1
     assert len(walls.to_record_batch().column("Boxes3D:half_sizes").to_pylist()[0]) == len(world.obstacles.centers)
@@ -373,7 +373,7 @@ def test_plots_draw_every_series_with_the_fig_14_panels(small_mission):
 def test_tuning_updates_gains_in_place_and_restarts_for_set_up_fields():
     import dataclasses
 
-    sim = Simulation(load("connected-office"))
+    sim = build_simulation(load("connected-office"))
     for _ in range(5):
         sim.tick()
     strategy = sim.strategy

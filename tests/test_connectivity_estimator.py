@@ -380,10 +380,10 @@ def test_strategy_estimates_the_graph_its_messages_travel_on(estimator_links):
     import dataclasses as dc
 
     from controllers.connectivity.graph import connectivity_state
-    from sim.loop import Simulation
+    from tether.runner import build_simulation
     from sim.scenario import load
 
-    sim = Simulation(load("connected-office", ['strategy.lambda2_source="estimator"',
+    sim = build_simulation(load("connected-office", ['strategy.lambda2_source="estimator"',
                                                f'strategy.estimator_links="{estimator_links}"']))
     strategy = sim.strategy
     observation = sim.observe()

@@ -8,7 +8,7 @@ import numpy as np
 
 from helpers import rrd_chunks
 from intermittent_helpers import room_scenario
-from sim.loop import run
+from tether.runner import run
 from sim.scenario import load
 
 KEYS = ("e_g_mean_m", "e_g_std_m", "lambda_bar_mean_m2", "lambda_bar_std_m2", "meetings_scheduled", "meetings_held",

@@ -10,7 +10,7 @@ import sys
 import pytest
 
 from intermittent_helpers import room_scenario
-from sim.cli import main
+from tether.cli import main
 
 CASES = {
     "robot in one team": (["strategy.teams=[[0,1],[0,2],[2,3]]"], "strategy.teams: robot 1 belongs to 1 team(s)"),
@@ -58,7 +58,7 @@ def test_bad_input_one_line_exit_2_nothing_written(tmp_path, capsys, case):
 
 def test_bad_input_through_the_installed_command(tmp_path):
     path = room_scenario(tmp_path, duration=1.0)
-    result = subprocess.run([sys.executable, "-m", "sim.cli", "run", str(path), "--set", "strategy.delta_m2=-1",
+    result = subprocess.run([sys.executable, "-m", "tether.cli", "run", str(path), "--set", "strategy.delta_m2=-1",
                              "--out", str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == [

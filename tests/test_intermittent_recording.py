@@ -22,7 +22,7 @@ from helpers import (
     unpack_rgba,
 )
 from intermittent_helpers import room_scenario
-from sim.loop import run
+from tether.runner import run
 from sim.scenario import load
 
 DURATION_S = 10.0

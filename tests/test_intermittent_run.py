@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from intermittent_helpers import room_scenario
-from sim.loop import Simulation
+from tether.runner import build_simulation
 from sim.scenario import load
 
 REQUIRED_KEYS = (
@@ -24,10 +24,10 @@ COMM_RANGE_M = 0.2
 
 
 def run_simulation(scenario):
-    """Run like sim.loop.run but keep the Simulation, to inspect the strategy."""
+    """Run like tether.runner.run but keep the Simulation, to inspect the strategy."""
     from sim.estimation_observer import EstimationMetrics
 
-    sim = Simulation(scenario)
+    sim = build_simulation(scenario)
     estimation = EstimationMetrics()
     for _ in range(int(round(scenario.duration_s / sim.dt))):
         frame, healthy = sim.tick()

@@ -161,7 +161,7 @@ def test_table1_report_tabulates_the_methods_beside_the_paper(tmp_path):
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from sim.report import write_report
+    from tether.report import write_report
 
     rows = []
     for seed in (0, 1):

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-from sim.cli import main
-from sim.loop import Simulation
+from tether.cli import main
+from tether.runner import build_simulation
 from sim.scenario import load
 from viz.video import FrameRenderer
 
@@ -63,7 +63,7 @@ def test_rerun_live_serves_grpc_and_web_viewer_and_still_writes_the_file(tmp_pat
     grpc_port, web_port = free_port(), free_port()
     out = tmp_path / "out"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "sim.cli", "run", "hover", "--duration", "0.5", "--out", str(out), "--quiet",
+        [sys.executable, "-m", "tether.cli", "run", "hover", "--duration", "0.5", "--out", str(out), "--quiet",
          "--rerun-live", "--rerun-port", str(grpc_port), "--rerun-web-port", str(web_port)],
         stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=ENV,
     )
@@ -107,7 +107,7 @@ def test_rerun_live_refuses_a_port_in_use(tmp_path, capsys):
 def test_video_flags_follow_camera_size_and_fps(tmp_path):
     out = tmp_path / "out"
     result = subprocess.run(
-        [sys.executable, "-m", "sim.cli", "run", "hover", "--duration", "1.0", "--out", str(out), "--quiet",
+        [sys.executable, "-m", "tether.cli", "run", "hover", "--duration", "1.0", "--out", str(out), "--quiet",
          "--video-fps", "12", "--video-size", "320x240", "--video-camera", "follow:quad0"],
         capture_output=True, text=True, timeout=300, env=ENV,
     )
@@ -143,7 +143,7 @@ def test_bad_video_flags_exit_2_with_one_line(tmp_path, capsys, case):
 
 @pytest.fixture(scope="module")
 def hover_sim():
-    sim = Simulation(load("hover"))
+    sim = build_simulation(load("hover"))
     for _ in range(100):
         frame, healthy = sim.tick()
         assert healthy
@@ -193,7 +193,7 @@ def test_presets_work_in_a_scene_without_cameras(tmp_path):
         kind = "quadrotor"
         starts = [[2.0, 2.0, 1.0], [3.0, 2.0, 1.0]]
     """)
-    sim = Simulation(load(str(path)))
+    sim = build_simulation(load(str(path)))
     frame, _ = sim.tick()
     top, overview, follow = (render(sim, frame, c) for c in ("top", "overview", "follow:quad1"))
     for image in (top, overview, follow):

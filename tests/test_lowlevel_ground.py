@@ -28,7 +28,7 @@ from controllers.lowlevel.ground import (
     wheel_speeds,
     yaw_from_quaternion,
 )
-from sim.robot_params import ground_robot_params
+from controllers.lowlevel.model_params import ground_robot_params
 
 ROBOT_FILE = Path(__file__).resolve().parents[1] / "models" / "robots" / "ground_robot.xml"
 TIMESTEP = 0.002  # s, physics step (as in the scenes)

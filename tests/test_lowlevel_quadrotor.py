@@ -27,7 +27,7 @@ from controllers.lowlevel.quadrotor import (
     quaternion_to_matrix,
     rotor_thrusts,
 )
-from sim.robot_params import quadrotor_params
+from controllers.lowlevel.model_params import quadrotor_params
 
 ROBOT_FILE = Path(__file__).resolve().parents[1] / "models" / "robots" / "quadrotor.xml"
 TIMESTEP = 0.002  # s, physics step (as in the scenes)

@@ -16,10 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim.cli import main
+from tether.cli import main
 from sim.geometry import point_clearance, segment_clearance
-from sim.loop import end_of_run, run
-from sim.placement import ROUTE_CLEARANCE_M, START_SEPARATION_M, SceneGeometry, load_in_scene, starts_fit
+from sim.loop import end_of_run
+from tether.runner import run
+from tether.placement import ROUTE_CLEARANCE_M, START_SEPARATION_M, SceneGeometry, load_in_scene, starts_fit
 from sim.scenario import MODELS_DIR, builtin_scenarios, load, to_scenario_table
 from sim.targets import nominal_path_samples
 
@@ -147,14 +148,25 @@ def test_init_writes_every_key_commented_and_reloads_to_the_same_scenario(name, 
 
 
 def test_end_of_run_words():
-    class Mission:
-        finished = False
+    from sim.strategy import Strategy
+
+    class Mission(Strategy):
+        mission_can_end = True
+
+        def reset(self, world, initial, rng):
+            pass
+
+        def step(self, observation):
+            pass
 
         def progress(self):
             return "7/25 targets visited"
 
-    class Endless:
-        pass
+    class Endless(Mission):
+        mission_can_end = False
+
+        def progress(self):
+            return ""
 
     assert end_of_run(Mission(), mission_ended=True, duration_s=400, time_s=193.06) == (
         "completed", "mission completed at t = 193.1 s: 7/25 targets visited")
@@ -230,7 +242,7 @@ def test_tune_places_the_scenario_in_the_scene_too(tmp_path):
     import sys
     import urllib.request
 
-    proc = subprocess.Popen([sys.executable, "-m", "sim.cli", "tune", WAYPOINTS, "--scene", str(FLAT), "--port", "0",
+    proc = subprocess.Popen([sys.executable, "-m", "tether.cli", "tune", WAYPOINTS, "--scene", str(FLAT), "--port", "0",
                              "--view-fps", "1", "--video-size", "160x120", "--save", str(tmp_path / "tuned.toml")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})

@@ -12,9 +12,10 @@ from controllers.connectivity.roles import Role
 from estimation.range_model import covariance_predict, covariance_update
 from estimation.viewpoints import block_lambda_max, predicted_lambda_max, readings_needed
 from intermittent_helpers import room_scenario
-from sim.cli import main
+from tether.cli import main
 from sim.geometry import point_clearance
 from sim.loop import Simulation
+from tether.runner import build_simulation
 from sim.scenario import load
 
 GROUND_CONNECTED = """
@@ -53,7 +54,7 @@ class GroundInvariants:
 
 
 def _run(path, seconds: float, each=None) -> Simulation:
-    sim = Simulation(load(str(path)))
+    sim = build_simulation(load(str(path)))
     for _ in range(int(round(seconds / sim.dt))):
         frame, healthy = sim.tick()
         assert healthy, f"physics diverged at t = {sim.time_s:.2f} s"
@@ -155,7 +156,7 @@ def test_connected_tracking_first_targets_follow_the_prior_uncertainty(tmp_path)
     """With target 1 the more uncertain in the prior, the first explorer is sent to it."""
     extra = "prior_variance_m2 = 0.25\n"
     path = room_scenario(tmp_path, kind="connected_tracking", duration=1.0, extra=extra)
-    sim = Simulation(load(str(path)))
+    sim = build_simulation(load(str(path)))
     strategy = sim.strategy
     generator = strategy.generator
     prior = strategy.prior
@@ -186,7 +187,7 @@ def test_connected_tracking_is_deterministic_for_a_seed(tmp_path):
 def test_connected_tracking_run_that_lasts_its_duration_is_completed(tmp_path):
     """Tracking has no mission end: like the other methods of seed 000's task, a run that lasts its
     duration is "completed" (not "time limit"), its message saying what the team did."""
-    from sim.loop import run
+    from tether.runner import run
 
     result = run(load(str(room_scenario(tmp_path, kind="connected_tracking", duration=2.0))), tmp_path / "out")
     assert result.status == "completed"
@@ -244,7 +245,7 @@ def test_predicted_lambda_max_matches_the_ekf_covariance_update():
 def test_report_section_of_the_range_sweep(tmp_path):
     """The paradigms section reads e_g / lambda-bar per method and range from rows alone;
     Table I leaves trials at a swept range out."""
-    from sim.report import paradigms_section, table1_section
+    from tether.report import paradigms_section, table1_section
 
     rows = []
     for k, method in enumerate(("intermittent", "connected_tracking")):
@@ -272,7 +273,7 @@ def test_connected_strategy_refuses_a_mixed_team(tmp_path):
     path.write_text(head + '[strategy]\nkind = "connected"\npreset = "ground"\n\n' + robots.replace("[[targets]]", quads + "\n[[targets]]", 1))
     from sim.config import ConfigError
     with pytest.raises(ConfigError) as err:
-        Simulation(load(str(path)))
+        build_simulation(load(str(path)))
     assert err.value.field == "robots"
     assert "one kind of robot at a time" in err.value.problem and "ground0" in err.value.problem
 

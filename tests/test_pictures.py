@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from helpers import write_scenario, write_scene
-from sim.loop import Simulation
+from tether.runner import build_simulation
 from sim.scenario import load
 from viz.video import FrameRenderer, burn_overlay, overlay_font_px
 
@@ -45,7 +45,7 @@ starts = [[0.5, 0.5, 0.0], [9.5, 9.5, 0.0]]
 
 
 def _render(scenario, ticks: int = 1):
-    sim = Simulation(scenario)
+    sim = build_simulation(scenario)
     for _ in range(ticks):
         frame, healthy = sim.tick()
         assert healthy

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import io
 
-from sim.cli import main
-from sim.progress import RunProgress, headline
+from tether.cli import main
+from tether.progress import RunProgress, headline
 
 
 def test_plain_lines_into_a_pipe_and_quiet_prints_only_the_summary(tmp_path, capsys):

@@ -17,8 +17,8 @@ import shlex
 from pathlib import Path
 
 
-from sim.cli import _parser, main
-from sim.placement import INTERMITTENT_KINDS
+from tether.cli import _parser, main
+from tether.placement import INTERMITTENT_KINDS
 from sim.scenario import load
 
 REPO = Path(__file__).resolve().parent.parent

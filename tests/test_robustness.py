@@ -26,7 +26,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from sim.cli import main
+from tether.cli import main
 from sim.scenario import dumps_toml
 from tests.helpers import WALL_SCENE, write_scene, write_scenario
 
@@ -258,10 +258,11 @@ def test_a_reused_folder_holds_one_runs_files(tmp_path, capsys):
 
 
 def test_a_run_that_raises_leaves_earlier_results_untouched(tmp_path):
-    from sim.loop import run
+    from sim.observers import Observer
     from sim.scenario import load
+    from tether.runner import run
 
-    class Raises:  # an observer with a bug, two ticks in
+    class Raises(Observer):  # an observer with a bug, two ticks in
         ticks = 0
 
         def on_tick(self, frame):
@@ -305,7 +306,7 @@ def _falling_scenario(folder: Path) -> Path:
 def test_a_ground_robot_that_falls_stops_the_run_diverged(tmp_path):
     """A floor too small for a robot's route: it drives off the edge; the run stops at once.
     (Exit code 1 for "diverged": tests/test_run_outputs.py.)"""
-    from sim.loop import run
+    from tether.runner import run
     from sim.scenario import load
 
     result = run(load(str(_falling_scenario(tmp_path))))
@@ -427,7 +428,7 @@ SIGNAL_ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
 def _start_long_run(tmp_path: Path, *flags: str) -> tuple[subprocess.Popen, Path, Path]:
     scenario = tiny(tmp_path, ("duration_s = 0.1", "duration_s = 600.0"))
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "sim.cli", "run", str(scenario), "--out", str(out), "--quiet",
+    proc = subprocess.Popen([sys.executable, "-m", "tether.cli", "run", str(scenario), "--out", str(out), "--quiet",
                              "--rrd", *flags], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=SIGNAL_ENV, cwd=REPO)
     return proc, out, tmp_path / f"out.partial-{proc.pid}"
@@ -521,11 +522,12 @@ def tuning(tmp_path_factory):
     import threading
 
     from sim.scenario import load
+    from tether.runner import build_simulation
     from viz.tuning import TuningServer, TuningSession
 
     folder = tmp_path_factory.mktemp("tune")
     scenario = load(str(_falling_scenario(folder)), ["video.width=160", "video.height=120"])
-    session = TuningSession(scenario, view_fps=1.0, speed=0.0, save_path=folder / "saved.toml")
+    session = TuningSession(scenario, build_simulation, view_fps=1.0, speed=0.0, save_path=folder / "saved.toml")
     server = TuningServer(session, "127.0.0.1", 0)
     thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.1}, daemon=True)
     thread.start()
@@ -597,10 +599,10 @@ def test_a_tuning_change_that_breaks_an_invariant_is_refused_before_it_applies()
     import dataclasses
 
     from sim.config import ConfigError
-    from sim.loop import Simulation
+    from tether.runner import build_simulation
     from sim.scenario import load
 
-    sim = Simulation(load("connected-empty", ["strategy.target_counts=[1]"]))
+    sim = build_simulation(load("connected-empty", ["strategy.target_counts=[1]"]))
     params = sim.scenario.strategy.params
     frame, healthy = sim.tick()
     lambda2 = frame.commands.info["scalars"]["lambda2"]

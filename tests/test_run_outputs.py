@@ -9,7 +9,7 @@ import imageio.v2 as imageio
 import numpy as np
 import pytest
 
-from sim.loop import run
+from tether.runner import run
 from sim.scenario import load
 
 from helpers import check_static_once_and_both_timelines, recorded_ticks, rrd_chunks, rrd_column, rrd_rows, write_scenario
@@ -21,7 +21,7 @@ DURATION_S = 2.0
 def hover_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("hover")
     result = subprocess.run(
-        [sys.executable, "-m", "sim.cli", "run", "hover", "--duration", str(DURATION_S), "--out", str(out),
+        [sys.executable, "-m", "tether.cli", "run", "hover", "--duration", str(DURATION_S), "--out", str(out),
          "--video", "--rrd"],  # (not --quiet: that prints only the summary line, no file list)
         capture_output=True, text=True, timeout=300,
     )
@@ -56,9 +56,9 @@ def test_timing_block_says_where_the_wall_time_went(hover_run):
 
 
 def test_strategy_info_is_built_only_for_observers_that_read_it():
-    from sim.loop import Simulation
+    from tether.runner import build_simulation
 
-    simulation = Simulation(load("hover", duration_s=1.0))
+    simulation = build_simulation(load("hover", duration_s=1.0))
     frame, _ = simulation.tick(info_wanted=False)
     assert frame.commands.info == {}
     frame, _ = simulation.tick()
@@ -126,9 +126,9 @@ def test_seed_changes_target_motion(tmp_path):
     a = run(load("hover", duration_s=1.0, seed=1), keep_trajectory=True)
     b = run(load("hover", duration_s=1.0, seed=2), keep_trajectory=True)
     assert a.metrics["seed"] != b.metrics["seed"]
-    from sim.loop import Simulation
+    from tether.runner import build_simulation
 
-    s1, s2 = Simulation(load("hover", seed=1)), Simulation(load("hover", seed=2))
+    s1, s2 = build_simulation(load("hover", seed=1)), build_simulation(load("hover", seed=2))
     assert not np.allclose(s1.targets.positions(5.0), s2.targets.positions(5.0))
 
 
@@ -159,7 +159,7 @@ def test_diverging_run_stops_with_status_and_readable_outputs(tmp_path):
         starts = [[2.0, 2.0, 1.0]]
     """)
     out = tmp_path / "out"
-    result = subprocess.run([sys.executable, "-m", "sim.cli", "run", str(path), "--out", str(out), "--video",
+    result = subprocess.run([sys.executable, "-m", "tether.cli", "run", str(path), "--out", str(out), "--video",
                              "--rrd", "--quiet"], capture_output=True, text=True, timeout=120)
     assert result.returncode == 1
     assert "diverged" in result.stdout

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from sim.scenario import MODELS_DIR, builtin_scenarios, load
-from sim.loop import Simulation
+from tether.runner import build_simulation
 
 SCENES = sorted((MODELS_DIR / "scenes").glob("*.xml"))
 ROBOTS = sorted((MODELS_DIR / "robots").glob("*.xml"))
@@ -56,7 +56,7 @@ def test_robot_visual_and_collision_geoms_are_in_separate_groups():
 
 @pytest.mark.parametrize("name", sorted(builtin_scenarios()))
 def test_builtin_scenario_world_steps_one_second_without_warnings(name):
-    sim = Simulation(load(name, duration_s=1.0))
+    sim = build_simulation(load(name, duration_s=1.0))
     for _ in range(int(round(1.0 / sim.dt))):
         _, healthy = sim.tick()
         assert healthy

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from estimation.range_model import range_sigma
-from sim.loop import Simulation
+from tether.runner import build_simulation
 from sim.scenario import load
 
 from helpers import write_scenario, write_scene
@@ -39,7 +39,7 @@ start = [9.5, 9.5, 4.5]      # farther than 5 m from robots 0 and 1
 @pytest.fixture
 def simulation(tmp_path):
     write_scene(tmp_path)
-    return Simulation(load(str(write_scenario(tmp_path, SCENARIO.format(noise="false")))))
+    return build_simulation(load(str(write_scenario(tmp_path, SCENARIO.format(noise="false")))))
 
 
 def test_ranges_equal_geometric_distance_when_in_sight(simulation):
@@ -73,7 +73,7 @@ def test_links_respect_range_and_line_of_sight(simulation):
 
 def test_range_noise_follows_equation_12(tmp_path):
     write_scene(tmp_path)
-    sim = Simulation(load(str(write_scenario(tmp_path, SCENARIO.format(noise="true")))))
+    sim = build_simulation(load(str(write_scenario(tmp_path, SCENARIO.format(noise="true")))))
     sensors = sim.sensors.sensor_positions()
     targets = sim.targets.positions(0.0)
     truth = np.linalg.norm(sensors[0] - targets[0])

@@ -18,8 +18,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from sim.cli import main
-from sim.sweep import ResultsFolder, load_sweep, local_ray_cluster, read_results
+from tether.cli import main
+from tether.sweep import ResultsFolder, load_sweep, local_ray_cluster, read_results
 
 # Columns that differ between two runs of the same trial: when and where it ran, how long it took.
 WALL_CLOCK_COLUMNS = {"wall_time_s", "run_wall_time_s", "host", "finished_at", "real_time_factor", "timing"}
@@ -156,7 +156,7 @@ def test_driver_killed_mid_sweep_and_rerun_gives_the_uninterrupted_table(tmp_pat
     whole, killed = tmp_path / "whole", tmp_path / "killed"
     assert main(["sweep", str(sweep), "--out", str(whole), "--workers", "2", "--no-report"]) == 0
 
-    command = [sys.executable, "-m", "sim.cli", "sweep", str(sweep), "--out", str(killed), "--workers", "2"]
+    command = [sys.executable, "-m", "tether.cli", "sweep", str(sweep), "--out", str(killed), "--workers", "2"]
     driver = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 120
@@ -196,7 +196,7 @@ def test_pool_workers_end_when_their_driver_is_killed(tmp_path):
     """SIGKILL of the driver alone: its pool workers (and the pool's helper processes) stop within
     seconds instead of finishing their trial and the queued ones, whose rows nobody would store."""
     sweep = write_sweep(tmp_path, "orphans", 'duration_s = 30.0\nseeds = 6\n')
-    command = [sys.executable, "-m", "sim.cli", "sweep", str(sweep), "--out", str(tmp_path / "out"), "--workers", "2"]
+    command = [sys.executable, "-m", "tether.cli", "sweep", str(sweep), "--out", str(tmp_path / "out"), "--workers", "2"]
     driver = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 60
@@ -307,7 +307,7 @@ def test_report_on_a_fixture_table_writes_figures_and_tables(tmp_path, capsys):
 
 
 def test_report_reads_the_target_count_of_tables_written_before_its_rename():
-    from sim.report import _moving_targets
+    from tether.report import _moving_targets
 
     assert _moving_targets({"n_moving_targets": 8}) == 8
     assert _moving_targets({"n_targets": 4}) == 4  # results.parquet of an older sweep

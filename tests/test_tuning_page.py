@@ -20,7 +20,7 @@ import pytest
 
 from controllers.waypoints import WaypointParams
 from sim.config import ConfigError, build
-from sim.loop import Simulation, run
+from tether.runner import build_simulation, run
 from sim.scenario import dumps_toml, from_table, load, to_scenario_table
 from viz.tuning import describe_params
 
@@ -53,7 +53,7 @@ def test_bounds_are_enforced_by_build_for_files_overrides_and_the_page():
 
 def test_speed_change_keeps_the_reference_continuous_and_scales_velocity():
     scenario = load("hover")
-    sim = Simulation(scenario)
+    sim = build_simulation(scenario)
     for _ in range(250):
         frame, _ = sim.tick()
     before = sim.strategy.step(sim.observe(read_targets=False))
@@ -114,7 +114,7 @@ def test_every_field_of_the_connected_strategy_is_offered_in_groups():
 def test_the_strategy_legend_reaches_the_page_status():
     from viz.tuning import TuningSession
 
-    session = TuningSession(load("hover"))
+    session = TuningSession(load("hover"), build_simulation)
     frame, _ = session.sim.tick()
     frame.commands.info["legend"] = [("anchor", (1.0, 0.6, 0.1, 1.0)), ("team 0", np.array([0.2, 0.4, 1.0, 1.0]))]
     session._sample(frame)
@@ -150,7 +150,7 @@ def server(tmp_path_factory):
     save = folder / "hover_tuned.toml"
     stderr = open(folder / "stderr.txt", "w+")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "sim.cli", "tune", "hover", "--port", "0", "--view-fps", "5",
+        [sys.executable, "-m", "tether.cli", "tune", "hover", "--port", "0", "--view-fps", "5",
          "--video-size", "320x240", "--save", str(save)],
         stdout=subprocess.PIPE, stderr=stderr, text=True, env=ENV,
     )

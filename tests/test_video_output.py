@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from helpers import write_scenario, write_scene
-from sim.loop import Simulation, run
+from tether.runner import build_simulation, run
 from sim.scenario import load
 from viz.video import FrameRenderer, VideoRecorder
 
@@ -45,7 +45,7 @@ BAND_ROWS = 20  # the overlay band's height, px (text at y = 4 in PIL's default 
 
 
 def first_frame(path, comm_range_m: float):
-    sim = Simulation(load(str(path), [f"sensing.comm_range_m={comm_range_m}"]))
+    sim = build_simulation(load(str(path), [f"sensing.comm_range_m={comm_range_m}"]))
     frame, healthy = sim.tick()
     assert healthy
     view = FrameRenderer(sim.world, sim.scenario.video)
@@ -123,7 +123,7 @@ def vm_rss_bytes() -> int:
 
 def test_frames_stream_to_the_encoder_so_memory_stays_flat(tmp_path):
     frames, width, height = 600, 320, 240
-    sim = Simulation(load("hover", [f"video.width={width}", f"video.height={height}", "video.fps=100"]))
+    sim = build_simulation(load("hover", [f"video.width={width}", f"video.height={height}", "video.fps=100"]))
     recorder = VideoRecorder(sim.world, sim.scenario.video, str(tmp_path / "video.mp4"), sim.dt)
     warm_up = 60  # GL buffers, the encoder's pipe and first allocations
     rss = []

@@ -64,7 +64,7 @@ def test_tether_view_draws_the_running_simulation_with_its_links(display, tmp_pa
 
     env = {**os.environ, "DISPLAY": display, "MUJOCO_GL": "glfw", "OPENBLAS_NUM_THREADS": "1"}
     env.pop("PYOPENGL_PLATFORM", None)
-    proc = subprocess.Popen([sys.executable, "-m", "sim.cli", "view", "hover", "--duration", "0.05", "--speed", "0"],
+    proc = subprocess.Popen([sys.executable, "-m", "tether.cli", "view", "hover", "--duration", "0.05", "--speed", "0"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:
         lines = []
@@ -99,7 +99,7 @@ def test_tether_view_draws_the_running_simulation_with_its_links(display, tmp_pa
 
 
 def test_bad_input_and_no_display_exit_2_with_one_line(monkeypatch, capsys):
-    from sim.cli import main
+    from tether.cli import main
 
     monkeypatch.setenv("DISPLAY", ":0")
     assert main(["view", "hover", "--set", "strategy.speed_mps=99"]) == 2

@@ -193,4 +193,4 @@ def log_recording_decorations(rec, frame, logged: dict) -> None:
 def log_events(recorder, frame) -> None:
     """Every string in ``info['events']`` as one event of the recording."""
     for text in frame.commands.info.get("events", ()):
-        recorder.event(frame.observation.time_s, str(text), tick=frame.observation.tick)
+        recorder.on_event(frame.observation.time_s, str(text), tick=frame.observation.tick)

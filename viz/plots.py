@@ -20,14 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.observers import Frame, tracking_errors
+from sim.observers import Frame, Observer, tracking_errors
 from viz.painter import Painters, page_layout
 
 PANELS_PER_FIGURE = 6
 PER_ROBOT_SUFFIX = " (per robot)"
 
 
-class PlotRecorder:
+class PlotRecorder(Observer):
     def __init__(self, robot_kinds: tuple[str, ...], folder: str | Path, period_s: float = 0.1,
                  robot_names: tuple[str, ...] | None = None):
         self.folder = Path(folder)

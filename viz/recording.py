@@ -49,7 +49,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
-from sim.observers import Frame, tracking_errors
+from sim.observers import Frame, Observer, tracking_errors
 from sim.world import INFINITE_PLANE_HALF_SIZE, World
 from viz.decorations import colour_name, frame_legend, log_events, log_recording_decorations, robot_colors_rgb8
 from viz.video import link_color
@@ -209,7 +209,7 @@ class _Tee:
         return getattr(self.file_stream, name)
 
 
-class RerunRecorder:
+class RerunRecorder(Observer):
     """Logs a frame every ``period_s`` of sim time, and the run's last frame
     when it closes; events (``info['events']``) at the tick they happen.
 
@@ -300,7 +300,7 @@ class RerunRecorder:
         # sim_time would not show on it). Positions and colours are logged with each frame.
         labels = list(self.world.robot_names)
         self.rec.log("world/robots", rr.Points3D.from_fields(labels=labels, radii=ROBOT_RADIUS_M), static=True)
-        self.event(0.0, f"run started: scenario {scenario_name}, {len(labels)} robots", tick=0)
+        self.on_event(0.0, f"run started: scenario {scenario_name}, {len(labels)} robots", tick=0)
 
     def _set_time(self, time_s: float, tick: int | None) -> None:
         self.rec.set_time("sim_time", duration=time_s)
@@ -372,7 +372,7 @@ class RerunRecorder:
         lines = [f"- **{colour_name(rgb)}** `#{rgb[0]:02x}{rgb[1]:02x}{rgb[2]:02x}`: {label}" for label, rgb in entries]
         return "\n".join(["**Colours**", "", *lines])
 
-    def event(self, time_s: float, text: str, level: str = "INFO", tick: int | None = None) -> None:
+    def on_event(self, time_s: float, text: str, level: str = "INFO", tick: int | None = None) -> None:
         """One line of the event log at ``time_s`` (and ``tick``, when known)."""
         self._set_time(time_s, tick)
         self.rec.log("events", rr.TextLog(text, level=level))
@@ -382,7 +382,7 @@ class RerunRecorder:
             self.log_frame(self._unlogged)
             self._unlogged = None
         time_s, tick = self._latest
-        self.event(time_s, f"run ended: {status}", level="INFO" if status in ("completed", "time limit") else "WARN", tick=tick)
+        self.on_event(time_s, f"run ended: {status}", level="INFO" if status in ("completed", "time limit") else "WARN", tick=tick)
         self.rec.flush()
         self.rec.disconnect()
         self._merge()

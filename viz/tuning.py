@@ -48,7 +48,6 @@ import numpy as np
 from sim.config import ConfigError, build, field_comments, to_table, unit_from_name
 from sim.loop import Simulation
 from sim.observers import Frame, tracking_errors
-from sim.registry import strategy_params_class
 from sim.scenario import Scenario, dumps_toml, to_scenario_table, toml_value
 from sim.types import Commands
 from sim.validate import check_scenario
@@ -170,15 +169,16 @@ class TuningSession:
     the next one.
     """
 
-    def __init__(self, scenario: Scenario, view_fps: float = 10.0, speed: float = 1.0,
-                 save_path: str | Path | None = None):
+    def __init__(self, scenario: Scenario, make_simulation: typing.Callable[[Scenario], Simulation],
+                 view_fps: float = 10.0, speed: float = 1.0, save_path: str | Path | None = None):
         from viz.video import resolve_camera
 
         check_scenario(scenario)  # the checks of `tether run`, before anything is built
-        self.sim = Simulation(scenario)  # ConfigError for a bad world
+        self.make_simulation = make_simulation
+        self.sim = make_simulation(scenario)  # ConfigError for a bad world
         self.camera = resolve_camera(self.sim.world.model, scenario.video.camera)
         self.kind = scenario.strategy.kind
-        self.params_cls = strategy_params_class(self.kind)
+        self.params_cls = type(scenario.strategy.params)
         self.view_fps = view_fps
         self.speed = speed
         self.save_path = Path(save_path) if save_path else Path("runs") / "tune" / f"{scenario.name}_tuned.toml"
@@ -322,7 +322,7 @@ class TuningSession:
         return Frame(obs, commands, targets)
 
     def _rebuild(self) -> None:
-        self.sim = Simulation(self.sim.scenario)
+        self.sim = self.make_simulation(self.sim.scenario)
         self._reset_requested = False
         self._series.clear()
         self._next_sample = 0.0
@@ -676,12 +676,13 @@ class _Handler(BaseHTTPRequestHandler):
             self.wfile.flush()
 
 
-def serve(scenario: Scenario, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, view_fps: float = 10.0,
+def serve(scenario: Scenario, make_simulation: typing.Callable[[Scenario], Simulation], host: str = DEFAULT_HOST,
+          port: int = DEFAULT_PORT, view_fps: float = 10.0,
           speed: float = 1.0, save_path: str | Path | None = None,
           ready: typing.Callable[[TuningServer], None] | None = None) -> None:
     """Run the tuning page until interrupted (KeyboardInterrupt). ConfigError
     for a bad scenario, OSError if the address cannot be bound."""
-    session = TuningSession(scenario, view_fps=view_fps, speed=speed, save_path=save_path)
+    session = TuningSession(scenario, make_simulation, view_fps=view_fps, speed=speed, save_path=save_path)
     server = TuningServer(session, host, port)
     try:
         session.start()

@@ -35,7 +35,7 @@ import mujoco
 import numpy as np
 
 from sim.config import ConfigError
-from sim.observers import Frame
+from sim.observers import Frame, Observer
 from sim.scenario import VideoConfig
 from sim.world import World
 from viz.decorations import draw_video_decorations, frame_legend, halo_color
@@ -360,7 +360,7 @@ VIDEO_QUEUE_FRAMES = 32  # states waiting for the renderer process before the si
 WORKER_POLL_S = 1.0  # how often a blocked simulation checks that the renderer is still alive, s
 
 
-class VideoRecorder:
+class VideoRecorder(Observer):
     """Observer writing ``video.mp4`` at ``config.fps`` frames per second of
     sim time: frame k shows the state of the tick at or just before k / fps
     (a tick's image is repeated when the fps exceeds the control rate), so a

@@ -130,8 +130,8 @@ def needs_display() -> str | None:
     return None
 
 
-def view(scenario: Scenario, speed: float = 1.0, control: ViewerControl | None = None,
-         on_tick: Callable[[Simulation, Frame], None] | None = None, keep_open: bool = True,
+def view(scenario: Scenario, make_simulation: Callable[[Scenario], Simulation], speed: float = 1.0,
+         control: ViewerControl | None = None, on_tick: Callable[[Simulation, Frame], None] | None = None, keep_open: bool = True,
          launch: Callable | None = None) -> str:
     """Run ``scenario`` in MuJoCo's viewer until its duration, the end of its
     mission or the window closes; returns the status ("completed",
@@ -140,7 +140,7 @@ def view(scenario: Scenario, speed: float = 1.0, control: ViewerControl | None =
     until the user closes it."""
     import mujoco.viewer
 
-    sim = Simulation(scenario)
+    sim = make_simulation(scenario)
     control = control or ViewerControl()
     launch = launch or mujoco.viewer.launch_passive
     handle = launch(sim.world.model, sim.world.data, key_callback=control.key,

@@ -53,11 +53,12 @@ from controllers.intermittent.strategy import team_connected
 from estimation.beliefs import Belief
 from sim.config import ConfigError
 from sim.types import Commands, Observation, WorldInfo
+from sim.strategy import Strategy
 
 HOLD_STEPS = 5  # steps to stay put when neither the planner nor the fallback finds a path
 
 
-class AllTimeStrategy:
+class AllTimeStrategy(Strategy):
     kind = "all_time"
 
     def __init__(self, params: IntermittentParams):

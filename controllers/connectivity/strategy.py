@@ -117,6 +117,7 @@ from controllers.connectivity.smooth_spectrum import smooth_lambda2_gradient
 from sim.config import ConfigError
 from sim.geometry import boxes_reaching, point_clearance
 from sim.types import Commands, Observation, WorldInfo
+from sim.strategy import Strategy
 
 # Colours (RGBA) of the robots by role in the video (the paper's Fig. 6:
 # robots blue, the prime traveler turquoise).
@@ -141,8 +142,10 @@ _PATH_DRAW_SPACING = 2.0
 _WARMUP_STEP_S = 0.01
 
 
-class ConnectedStrategy:
+class ConnectedStrategy(Strategy):
     """Seed 001 for a team of quadrotors (see the module docstring)."""
+
+    mission_can_end = True
 
     def __init__(self, params: ConnectedParams, targets=None):
         self.params = params

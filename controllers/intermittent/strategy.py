@@ -49,7 +49,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -83,6 +83,7 @@ from estimation.metrics import delay_report
 from sim.config import ConfigError
 from sim.geometry import pairwise_min_distance
 from sim.types import Commands, Observation, WorldInfo
+from sim.strategy import Strategy
 
 RING_RADIUS_M = 0.06  # members of a geodesic meeting stop on a ring this wide around its point, m
 IDLE_COLOR = np.array([0.5, 0.5, 0.5, 1.0])
@@ -194,7 +195,7 @@ def _farther_than(point: list[float], x: float, y: float, limit: float) -> bool:
     return float(np.linalg.norm(np.array((dx, dy)))) > limit
 
 
-class MeetingStrategy(ABC):
+class MeetingStrategy(Strategy):
     """Teams, schedules, beliefs and meetings on ground robots; subclasses
     design the segments (:meth:`design`)."""
 

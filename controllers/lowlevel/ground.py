@@ -48,7 +48,7 @@ DEFAULT_OFFSET = 0.02  # m, distance of the controlled point ahead of the axle
 class GroundRobotParams:
     """Geometry and limits of one differential-drive model (every copy shares them).
 
-    Extracted from a compiled MuJoCo model by ``sim.robot_params``.
+    Extracted from a compiled MuJoCo model by ``controllers.lowlevel.model_params``.
     """
 
     wheel_radius: float  # m

@@ -71,7 +71,7 @@ from sim.compiled import kernel
 class QuadrotorParams:
     """Physical parameters of one quadrotor model (every copy shares them).
 
-    Extracted from a compiled MuJoCo model by ``sim.robot_params``.
+    Extracted from a compiled MuJoCo model by ``controllers.lowlevel.model_params``.
     """
 
     mass: float  # kg, whole robot (subtree of the base body)

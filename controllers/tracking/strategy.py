@@ -38,6 +38,7 @@ from controllers.tracking.generator import EKFTargetGenerator, spread_robots
 from controllers.tracking.params import ConnectedTrackingParams
 from estimation.beliefs import Belief
 from sim.config import ConfigError
+from sim.strategy import WrappingStrategy
 from sim.types import Commands, Observation, WorldInfo
 
 
@@ -52,7 +53,9 @@ def controller_params(params: ConnectedTrackingParams, comm_range: float) -> Con
                           f"{str(err).partition(': ')[2] or err}") from None
 
 
-class ConnectedTrackingStrategy:
+class ConnectedTrackingStrategy(WrappingStrategy):
+    """The connected controller (``inner``) with the team's EKF as its target generator."""
+
     kind = "connected_tracking"
 
     def __init__(self, params: ConnectedTrackingParams):
@@ -75,7 +78,8 @@ class ConnectedTrackingStrategy:
         self.last_step: int | None = None
         self.readings_fused = 0
         self.generator: EKFTargetGenerator | None = None
-        self.core = ConnectedStrategy(controller_params(params, world.comm_range_m), targets=self._first_targets)
+        self.core = self.inner = ConnectedStrategy(controller_params(params, world.comm_range_m),
+                                                   targets=self._first_targets)
         self.core.reset(world, initial, rng)
         self._scalars = {"lambda_max_m2": float(np.linalg.eigvalsh(self.prior.covariance)[-1]), "t_star_s": 0.0,
                          "t_star_lag_s": 0.0}
@@ -87,8 +91,11 @@ class ConnectedTrackingStrategy:
                                             explorers, self.world.target_range_m, self.core.params.exploration.cruise_speed)
         return self.generator.first_targets(len(starts), starts, self.prior)
 
-    # No ``finished``: tracking lasts the scenario's duration, so a run that lasts it is "completed"
-    # (like the other methods of seed 000's task), not stopped at a "time limit".
+    @property
+    def finished(self) -> bool:
+        """Never: tracking lasts the scenario's duration, so a run that lasts it is "completed"
+        (like the other methods of the intermittent paper's task), not stopped at a "time limit"."""
+        return False
 
     def progress(self) -> str:
         """What the team did so far, for the run's status message."""

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from controllers.lowlevel import ground, quadrotor
-from sim.robot_params import ground_robot_params, quadrotor_params
+from controllers.lowlevel.model_params import ground_robot_params, quadrotor_params
 from sim.types import Commands, Observation
 from sim.world import World
 

@@ -37,7 +37,7 @@ def _strategy_headline(sim) -> str:
 
 
 class RunProgress:
-    """The ``progress`` callback of :func:`sim.loop.run`: called with the
+    """The ``progress`` callback of :func:`tether.runner.run`: called with the
     :class:`sim.loop.Simulation` every so many ticks; ``close`` after the run."""
 
     def __init__(self, duration_s: float, stream: TextIO | None = None, bar: bool | None = None):

@@ -19,7 +19,7 @@ import typing
 from typing import Any, get_args, get_origin, get_type_hints
 
 from sim.config import field_comments, to_table, unit_from_name
-from sim.registry import STRATEGIES, strategy_kinds
+from sim.strategy import strategy_kind, strategy_kinds
 from sim.scenario import Scenario, ScenarioBody, toml_value
 
 COMMENT_WIDTH = 100
@@ -124,7 +124,7 @@ def annotated_scenario(scenario: Scenario, scene_text: str | None = None, header
         out += _table_lines(value)[0]
     kind = scenario.strategy.kind
     out += ["", "", "[strategy]"]
-    out += _comment(f"the method that drives the robots ({kind}: {STRATEGIES[kind].summary}); its keys follow")
+    out += _comment(f"the method that drives the robots ({kind}: {strategy_kind(kind).summary}); its keys follow")
     out.append(f"# [required; one of {', '.join(strategy_kinds())}]")
     out.append(f"kind = {toml_value(kind)}")
     out += _table_lines(scenario.strategy.params)[0]

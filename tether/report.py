@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from sim.config import ConfigError
-from sim.sweep import FINISHED
+from tether.sweep import FINISHED
 
 # Seed 001, Fig. 9: rows (column, axis label).
 FIG9_ROWS = (
@@ -493,7 +493,7 @@ def write_report(results: str | Path, out: str | Path | None = None, x: str | No
                  hue: str | None = None) -> list[Path]:
     """Write report.md and the PNGs; returns their paths (report.md first).
     ConfigError if there is no readable table or a named column is missing."""
-    from sim.sweep import MANIFEST_FILE, read_results
+    from tether.sweep import MANIFEST_FILE, read_results
 
     source = Path(results)
     table = read_results(source)

@@ -1,6 +1,6 @@
 """``tether sweep``: many headless trials, on a process pool or a Ray cluster.
 
-A sweep file (TOML; built-ins in ``sim/sweeps/``) names a base scenario, a
+A sweep file (TOML; built-ins in ``tether/sweeps/``) names a base scenario, a
 duration, seeds and a grid of ``--set`` overrides::
 
     description = "what it measures"
@@ -129,7 +129,7 @@ def _read_sweep_table(name_or_path: str) -> tuple[dict, Path]:
 
 def _base_scenario(name: Any, sweep_path: Path, key: str) -> str:
     """A built-in scenario name as is; a file path made absolute (relative to the sweep file)."""
-    from sim.scenario import SCENARIO_DIR
+    from tether.catalog import SCENARIO_DIR
 
     if not isinstance(name, str) or not name:
         raise ConfigError(key, f"must be a scenario name or file, got {name!r}")
@@ -317,7 +317,7 @@ def run_trial(trial: Trial, recordings: str | None = None) -> dict:
     metrics: dict[str, Any] = {}
     try:
         import sim  # noqa: F401  (GL backend before mujoco)
-        from sim.loop import run
+        from tether.runner import run
         from sim.scenario import load
 
         scenario = load(trial.scenario, list(trial.overrides), seed=trial.seed, duration_s=trial.duration_s)

@@ -1,4 +1,4 @@
-"""``tether`` command line: a thin layer over :func:`sim.loop.run`.
+"""``tether`` command line: a thin layer over :func:`tether.runner.run`.
 
 Exit codes: 0 completed or time limit, 1 diverged, 2 bad input (one line on
 stderr naming the field and the problem; nothing written), 130 interrupted
@@ -134,7 +134,7 @@ def _load(args: argparse.Namespace, overrides: list[str], duration_s: float | No
 
     if args.scene is None:
         return load(args.scenario, overrides, seed=args.seed, duration_s=duration_s), []
-    from sim.placement import load_in_scene
+    from tether.placement import load_in_scene
 
     return load_in_scene(args.scenario, args.scene, overrides, seed=args.seed, duration_s=duration_s)
 
@@ -215,10 +215,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     for note in placement_notes:
         print(note, flush=True)
 
-    from sim.loop import run
+    from tether.runner import run
 
     live = None
-    from sim.progress import RunProgress
+    from tether.progress import RunProgress
 
     progress = None if args.quiet else RunProgress(scenario.duration_s)
     try:
@@ -280,6 +280,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
     except ConfigError as err:
         return _fail(str(err))
 
+    from tether.runner import build_simulation
     from viz.tuning import serve
 
     for note in placement_notes:
@@ -290,7 +291,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
               flush=True)
 
     try:
-        serve(scenario, args.host, port, view_fps=view_fps, speed=speed, save_path=args.save, ready=ready)
+        serve(scenario, build_simulation, args.host, port, view_fps=view_fps, speed=speed, save_path=args.save,
+              ready=ready)
     except ConfigError as err:
         return _fail(str(err))
     except OSError as err:
@@ -309,6 +311,7 @@ def cmd_view(args: argparse.Namespace) -> int:
         speed = _number(args.speed, "--speed")
     except ConfigError as err:
         return _fail(str(err))
+    from tether.runner import build_simulation
     from viz.viewer import needs_display, view
 
     problem = needs_display()
@@ -319,7 +322,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     print(f"MuJoCo viewer: {scenario.name} ({scenario.strategy.kind}); Space pauses, Right arrow steps a tick, "
           "close the window to quit", flush=True)
     try:
-        status = view(scenario, speed=speed)
+        status = view(scenario, build_simulation, speed=speed)
     except ConfigError as err:
         return _fail(str(err))
     except KeyboardInterrupt:
@@ -338,12 +341,12 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
 
 
 def cmd_init(args: argparse.Namespace) -> int:
-    from sim.annotated import annotated_scenario
+    from tether.annotated import annotated_scenario
     from sim.scenario import SCENE_DIR
 
     try:
         if args.scene is not None:
-            from sim.placement import load_in_scene
+            from tether.placement import load_in_scene
 
             scenario, notes = load_in_scene(args.scenario, args.scene, args.overrides, seed=args.seed)
         else:
@@ -372,7 +375,7 @@ def cmd_init(args: argparse.Namespace) -> int:
 def cmd_sweep(args: argparse.Namespace) -> int:
     import os
 
-    from sim.sweep import ProcessPool, RayCluster, ResultsFolder, load_sweep, run_sweep
+    from tether.sweep import ProcessPool, RayCluster, ResultsFolder, load_sweep, run_sweep
 
     engine = None
     try:
@@ -398,7 +401,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     outcome = run_sweep(sweep, folder.out, engine, retry_failed=args.retry_failed)
     report_note = ""
     if not args.no_report and outcome.results is not None:
-        from sim.report import write_report
+        from tether.report import write_report
 
         files = write_report(folder.out)
         report_note = f"; report {files[0].parent / 'report.md'}" if files else ""
@@ -412,7 +415,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def cmd_sweeps(args: argparse.Namespace) -> int:
-    from sim.sweep import builtin_sweeps
+    from tether.sweep import builtin_sweeps
 
     sweeps = builtin_sweeps()
     width = max(map(len, sweeps), default=0)
@@ -422,7 +425,7 @@ def cmd_sweeps(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from sim.report import write_report
+    from tether.report import write_report
 
     given = [flag for flag, value in (("--x", args.x), ("--y", args.y)) if value is None]
     if args.hue is not None and given or len(given) == 1:

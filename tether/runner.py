@@ -1,0 +1,171 @@
+"""A run, composed: the scenario's strategy and low-level control, the
+observers a run asks for, the staging folder, ``metrics.json``.
+
+:func:`run` is importable and headless; the CLI and the sweeps are thin
+layers over it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+import tether  # noqa: F401 (registers the built-in strategies and scenarios)
+from controllers.lowlevel.actuation import LowLevelControl
+from sim.config import ConfigError
+from sim.estimation_observer import EstimationMetrics
+from sim.loop import Simulation, mujoco_warnings, run_ticks, timing_summary
+from sim.observers import LinkMetrics, Observer, TrackingMetrics
+from sim.outputs import ProgressFile, Staging, json_safe, non_finite_fields, write_json
+from sim.scenario import Scenario
+from sim.strategy import Status, build_strategy
+from sim.validate import check_output_folder, check_scenario
+
+
+@dataclass
+class RunResult:
+    status: Status
+    metrics: dict[str, Any]
+    out_dir: Path | None
+    files: dict[str, str] = field(default_factory=dict)
+    trajectory: np.ndarray | None = None  # (ticks, N, 3) body positions, when asked
+
+
+def build_simulation(scenario: Scenario, rng: np.random.Generator | None = None) -> Simulation:
+    """The scenario's world with its registered strategy and the robots' low-level control."""
+    kind = scenario.strategy.kind
+    return Simulation(scenario, lambda params: build_strategy(kind, params), LowLevelControl, rng)
+
+
+def _observers(sim: Simulation, folder: Path | None, video: bool, rrd: bool, live: Any,
+               final: Callable[[str], str]) -> tuple[list[Observer], dict[str, Any], dict[str, str]]:
+    """The run's observers, writing into ``folder`` (the staging folder);
+    ``final(name)`` is where a file ends up. Returns (observers, named
+    observers, files)."""
+    scenario = sim.scenario
+    named: dict[str, Any] = {"estimation": EstimationMetrics(), "tracking": TrackingMetrics(sim.world.robot_kinds),
+                             "links": LinkMetrics()}
+    observers: list[Observer] = list(named.values())
+    files: dict[str, str] = {}
+    if folder is None:
+        return observers, named, files
+    from viz.plots import PlotRecorder
+
+    named["plots"] = PlotRecorder(sim.world.robot_kinds, folder / "plots", robot_names=sim.world.robot_names)
+    named["progress"] = ProgressFile(folder / "progress.json")
+    observers += [named["plots"], named["progress"]]
+    if video:
+        from viz.video import VideoRecorder
+
+        files["video"] = final("video.mp4")
+        observers.append(VideoRecorder(sim.world, scenario.video, str(folder / "video.mp4"), sim.dt))
+    if rrd or live is not None:
+        from viz.recording import RerunRecorder
+
+        files["recording"] = final("run.rrd")
+        named["recorder"] = RerunRecorder(sim.world, str(folder / "run.rrd"), scenario.name, live_stream=live)
+        observers.append(named["recorder"])
+    return observers, named, files
+
+
+def run(
+    scenario: Scenario,
+    out_dir: str | Path | None = None,
+    video: bool = False,
+    rrd: bool = False,
+    live: Any = None,
+    keep_trajectory: bool = False,
+    progress: Callable[[Simulation], None] | None = None,
+    extra_observers: Sequence[Observer] = (),
+) -> RunResult:
+    """Run a scenario headless; write metrics.json (+ video.mp4, run.rrd, plots/) to out_dir.
+
+    Every input is checked first (ConfigError, nothing built or written:
+    sim.validate). The run writes into a staging folder beside ``out_dir``
+    and moves its files into place when it ends (sim.outputs), so a refused
+    or crashed run leaves earlier results untouched. Status: see
+    :class:`sim.strategy.Status` and :func:`sim.loop.end_of_run`.
+    ``extra_observers`` see every tick after the built-in ones and are closed
+    with them. ``progress`` is called with the :class:`Simulation` every 100
+    ticks (e.g. :class:`tether.progress.RunProgress`).
+    """
+    wall_start = time.perf_counter()
+    mujoco_warnings.clear()
+    out = Path(out_dir) if out_dir is not None else None
+    if out is None and (video or rrd or live is not None):
+        raise ConfigError("--out", "a video or a recording needs an output folder")
+    if out is not None:
+        check_output_folder(out)
+    check_scenario(scenario)
+    sim = build_simulation(scenario)
+    if video:
+        from viz.video import resolve_camera
+
+        resolve_camera(sim.world.model, scenario.video.camera)  # refuse before writing anything
+    staging = Staging(out) if out is not None else None
+    try:
+        observers, named, files = _observers(sim, staging.path if staging else None, video, rrd, live,
+                                             staging.final if staging else str)
+    except BaseException:
+        if staging is not None:
+            staging.discard()
+        raise
+    observers += list(extra_observers)
+    setup_s = time.perf_counter() - wall_start
+    written: dict[str, Any] = {}
+
+    def write_metrics(status: Status, message: str, closing_s: float) -> None:
+        written["metrics"] = _metrics(scenario, sim, status, message, time.perf_counter() - wall_start, named,
+                                      timing_summary(sim.timing, setup_s, closing_s))
+        if staging is not None:
+            write_json(staging.path / "metrics.json", written["metrics"])
+            staging.commit()
+
+    try:
+        outcome = run_ticks(sim, observers, scenario.duration_s, progress, keep_trajectory, write_metrics)
+    except BaseException:  # a bug (or a forced stop): keep the earlier results
+        if staging is not None:
+            staging.discard()
+        raise
+    if staging is not None:
+        if named["plots"].files:
+            files["plots"] = staging.final("plots")
+        files["metrics"] = staging.final("metrics.json")
+    return RunResult(outcome.status, written["metrics"], out, files, outcome.trajectory)
+
+
+def _metrics(scenario: Scenario, sim: Simulation, status: Status, message: str, wall: float,
+             named: dict[str, Any], timing: dict[str, Any]) -> dict[str, Any]:
+    """The run's metrics.json: the foundation's figures and the strategy's
+    summary; a non-finite figure becomes null and the message names it."""
+    metrics: dict[str, Any] = {
+        "scenario": scenario.name,
+        "strategy": scenario.strategy.kind,
+        "seed": scenario.seed,
+        "status": status.value,
+        "message": message,
+        "sim_time_s": sim.time_s,
+        "wall_time_s": wall,
+        "real_time_factor": sim.time_s / wall if wall > 0 else None,
+        "n_robots": sim.world.n_robots,
+        "n_quadrotors": int(len(sim.world.kind_index["quadrotor"])),
+        "n_ground_robots": int(len(sim.world.kind_index["ground"])),
+        # The scene's moving targets ([[targets]], tracked by range sensors), not
+        # the connected method's points to visit (its targets_to_visit).
+        "n_moving_targets": sim.targets.n_targets,
+        "control_ticks": sim.tick_count,
+        "timing": timing,
+        **named["tracking"].summary(),
+        **named["links"].summary(),
+        **named["estimation"].summary(),
+        **sim.strategy.summary(),
+    }
+    missing = non_finite_fields(metrics)
+    if missing:
+        note = f"not finite, written as null: {', '.join(missing)}"
+        metrics["message"] = f"{message}; {note}" if message else note
+    return json_safe(metrics)
