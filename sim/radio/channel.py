@@ -70,7 +70,7 @@ def wall_loss_db(wall_count: ArrayLike, loss_per_wall_db: ArrayLike) -> np.ndarr
     Either one wall type: ``wall_count`` of any shape (walls crossed per link)
     times a scalar ``loss_per_wall_db``; or several types: ``wall_count`` of
     shape (..., n_types) and ``loss_per_wall_db`` of shape (n_types,), summed
-    over the last axis. COST 231 Final Report ch. 4.7 (1999): at about 1.8 GHz
+    over the last axis. COST 231 Final Report (1999), indoor: at about 1.8 GHz
     a light wall costs about 3.4 dB and a heavy wall about 6.9 dB. Floors
     (COST 231's non-linear floor term) are not modelled.
     """

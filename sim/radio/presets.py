@@ -1,8 +1,7 @@
 """Channel parameter presets: the ideal disk, IEEE 802.15.4 (CC2420), nRF24L01+, and 802.11n-class Wi-Fi.
 
-Each preset names its source in ``source``. Figures in the sources that
-could not be checked against the primary document are marked "unverified"
-there and in docs/radio.md.
+Each preset names its source in ``source``. docs/radio.md lists the figures
+that could not be checked against the primary documents.
 
 Each preset's noise figure is an effective figure, fitted so that the
 formulas in ``sim.radio.channel`` give the datasheet's sensitivity for the
@@ -21,7 +20,7 @@ from numpy.typing import ArrayLike
 
 from sim.radio import channel
 
-# COST 231 Final Report ch. 4.7 (1999), multi-wall model fitted at about 1.8 GHz.
+# COST 231 Final Report (1999), indoor multi-wall model fitted at about 1.8 GHz.
 LIGHT_WALL_LOSS_DB = 3.4  # plasterboard, light partitions, dB per wall crossed
 HEAVY_WALL_LOSS_DB = 6.9  # concrete, brick, load-bearing walls, dB per wall crossed
 # ITU-R P.1238 distance power loss coefficient N for offices at 2.4 GHz; exponent n = N / 10.
