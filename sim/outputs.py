@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from sim.observers import Observer
+from sim.strategy import Status
 
 # The files and folders a run writes; a reused output folder loses those of an earlier run.
 RUN_FILES = ("metrics.json", "progress.json", "video.mp4", "run.rrd", "plots", "run.rrd.segments")
@@ -136,7 +137,7 @@ class ProgressFile(Observer):
 
     def on_tick(self, frame) -> None:
         obs = frame.observation
-        self._latest = {"status": "running", "sim_time_s": obs.time_s, "tick": obs.tick,
+        self._latest = {"status": Status.RUNNING.value, "sim_time_s": obs.time_s, "tick": obs.tick,
                         "links": int(len(obs.links.edges)), **frame.commands.info.get("scalars", {})}
         now = self._clock()
         if now >= self._next:
@@ -144,4 +145,4 @@ class ProgressFile(Observer):
             write_json(self.path, self._latest)
 
     def close(self, status: str) -> None:
-        write_json(self.path, {**self._latest, "status": status})
+        write_json(self.path, {**self._latest, "status": str(status)})

@@ -28,13 +28,22 @@ if TYPE_CHECKING:
 
 
 class Status(str, enum.Enum):
-    """How a run ended (``metrics.json``'s ``status``), shared by run, tune, view and sweeps."""
+    """How a run stands or ended, one vocabulary for run, tune, view and sweeps
+    (``metrics.json``'s and a sweep row's ``status``, the tuning page's state)."""
 
+    RUNNING = "running"  # a live run or session, ticking (progress.json, the tuning page)
+    PAUSED = "paused"  # a live session its user paused (tuning page, viewer)
+    STOPPED = "stopped"  # a live session its user ended before the run did (viewer window closed, server stopped)
     COMPLETED = "completed"  # the mission ended, or a method without an end ran its full duration
     TIME_LIMIT = "time limit"  # the duration ran out before the mission ended
     DIVERGED = "diverged"  # physics, a robot out of the scene or tipped over, or a broken invariant
     INTERRUPTED = "interrupted"  # SIGINT / SIGTERM: stopped at the next tick
-    FAILED = "failed"  # an error inside the run (an observer's child process, a bug): files closed
+    FAILED = "failed"  # an error inside the run (a strategy or observer raised, a child died): files closed
+
+    @property
+    def finished(self) -> bool:
+        """A result: the run went to its end (its mission's, or its duration's)."""
+        return self in (Status.COMPLETED, Status.TIME_LIMIT)
 
     def __str__(self) -> str:
         return self.value

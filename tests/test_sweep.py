@@ -117,7 +117,7 @@ def test_a_trial_that_raises_is_recorded_and_the_others_finish(tmp_path, capsys)
     rows = read_results(out).to_pylist()
     failed = [r for r in rows if r["status"] != "completed"]
     assert [r["trial_index"] for r in failed] == [2, 3]
-    assert all(r["status"] == "error" and "outside the scene" in r["error"] for r in failed)
+    assert all(r["status"] == "failed" and "outside the scene" in r["error"] for r in failed)
     assert "outside the scene" in (out / "report.md").read_text()
 
     completed_files = {p.name: p.read_bytes() for p in (out / "trials").glob("*.a1.parquet")

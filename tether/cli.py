@@ -17,8 +17,10 @@ import time
 from pathlib import Path
 
 from sim.config import ConfigError
+from sim.strategy import Status
 
-EXIT_CODES = {"completed": 0, "time limit": 0, "diverged": 1, "interrupted": 130}
+EXIT_CODES = {Status.COMPLETED: 0, Status.TIME_LIMIT: 0, Status.DIVERGED: 1, Status.INTERRUPTED: 130,
+              Status.FAILED: 1}
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 
@@ -257,7 +259,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         viewer = Path(sys.executable).parent / "rerun"
         command = str(viewer) if viewer.exists() else "rerun"
         print(f"  open the recording with: {command} {result.files['recording']}")
-    if live and result.status != "interrupted":
+    if live and result.status != Status.INTERRUPTED:
         print(f"still serving the live stream ({live.web_url}); press Ctrl-C to stop", flush=True)
         try:
             while True:
@@ -327,7 +329,7 @@ def cmd_view(args: argparse.Namespace) -> int:
         return _fail(str(err))
     except KeyboardInterrupt:
         return 0
-    return 1 if status == "diverged" else 0
+    return EXIT_CODES.get(status, 0)
 
 
 def cmd_scenarios(args: argparse.Namespace) -> int:
@@ -410,7 +412,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
           f"of {outcome.total}; {where}{report_note}")
     if outcome.stopped:
         print(f"stopped: {outcome.stopped}; run the same command again to resume", file=sys.stderr)
-        return 130 if outcome.stopped == "interrupted" else 1
+        return EXIT_CODES[Status.INTERRUPTED] if outcome.stopped == Status.INTERRUPTED else 1
     return 0 if outcome.failed == 0 else 1
 
 

@@ -31,7 +31,7 @@ name and renamed, so a file is whole or absent), then, at the end,
 ``DIR/sweep.json`` holds the sweep's definition and its hash: a folder
 holding another sweep's results is refused. A rerun of the same command
 skips every trial whose latest row is finished ("completed", or "time limit":
-the trial ran to its duration cap) or failed ("diverged", "error");
+the trial ran to its duration cap) or failed ("diverged", "failed");
 ``--retry-failed`` also reruns the failed ones (a new attempt file; the old
 one stays). A row that says "interrupted" (a trial stopped by a signal) is
 never a result: the next call runs that trial again.
@@ -58,6 +58,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from sim.config import ConfigError, builtin_descriptions, builtin_or_file
+from sim.strategy import Status
 
 SWEEP_DIR = Path(__file__).parent / "sweeps"
 FORMAT = "tether-sweep/1"  # sweep.json's format tag: anything else is a foreign folder
@@ -68,12 +69,13 @@ SWEEP_KEYS = {"description", "scenario", "duration_s", "seeds", "set", "grid", "
 # Columns every row has, before the swept keys and the metrics.
 ROW_KEYS = ("trial_id", "trial_index", "attempt", "scenario", "seed", "duration_s", "overrides", "status",
             "error", "wall_time_s", "host", "finished_at")
-# Statuses of a trial's row. From the run: "completed" (its mission ended, or it ran its whole
-# duration), "time limit" (stopped by the duration cap before its mission ended: a finished trial
-# with a censored completion time), "diverged", "interrupted"; "error" is an exception.
-FINISHED = ("completed", "time limit")
-FAILED = ("diverged", "error")
-NOT_A_RESULT = ("interrupted",)  # always run again
+# Statuses of a trial's row (sim.strategy.Status): "completed" (its mission ended, or it ran its
+# whole duration), "time limit" (stopped by the duration cap before its mission ended: a finished
+# trial with a censored completion time), "diverged", "interrupted", "failed" (an exception; folders
+# written before the shared vocabulary say "error").
+FINISHED = (Status.COMPLETED.value, Status.TIME_LIMIT.value)
+FAILED = (Status.DIVERGED.value, Status.FAILED.value, "error")
+NOT_A_RESULT = (Status.INTERRUPTED.value,)  # always run again
 
 
 # ---------------------------------------------------------------- sweep files
@@ -326,10 +328,10 @@ def run_trial(trial: Trial, recordings: str | None = None) -> dict:
             out = Path(recordings) / trial.trial_id
         result = run(scenario, out, video=trial.video, rrd=trial.rrd)
         metrics = result.metrics
-        row["status"] = result.status
-        row["error"] = metrics.get("message", "") if result.status != "completed" else ""
+        row["status"] = result.status.value
+        row["error"] = metrics.get("message", "") if result.status != Status.COMPLETED else ""
     except Exception as err:  # recorded as a failed trial; the sweep goes on
-        row["status"] = "error"
+        row["status"] = Status.FAILED.value
         row["error"] = f"{type(err).__name__}: {err}"
     row["wall_time_s"] = time.perf_counter() - start
     row["host"] = socket.gethostname()
@@ -625,7 +627,7 @@ class RayCluster(Engine):
 def _error_row(trial: Trial, error: str) -> dict:
     return {"trial_id": trial.trial_id, "trial_index": trial.index, "scenario": trial.scenario, "seed": trial.seed,
             "duration_s": trial.duration_s, "overrides": json.dumps(list(trial.overrides)),
-            **{k: _column_value(v) for k, v in trial.swept}, "status": "error", "error": error,
+            **{k: _column_value(v) for k, v in trial.swept}, "status": Status.FAILED.value, "error": error,
             "wall_time_s": None, "host": None,
             "finished_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
@@ -737,7 +739,7 @@ def run_sweep(sweep: Sweep, out: str | Path, engine: Engine, retry_failed: bool 
             show()
             bar.update(1)
     except KeyboardInterrupt:
-        stopped = "interrupted"
+        stopped = Status.INTERRUPTED.value
     except SweepStopped as err:
         stopped = str(err)
     finally:

@@ -50,6 +50,7 @@ import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
 from sim.observers import Frame, Observer, tracking_errors
+from sim.strategy import Status
 from sim.world import INFINITE_PLANE_HALF_SIZE, World
 from viz.decorations import colour_name, frame_legend, log_events, log_recording_decorations, robot_colors_rgb8
 from viz.video import link_color
@@ -382,7 +383,8 @@ class RerunRecorder(Observer):
             self.log_frame(self._unlogged)
             self._unlogged = None
         time_s, tick = self._latest
-        self.on_event(time_s, f"run ended: {status}", level="INFO" if status in ("completed", "time limit") else "WARN", tick=tick)
+        self.on_event(time_s, f"run ended: {status}", level="INFO" if Status(status).finished else "WARN",
+                      tick=tick)
         self.rec.flush()
         self.rec.disconnect()
         self._merge()

@@ -49,6 +49,7 @@ from sim.config import ConfigError, build, field_comments, to_table, unit_from_n
 from sim.loop import Simulation
 from sim.observers import Frame, tracking_errors
 from sim.scenario import Scenario, dumps_toml, to_scenario_table, toml_value
+from sim.strategy import Status
 from sim.types import Commands
 from sim.validate import check_scenario
 
@@ -187,7 +188,7 @@ class TuningSession:
         self._stop = threading.Event()
         self._frame_ready = threading.Condition()
         self.paused = False
-        self.state = "running"  # running | diverged (physics) | failed (strategy raised) | stopped
+        self.state = Status.RUNNING  # RUNNING, DIVERGED (physics), FAILED (strategy raised), STOPPED
         self.message = ""
         self.params_tick = 0
         self.epoch = 0
@@ -266,14 +267,14 @@ class TuningSession:
                         frame, healthy = self.sim.tick()
                     except Exception as err:  # a strategy bug: pause, show it, keep serving
                         self.paused = True
-                        self.state = "failed"
+                        self.state = Status.FAILED
                         self.message = (f"the simulation raised {type(err).__name__}: {err} at t = "
                                         f"{self.sim.time_s:.2f} s; change a parameter and resume, or reset")
                         continue
                     self._sample(frame)
                     if not healthy:
                         self.paused = True
-                        self.state = "diverged"
+                        self.state = Status.DIVERGED
                         self.message = (f"diverged: {self.sim.divergence} (t = {self.sim.time_s:.3f} s); "
                                         f"reset to start again")
                     if stepping or not healthy or self.sim.time_s + 1e-9 >= next_render:
@@ -290,7 +291,7 @@ class TuningSession:
                     elif delay < -MAX_LAG_S:
                         anchor_wall, anchor_sim = now, self.sim.time_s
         except Exception as err:  # keep serving the page; show what went wrong
-            self.state = "stopped"
+            self.state = Status.STOPPED
             self.message = f"simulation stopped: {type(err).__name__}: {err}"
         finally:
             if renderer is not None:
@@ -329,8 +330,8 @@ class TuningSession:
         self.figures = {}
         self.epoch += 1
         self.params_tick = 0
-        if self.state in ("diverged", "failed"):
-            self.state = "paused"
+        if self.state in (Status.DIVERGED, Status.FAILED):
+            self.state = Status.PAUSED
         self.message = "reset: restarted from t = 0 with the current parameters"
 
     def _sample(self, frame: Frame) -> None:
@@ -381,8 +382,8 @@ class TuningSession:
             return {
                 "scenario": self.sim.scenario.name,
                 "strategy": self.kind,
-                "state": self.state if self.state in ("diverged", "failed", "stopped") else
-                ("paused" if self.paused else "running"),
+                "state": str(self.state if self.state in (Status.DIVERGED, Status.FAILED, Status.STOPPED) else
+                             (Status.PAUSED if self.paused else Status.RUNNING)),
                 "paused": self.paused,
                 "time_s": self.sim.time_s,
                 "tick": self.sim.tick_count,
@@ -442,13 +443,13 @@ class TuningSession:
                 self.paused = True
                 self.message = f"paused at t = {self.sim.time_s:.2f} s"
             elif action == "resume":
-                if self.state == "diverged":
+                if self.state == Status.DIVERGED:
                     raise ConfigError("resume", "the physics diverged; reset first")
                 self.paused = False
-                self.state = "running"
+                self.state = Status.RUNNING
                 self.message = "running"
             elif action == "step":
-                if self.state == "diverged":
+                if self.state == Status.DIVERGED:
                     raise ConfigError("step", "the physics diverged; reset first")
                 self.paused = True
                 self._steps += 1

@@ -34,9 +34,10 @@ from typing import Callable
 import mujoco
 import numpy as np
 
-from sim.loop import Simulation
+from sim.loop import Simulation, end_of_run
 from sim.observers import Frame
 from sim.scenario import Scenario
+from sim.strategy import Status
 from viz.decorations import frame_legend
 from viz.video import TOP_MARGIN, add_capsule, add_sphere, draw_decorations, overlay_text
 
@@ -134,8 +135,9 @@ def view(scenario: Scenario, make_simulation: Callable[[Scenario], Simulation], 
          control: ViewerControl | None = None, on_tick: Callable[[Simulation, Frame], None] | None = None, keep_open: bool = True,
          launch: Callable | None = None) -> str:
     """Run ``scenario`` in MuJoCo's viewer until its duration, the end of its
-    mission or the window closes; returns the status ("completed",
-    "finished", "diverged", "closed"). ``on_tick(sim, frame)`` after each
+    mission or the window closes; returns the :class:`sim.strategy.Status`
+    (completed or time limit as a run would end, diverged, or stopped: the
+    window closed before the run ended). ``on_tick(sim, frame)`` after each
     tick (tests); ``keep_open``: leave the window open on the last state
     until the user closes it."""
     import mujoco.viewer
@@ -168,11 +170,9 @@ def view(scenario: Scenario, make_simulation: Callable[[Scenario], Simulation], 
                 frame, healthy = sim.tick()
                 scene.draw(frame)
             if not healthy:
-                status = "diverged"
-            elif getattr(sim.strategy, "finished", False):
-                status = "finished"
-            elif sim.tick_count >= n_ticks:
-                status = "completed"
+                status = Status.DIVERGED
+            elif sim.strategy.finished or sim.tick_count >= n_ticks:
+                status, _ = end_of_run(sim.strategy, sim.strategy.finished, scenario.duration_s, sim.time_s)
             handle.set_texts(_texts(frame, f"{status}: close the window to quit" if status else "", control))
             handle.sync()
             if on_tick is not None:
@@ -190,4 +190,4 @@ def view(scenario: Scenario, make_simulation: Callable[[Scenario], Simulation], 
             time.sleep(0.05)
     finally:
         handle.close()
-    return status or "closed"
+    return status or Status.STOPPED
