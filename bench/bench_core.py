@@ -11,7 +11,7 @@ timed with this thread's CPU time, interleaved, so the ratio
 
 survives a shared, busy machine. The real-time factor is simulated seconds
 per wall second of the full ticks; the stage shares come from the loop's own
-``timing`` (metrics.json's block). Then: seed 000's plan time for 2- and
+``timing`` (metrics.json's block). Then: the intermittent paper's plan time for 2- and
 4-robot teams (bench/bench_intermittent.py's measurement), ``--video``'s
 real-time factor against headless, and the fixed costs of a run as a user
 starts it (``tether run NAME --duration 20 --out DIR``, a fresh process):
@@ -108,7 +108,7 @@ def _measure_ticks(simulation, observers, scenario_name, overrides, seconds, war
 
 
 def plan_times(plans: int) -> list[str]:
-    """Seed 000's plan time per team size at the strategy's own samples (n_sample for 2 robots,
+    """The intermittent paper's plan time per team size at the strategy's own samples (n_sample for 2 robots,
     n_sample * n / 2 for n > 2), from bench/bench_intermittent.py's own measurement."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import bench_intermittent as intermittent
@@ -155,7 +155,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=2.0, help="simulated seconds measured per row")
     parser.add_argument("--warmup", type=float, default=0.5, help="simulated seconds run before measuring")
-    parser.add_argument("--plans", type=int, default=8, help="seed 000 plans per team size")
+    parser.add_argument("--plans", type=int, default=8, help="intermittent plans per team size")
     parser.add_argument("--rows", nargs="*", help="only rows whose label contains one of these")
     parser.add_argument("--quick", action="store_true", help="core rows only: no planner, no video, no fixed costs")
     parser.add_argument("--fixed-duration", type=float, default=20.0, help="simulated seconds of the fixed-cost runs")
@@ -179,7 +179,7 @@ def main() -> None:
     if args.quick:
         return
     print()
-    print("seed 000 planner (bench/bench_intermittent.py, the strategy's samples; thread CPU s)")
+    print("intermittent planner (bench/bench_intermittent.py, the strategy's samples; thread CPU s)")
     print("| team | samples | plans found | plan time mean (s) | max (s) |")
     print("| --- | --- | --- | --- | --- |")
     for line in plan_times(args.plans):

@@ -1,4 +1,4 @@
-"""Planning cost of seed 000's team planner (Algorithm 1) on the paper's task.
+"""Planning cost of the intermittent paper's team planner (Algorithm 1) on the paper's task.
 
 For 2-robot teams (rings G_T^1 and the 4-robot ring) and 4-robot teams (T_5
 of G_T^2), in the indoor office with the paper's 8 targets and EKF prior,
@@ -136,7 +136,7 @@ def summary(rows) -> dict:
 
 def plan_times(team_size: int, n_plans: int = 8, n_sample: int | None = None, seed: int | None = None,
                setup=None) -> dict:
-    """Seed 000's planner on the benchmark task for a team of ``team_size`` robots.
+    """The intermittent paper's planner on the benchmark task for a team of ``team_size`` robots.
 
     Plans ``n_plans`` meetings from random free starts (seed: ``seed``,
     default ``team_size``) with ``team_samples(n_sample, team_size)`` samples

@@ -1,7 +1,7 @@
-"""Seed 000's tracking task as every method that runs it sees it.
+"""The intermittent paper's tracking task as every method that runs it sees it.
 
-Shared by the three seed 000 strategies (``intermittent``, ``all_time``,
-``random_meeting``) and seed 001's controller on that task
+Shared by the three intermittent-task strategies (``intermittent``, ``all_time``,
+``random_meeting``) and the continuous-connectivity paper's controller on that task
 (``connected_tracking``), so all four take the same readings into the same
 EKF from the same prior and report the same e_g and lambda-bar:
 
@@ -12,7 +12,7 @@ EKF from the same prior and report the same e_g and lambda-bar:
 - :class:`EstimateSeries` - lambda_max(C_g(t)) per step and the ``info``
   entries (estimate, covariance blocks) the estimation observer reads.
 
-``params`` is any parameter object with the seed 000 fields used here
+``params`` is any parameter object with the Khodayi-mehr et al. 2019 fields used here
 (``step_s``, ``prior_mean``, ``prior_variance_m2``):
 :class:`controllers.intermittent.params.IntermittentParams` or its extension.
 """
@@ -49,7 +49,7 @@ def prior_state(params, n_targets: int) -> FilterState:
 def check_time_base(world: WorldInfo, params) -> None:
     """The strategies need the target model and a whole number of control ticks per step."""
     if world.n_targets == 0:
-        raise ConfigError("targets", "the seed 000 strategies need at least one target")
+        raise ConfigError("targets", "the intermittent-task strategies need at least one target")
     if getattr(world, "target_motion", None) is None:
         raise ConfigError("targets", "the simulator did not provide the target model")
     if abs(world.target_motion.dt - params.step_s) > 1e-9:
@@ -62,7 +62,7 @@ def check_time_base(world: WorldInfo, params) -> None:
     if abs(ratio - round(ratio)) > 1e-6:
         raise ConfigError("strategy.step_s", f"must be a whole multiple of physics.control_period_s, got {params.step_s}")
     if any(kind != "ground" for kind in world.robot_kinds):
-        raise ConfigError("robots", "the seed 000 strategies drive ground robots only")
+        raise ConfigError("robots", "the intermittent-task strategies drive ground robots only")
 
 
 def measurement_records(observation: Observation, step: int) -> list[list[RangeMeasurement]]:

@@ -1,4 +1,4 @@
-"""Team, robot and global beliefs under intermittent communication (seed 000,
+"""Team, robot and global beliefs under intermittent communication (Khodayi-mehr et al. 2019,
 Remark III.4, Algorithm 5, Sec. IV-A).
 
 Every range reading is a :class:`RangeMeasurement` record (time step, robot,

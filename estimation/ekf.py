@@ -1,4 +1,4 @@
-"""Extended Kalman filter over all targets' 3D positions (seed 000, Alg. 4).
+"""Extended Kalman filter over all targets' 3D positions (Khodayi-mehr et al. 2019, Alg. 4).
 
 The state x in R^{3M} stacks the positions of the M targets (m, world frame).
 Prediction uses the stacked LTI target model of eq. (11) from
@@ -44,7 +44,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 from estimation.range_model import range_sigma
 from estimation.target_motion import TargetMotion
 
-# Seed 000, Sec. IV: true initial target positions x0, m (8 targets x 3).
+# Khodayi-mehr et al. 2019, Sec. IV: true initial target positions x0, m (8 targets x 3).
 PAPER_INITIAL_TARGET_POSITIONS = np.array(
     [
         (1.0, 2.0, 1.5),
@@ -59,7 +59,7 @@ PAPER_INITIAL_TARGET_POSITIONS = np.array(
 )
 PAPER_INITIAL_TARGET_POSITIONS.setflags(write=False)
 
-# Seed 000, Sec. IV: EKF initialisation x^0, m (8 targets x 3).
+# Khodayi-mehr et al. 2019, Sec. IV: EKF initialisation x^0, m (8 targets x 3).
 PAPER_INITIAL_ESTIMATE = np.array(
     [
         (1.0, 1.0, 1.0),

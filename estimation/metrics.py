@@ -1,4 +1,4 @@
-"""Estimation metrics of seed 000, Sec. IV: localization error, uncertainty,
+"""Estimation metrics of Khodayi-mehr et al. 2019, Sec. IV: localization error, uncertainty,
 their time averages (eqs. 13a, 13b), t*(t) and the local error e_i(t)
 (eq. 14), and information delays in epochs against Proposition III.2.
 

@@ -1,4 +1,4 @@
-"""Range-only line-of-sight measurement model of seed 000 (Sec. IV, eq. 12).
+"""Range-only line-of-sight measurement model of Khodayi-mehr et al. 2019 (Sec. IV, eq. 12).
 
 Pure numpy (and a compiled scalar sigma(l)); never imports MuJoCo. The state stacks the 3D positions of all
 M targets: x = [x_1; ...; x_M] in R^{3M}, metres, world frame. Robot sensor
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-SENSING_RANGE_M = 5.0  # seed 000: "limited range of 5m"
+SENSING_RANGE_M = 5.0  # Khodayi-mehr et al. 2019: "limited range of 5m"
 
 
 @njit(cache=True)

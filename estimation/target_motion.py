@@ -1,4 +1,4 @@
-"""Target motion model of seed 000, eq. (11): x_a(t+1) = A_a x_a(t) + B_a u_a(t) + w_a(t).
+"""Target motion model of Khodayi-mehr et al. 2019, eq. (11): x_a(t+1) = A_a x_a(t) + B_a u_a(t) + w_a(t).
 
 Pure numpy. Targets follow linear (back and forth between two points) or
 circular paths, each step corrupted by Gaussian process noise w_a ~ N(0, Q_a).

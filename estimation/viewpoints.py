@@ -1,7 +1,7 @@
-"""How much a viewpoint would teach the EKF about one target (seed 000, eqs. 11-12).
+"""How much a viewpoint would teach the EKF about one target (Khodayi-mehr et al. 2019, eqs. 11-12).
 
 Pure numpy, never imports MuJoCo. Used by the EKF target generator of
-``connected_tracking`` (seed 001's controller on seed 000's task): it picks,
+``connected_tracking`` (the continuous-connectivity paper's controller on the intermittent paper's task): it picks,
 for the most uncertain target, the free point from which the explorer's range
 readings shrink that target's covariance most, and holds it there as long as
 the readings need.

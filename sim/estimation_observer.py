@@ -1,4 +1,4 @@
-"""Estimation error against the truth, as an observer (seed 000, Sec. IV).
+"""Estimation error against the truth, as an observer (Khodayi-mehr et al. 2019, Sec. IV).
 
 Strategies never see the true target states. A strategy that estimates the
 targets reports, in ``commands.info``, its global estimate ``target_estimate``

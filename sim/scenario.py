@@ -115,7 +115,7 @@ class RobotGroup:
 
 @dataclass(frozen=True)
 class TargetConfig:
-    """One moving target (seed 000 eq. 11): linear back-and-forth, circular, or static."""
+    """One moving target (Khodayi-mehr et al. 2019 eq. 11): linear back-and-forth, circular, or static."""
 
     path: Literal["linear", "circular", "static"]  # "linear" (back and forth), "circular" or "static"
     start: Vec3 | None = None  # linear/static: first point, m

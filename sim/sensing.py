@@ -124,7 +124,7 @@ class RaySensors:
         return clearance
 
     def target_ranges(self, sensors: np.ndarray, targets: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """(N, M) range readings of seed 000, eq. (12); NaN where the target is
+        """(N, M) range readings of Khodayi-mehr et al. 2019, eq. (12); NaN where the target is
         out of range or hidden. Noise is drawn from ``rng`` only when enabled."""
         n, m = len(sensors), len(targets)
         true_range = np.linalg.norm(targets[None, :, :] - sensors[:, None, :], axis=-1)

@@ -1,4 +1,4 @@
-"""Ground-truth target motion in the simulation (seed 000, eq. 11).
+"""Ground-truth target motion in the simulation (Khodayi-mehr et al. 2019, eq. 11).
 
 The discrete model advances every ``target_motion.step_s``; between steps the
 mocap bodies move linearly from x(k) to x(k+1), so videos stay smooth while

@@ -29,7 +29,7 @@ class WorldInfo:
     target_range_m: float  # range-sensor limit, m
     n_targets: int
     sensing_period_s: float = 1.0  # target range readings every this many s
-    # The targets' motion model x(k+1) = A x(k) + B u(k) + w (seed 000 eq. 11,
+    # The targets' motion model x(k+1) = A x(k) + B u(k) + w (Khodayi-mehr et al. 2019 eq. 11,
     # estimation.target_motion.TargetMotion, a private copy): known to the
     # estimators by Assumption II.3. Never the true states.
     target_motion: Any = None

@@ -1,5 +1,5 @@
 """Shared by the connected-strategy tests: run a scenario tick by tick and check
-seed 001's invariants on every control tick, independently of the strategy's
+the continuous-connectivity paper's invariants on every control tick, independently of the strategy's
 own bookkeeping (recomputed from the references the quadrotors received)."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""A small room scenario for fast real runs of the seed 000 strategies.
+"""A small room scenario for fast real runs of the intermittent-task strategies.
 
 4 x 4 m, one interior wall that blocks line of sight, 4 e-puck ground robots
 in the paper's 4-team ring, 2 moving targets. Epochs are short (tens of

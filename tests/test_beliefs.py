@@ -1,5 +1,5 @@
 """Team / robot / global beliefs (estimation/beliefs.py) and the estimation
-metrics (estimation/metrics.py) of seed 000: out-of-order fusion, checkpointed
+metrics (estimation/metrics.py) of Khodayi-mehr et al. 2019: out-of-order fusion, checkpointed
 refiltering, Algorithm 5's exchanges, t*(t), e_i(t) and packet delays
 against the schedule replay of Proposition III.2."""
 
@@ -28,7 +28,7 @@ from estimation.range_model import range_sigma
 from estimation.target_motion import CircularPath, LinearPath, TargetMotion
 
 SENSING_RANGE_M = 5.0
-ROBOT_STEP_M = 0.1  # seed 000: ||u_ij|| <= 0.1 m per step
+ROBOT_STEP_M = 0.1  # Khodayi-mehr et al. 2019: ||u_ij|| <= 0.1 m per step
 SENSOR_HEIGHT_M = 0.1
 
 

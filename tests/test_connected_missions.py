@@ -1,4 +1,4 @@
-"""Whole seed 001 missions on MuJoCo quadrotors (slow: minutes each).
+"""Whole continuous-connectivity missions on MuJoCo quadrotors (slow: minutes each).
 
 Every target is visited in finite time (Proposition 2) and the invariants
 hold on every control tick of the whole run: lambda2 > lambda2_min, virtual

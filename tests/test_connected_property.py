@@ -1,7 +1,7 @@
 """Property test: random target layouts for 10 quadrotors in the indoor office.
 
 Hypothesis draws which robots get targets and where (free space, reachable),
-the run flies real MuJoCo quadrotors for a short while, and seed 001's
+the run flies real MuJoCo quadrotors for a short while, and the continuous-connectivity paper's
 invariants are checked on every control tick: lambda2 > lambda2_min, virtual
 points farther than R_c apart and than R_o from obstacles, at most one prime
 traveler. The default set tries a few layouts; ``-m slow`` tries more, longer.

@@ -1,4 +1,4 @@
-"""The ``connected`` strategy (seed 001) on MuJoCo quadrotors: parameters, bad
+"""The ``connected`` strategy (Nestmeyer et al. 2017) on MuJoCo quadrotors: parameters, bad
 input, invariants on every tick of every built-in connected scenario, outputs.
 
 Short runs here; whole missions are in test_connected_missions.py (slow).

@@ -1,4 +1,4 @@
-"""Continuous-connectivity core of seed 001 (Appendix A): parameters, link
+"""Continuous-connectivity core of Nestmeyer et al. 2017 (Appendix A): parameters, link
 weights, lambda2 and its gradient, the connectivity potential and force.
 
 References: central finite differences of numpy eigvalsh of the Laplacian

@@ -1,4 +1,4 @@
-"""Virtual dynamics M v' = f_B + f_lambda + f (seed 001, eq. 1) and Fact 1:
+"""Virtual dynamics M v' = f_B + f_lambda + f (Nestmeyer et al. 2017, eq. 1) and Fact 1:
 under bounded external forces the connectivity force keeps the graph
 connected and the robots apart from each other and from obstacles."""
 

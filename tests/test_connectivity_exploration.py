@@ -1,4 +1,4 @@
-"""Exploration layer of seed 001: parameters, eqs. (3)-(15), and Algorithms 1-2 end to end.
+"""Exploration layer of Nestmeyer et al. 2017: parameters, eqs. (3)-(15), and Algorithms 1-2 end to end.
 
 Robot motion is integrated here as the virtual point of eq. (1) with
 M = 1 kg, M v' = -B v + f_lambda + f (a double integrator, no MuJoCo).

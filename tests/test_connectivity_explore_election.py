@@ -1,4 +1,4 @@
-"""Flooding and the 'prime traveler' election of seed 001 (Sec. 3.3, Alg. 1, Proposition 1)."""
+"""Flooding and the 'prime traveler' election of Nestmeyer et al. 2017 (Sec. 3.3, Alg. 1, Proposition 1)."""
 
 from __future__ import annotations
 

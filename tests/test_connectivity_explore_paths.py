@@ -1,4 +1,4 @@
-"""Planned paths of seed 001 (Sec. 3.2): obstacle-free with margin, C2, arc-length parametrised."""
+"""Planned paths of Nestmeyer et al. 2017 (Sec. 3.2): obstacle-free with margin, C2, arc-length parametrised."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Target queues, dwell clocks and random target generation of seed 001 (Secs. 2.1, 4.1)."""
+"""Target queues, dwell clocks and random target generation of Nestmeyer et al. 2017 (Secs. 2.1, 4.1)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""EKF of seed 000 (estimation/ekf.py): Jacobians against finite differences,
+"""EKF of Khodayi-mehr et al. 2019 (estimation/ekf.py): Jacobians against finite differences,
 prediction and update against independent formulas, paper constants, and
 filter consistency (NEES) over a seeded pure-numpy simulation."""
 

@@ -1,4 +1,4 @@
-"""The two baselines of seed 000 (Sec. IV-B) run on the same scenario, same
+"""The two baselines of Khodayi-mehr et al. 2019 (Sec. IV-B) run on the same scenario, same
 EKF and metrics; determinism of the strategies; video and recording show the
 teams, plans, meetings and estimates."""
 

@@ -1,4 +1,4 @@
-"""Bad input for the seed 000 strategies: one line naming the field, exit 2,
+"""Bad input for the intermittent-task strategies: one line naming the field, exit 2,
 nothing written (issue 4: a robot in one or three teams, a disconnected team
 graph, delta <= 0, n_sample < 1, and the other checks of the strategies)."""
 
@@ -35,7 +35,7 @@ CASES = {
     "link margin eats the range": (["strategy.link_margin_m=0.3"], "strategy.link_margin_m: must be below"),
     "quadrotors are refused": (["robots.0.kind=\"quadrotor\"",
                                 "robots.0.starts=[[1.0,1.0,1.0],[1.6,1.0,1.0],[1.0,1.6,1.0],[1.6,1.6,1.0]]"],
-                               "robots: the seed 000 strategies drive ground robots only"),
+                               "robots: the intermittent-task strategies drive ground robots only"),
 }
 
 

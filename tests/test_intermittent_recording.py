@@ -1,4 +1,4 @@
-"""What a seed 000 run writes, read back: the recording's series equal the
+"""What a intermittent-task run writes, read back: the recording's series equal the
 strategy's per-tick values and the figures in metrics.json, its entity tree
 (targets true and estimated with covariance ellipsoids, team colours, plans,
 meeting points, meetings as events), and the plots."""

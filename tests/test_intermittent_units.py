@@ -1,4 +1,4 @@
-"""Pure pieces of the seed 000 strategies: geodesics, timed paths, body
+"""Pure pieces of the intermittent-task strategies: geodesics, timed paths, body
 separation, team connectivity, parameters, the e_g observer and the
 comparison's bookkeeping. No simulation."""
 

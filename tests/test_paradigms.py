@@ -1,4 +1,4 @@
-"""Both paradigms on one task (issue 12): seed 001's controller on seed 000's ground
+"""Both paradigms on one task (issue 12): the continuous-connectivity paper's controller on the intermittent paper's ground
 robots and task (``connected_tracking``), on the small test room (4 e-pucks, 2
 moving targets, R = 0.2 m), short runs with real MuJoCo, planner and EKF."""
 
@@ -26,7 +26,7 @@ target_counts = [1, 0, 0, 1]
 
 
 class GroundInvariants:
-    """Seed 001's invariants on every tick, recomputed from the references the
+    """The continuous-connectivity paper's invariants on every tick, recomputed from the references the
     wheels received (virtual points): lambda2 > lambda2_min, points farther
     than R_c apart and than R_o from walls, at most one prime traveler."""
 
@@ -66,7 +66,7 @@ def _run(path, seconds: float, each=None) -> Simulation:
 def test_connected_strategy_drives_ground_robots_with_its_invariants(tmp_path):
     path = room_scenario(tmp_path, kind="connected", duration=12.0, extra=GROUND_CONNECTED)
     text = path.read_text()
-    # The seed 000 keys are not the connected strategy's: keep only its table.
+    # The Khodayi-mehr et al. 2019 keys are not the connected strategy's: keep only its table.
     head, _, rest = text.partition("[strategy]")
     strategy_table = 'kind = "connected"\n' + GROUND_CONNECTED
     path.write_text(head + "[strategy]\n" + strategy_table + "\n[[robots]]" + rest.split("[[robots]]", 1)[1])
@@ -104,7 +104,7 @@ def test_fixed_targets_of_ground_robots_are_places_in_the_sensors_plane(tmp_path
 
 
 def test_connected_tracking_invariants_readings_and_targets(tmp_path):
-    """One 20 s run checks, on every tick: seed 001's invariants on the ground
+    """One 20 s run checks, on every tick: the continuous-connectivity paper's invariants on the ground
     robots; every reading of a reading tick is in the EKF that tick and the
     reported estimate is that tick's; each issued viewpoint serves the most
     uncertain target not assigned to another explorer (or an earlier-ranked
@@ -185,7 +185,7 @@ def test_connected_tracking_is_deterministic_for_a_seed(tmp_path):
 
 
 def test_connected_tracking_run_that_lasts_its_duration_is_completed(tmp_path):
-    """Tracking has no mission end: like the other methods of seed 000's task, a run that lasts its
+    """Tracking has no mission end: like the other methods of the intermittent paper's task, a run that lasts its
     duration is "completed" (not "time limit"), its message saying what the team did."""
     from tether.runner import run
 
@@ -259,7 +259,7 @@ def test_report_section_of_the_range_sweep(tmp_path):
     lines, pngs = paradigms_section(rows, tmp_path)
     text = "\n".join(lines)
     assert "| intermittent | 1.250 ± 0.050 [1.200, 1.300] (n=2) | 3.050 ± 0.050 [3.000, 3.100] (n=2) |" in text
-    assert "| connected (seed 001) | 0.205 ± 0.005 [0.200, 0.210] (n=2)" in text
+    assert "| connected (Nestmeyer et al. 2017) | 0.205 ± 0.005 [0.200, 0.210] (n=2)" in text
     assert pngs[0].is_file() and pngs[0].stat().st_size > 1000
     assert table1_section(rows, tmp_path) == ([], [])
 

@@ -1,4 +1,4 @@
-"""Joint-space informative path planner of seed 000 (Algorithms 1-4, 6, goal set 6).
+"""Joint-space informative path planner of Khodayi-mehr et al. 2019 (Algorithms 1-4, 6, goal set 6).
 
 Every property of a returned plan is re-checked here with independent code:
 the reference geometry (``segments_free``), the reference covariance

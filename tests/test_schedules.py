@@ -1,4 +1,4 @@
-"""Teams and conflict-free communication schedules of seed 000 (Sec. III-A,
+"""Teams and conflict-free communication schedules of Khodayi-mehr et al. 2019 (Sec. III-A,
 Definition III.1, Proposition III.2), against the paper's examples G_T^1 and
 G_T^2 and hypothesis properties over random connected graphs of teams."""
 

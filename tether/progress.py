@@ -21,7 +21,7 @@ BAR_HEADLINE_EVERY_S = 1.0  # the bar's headline figure is refreshed at most thi
 
 def headline(summary: dict[str, Any]) -> str:
     """The one figure a user watches, from a strategy's ``summary()``: targets
-    visited (seed 001), meetings held (seed 000), else nothing."""
+    visited (Nestmeyer et al. 2017), meetings held (Khodayi-mehr et al. 2019), else nothing."""
     if "targets_visited" in summary and "targets_total" in summary:
         return f"targets {summary['targets_visited']}/{summary['targets_total']}"
     if summary.get("meetings_scheduled"):

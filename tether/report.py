@@ -4,11 +4,11 @@ Sections are chosen by the columns and rows the table holds, so a partial
 table (a sweep still running, or stopped) gives the same report with fewer
 trials, and every cell states its n:
 
-- seed 001's Fig. 9 (``connected`` trials: ``completion_time_s`` against
+- the continuous-connectivity paper's Fig. 9 (``connected`` trials: ``completion_time_s`` against
   ``n_robots``): four rows of percentile bands, one column per scenario;
-- seed 000's Table I (``e_g_mean_m`` of two or more strategy kinds): mean +-
+- the intermittent paper's Table I (``e_g_mean_m`` of two or more strategy kinds): mean +-
   std per method and target count, the paper's numbers beside;
-- seed 000's Sec. IV-A team graphs (``intermittent`` trials of two or more
+- the intermittent paper's Sec. IV-A team graphs (``intermittent`` trials of two or more
   scenarios with the same targets): e_g, lambda-bar, delay against its
   bound and the t*(t) lag, the paper's figures beside;
 - both paradigms against the communication range (issue 12, sweep
@@ -36,7 +36,7 @@ import numpy as np
 from sim.config import ConfigError
 from tether.sweep import FINISHED
 
-# Seed 001, Fig. 9: rows (column, axis label).
+# Nestmeyer et al. 2017, Fig. 9: rows (column, axis label).
 FIG9_ROWS = (
     ("completion_time_s", "completion time (s)"),
     ("mean_travel_m", "explorers' mean distance (m)"),
@@ -45,7 +45,7 @@ FIG9_ROWS = (
 )
 FIG9_PERCENTILES = (10, 25, 50, 75, 90)
 
-# Seed 000, Table I: (mean, +-) of e_g-bar (m) and lambda-bar (m^2), per target count and method.
+# Khodayi-mehr et al. 2019, Table I: (mean, +-) of e_g-bar (m) and lambda-bar (m^2), per target count and method.
 PAPER_TABLE_I = {
     4: {"all_time": ((1.030, 0.466), (0.226, 0.061)),
         "random_meeting": ((1.993, 0.566), (0.405, 0.181)),
@@ -56,14 +56,14 @@ PAPER_TABLE_I = {
 }
 METHOD_ORDER = ("all_time", "random_meeting", "intermittent")  # Table I's column order
 METHOD_LABELS = {"all_time": "all-time", "random_meeting": "heuristic", "intermittent": "intermittent",
-                 "connected_tracking": "connected (seed 001)"}
+                 "connected_tracking": "connected (Nestmeyer et al. 2017)"}
 # Both paradigms on one task (issue 12): the methods in plotting order, and the swept range column.
 PARADIGM_METHODS = ("all_time", "random_meeting", "intermittent", "connected_tracking")
 PARADIGM_COLORS = {"all_time": "#8c8c8c", "random_meeting": "#d98c3a", "intermittent": "#3a78d9",
                    "connected_tracking": "#2ca05a"}
 RANGE_COLUMN = "sensing.comm_range_m"
 
-# Seed 000, Sec. IV-A (8 targets): team graph -> (e_g-bar m, lambda-bar m^2, delay bound D_G epochs).
+# Khodayi-mehr et al. 2019, Sec. IV-A (8 targets): team graph -> (e_g-bar m, lambda-bar m^2, delay bound D_G epochs).
 PAPER_TEAMS = {
     "intermittent-8": ("G_T^1 (ring, 8 teams of 2)", 0.929, 0.177, 5),
     "intermittent-8-dense": ("G_T^2 (5 teams)", 1.127, 0.532, 4),
@@ -121,7 +121,7 @@ def trials_section(rows: list[dict], manifest: dict | None) -> list[str]:
 
 
 def fig9_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
-    """Seed 001's Fig. 9 from connected trials: percentiles against robot count, one column per scenario."""
+    """The continuous-connectivity paper's Fig. 9 from connected trials: percentiles against robot count, one column per scenario."""
     mine = [r for r in rows if r.get("strategy") == "connected" and _number(r.get("n_robots")) is not None]
     if not mine:
         return [], []
@@ -170,13 +170,13 @@ def fig9_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
                 ax.set_xlabel("robots")
             if row_i == 0 and col == 0 and xs:
                 ax.legend(fontsize=6)
-    fig.suptitle("seed 001 Fig. 9: percentiles over target configurations (numbers: n per point)", fontsize=9)
+    fig.suptitle("Nestmeyer et al. 2017 Fig. 9: percentiles over target configurations (numbers: n per point)", fontsize=9)
     fig.tight_layout()
     png = out / "fig9.png"
     fig.savefig(png, dpi=110)
     plt.close(fig)
 
-    lines = ["## Seed 001, Fig. 9 (connected)", "",
+    lines = ["## Nestmeyer et al. 2017, Fig. 9 (connected)", "",
              f"![Fig. 9]({png.name})", "",
              "Cells: median [25th, 75th percentile] (n = trials with a value / finished trials in the cell). "
              "Completion time counts only trials that visited every target before the scenario's cap; "
@@ -263,7 +263,7 @@ def _paired_wins(rows: list[dict], n_targets: int) -> list[str]:
 
 
 def table1_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
-    """Seed 000's Table I: mean +- std per method and target count, the paper's beside."""
+    """The intermittent paper's Table I: mean +- std per method and target count, the paper's beside."""
     # Trials at a swept communication range belong to the paradigms section, not to Table I.
     with_e_g = [r for r in rows if "e_g_mean_m" in r and r.get("strategy") in METHOD_ORDER
                 and r.get(RANGE_COLUMN) is None]
@@ -277,7 +277,7 @@ def table1_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
     cells = _table1_cells(with_e_g)
     targets = sorted({_moving_targets(r) for r in with_e_g})
     methods = [m for m in METHOD_ORDER if any(r.get("strategy") == m for r in with_e_g)]
-    lines = ["## Seed 000, Table I", "",
+    lines = ["## Khodayi-mehr et al. 2019, Table I", "",
              "Ours: mean over trials of each run's time average, +- the mean over trials of each run's std "
              "over time (how the paper reports a run), then the std of the run averages across seeds, and n. "
              "Paper: Table I.", ""]
@@ -339,7 +339,7 @@ def _with_figure(lines: list[str], fig, png: Path, alt: str) -> tuple[list[str],
 
 
 def paradigms_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
-    """Both paradigms on seed 000's task: e_g and lambda-bar of every method against the communication range."""
+    """Both paradigms on the intermittent paper's task: e_g and lambda-bar of every method against the communication range."""
     chosen = [r for r in rows if r.get("status") in FINISHED and _number(r.get(RANGE_COLUMN)) is not None
               and r.get("strategy") in PARADIGM_METHODS and _number(r.get("e_g_mean_m")) is not None
               and _number(r.get("lambda_bar_mean_m2")) is not None]
@@ -392,7 +392,7 @@ def paradigms_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path
 
 
 def teams_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
-    """Seed 000 Sec. IV-A: the team graphs compared on the same targets."""
+    """Khodayi-mehr et al. 2019 Sec. IV-A: the team graphs compared on the same targets."""
     mine = [r for r in rows if r.get("strategy") == "intermittent" and "e_g_mean_m" in r]
     by_targets = defaultdict(set)
     for r in mine:
@@ -404,7 +404,7 @@ def teams_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
                ("delay_bound_epochs", "delay bound D_G (epochs)"),
                ("max_delay_epochs_observed", "max observed delay (epochs)"),
                ("t_star_lag_mean_s", "t - t*(t) mean (s)"), ("t_star_lag_max_s", "t - t*(t) max (s)"))
-    lines = ["## Seed 000, Sec. IV-A: team graphs", "",
+    lines = ["## Khodayi-mehr et al. 2019, Sec. IV-A: team graphs", "",
              "Ours: mean ± std over finished trials (n). Paper: 8 targets, one run each.", "",
              "| scenario | team graph | n | " + " | ".join(label for _, label in columns)
              + " | paper e_g-bar (m) | paper lambda-bar (m^2) | paper D_G |",

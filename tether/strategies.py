@@ -15,7 +15,7 @@ BUILTIN_STRATEGIES: dict[str, StrategyKind] = {
         "controllers.waypoints:WaypointStrategy",
         "each robot follows its own closed route of waypoints on smooth minimum-jerk segments",
     ),
-    # Seed 000 and its two baselines share one parameter class, so a scenario
+    # Khodayi-mehr et al. 2019 and its two baselines share one parameter class, so a scenario
     # runs with any of them through --set strategy.kind=...
     "intermittent": StrategyKind(
         "controllers.intermittent.params:IntermittentParams",

@@ -4,7 +4,7 @@ Every run plots the foundation's series (tracking error, communication-graph
 edges); strategies add theirs through ``commands.info['scalars']`` (name ->
 value), each drawn in its own panel, and ``commands.info['robot_scalars']``
 (name -> (N,) values, NaN where undefined), drawn as one line per robot in
-one panel (e.g. seed 001's Fig. 14d: each robot's role; codes named on the
+one panel (e.g. the continuous-connectivity paper's Fig. 14d: each robot's role; codes named on the
 axis from ``commands.info['robot_scalar_levels']``), so a user can look
 instead of reading JSON. NaN (undefined, e.g. t*(t) before the first
 agreement) is a gap, never a value. Sampled every ``period_s`` of sim time; pages of

@@ -1,4 +1,4 @@
-"""Seed 000's all-time connectivity baseline (Sec. IV-B): ``strategy.kind = "all_time"``.
+"""The intermittent paper's all-time connectivity baseline (Sec. IV-B): ``strategy.kind = "all_time"``.
 
 "The network of N robots maintains a fixed connected configuration
 throughout the whole experiment. Then, to design informative paths for this

@@ -1,6 +1,6 @@
 """Geodesic (shortest obstacle-free) paths in the plane, for ground robots.
 
-Seed 000's heuristic baseline (Sec. IV-B) moves the robots along "the
+The intermittent paper's heuristic baseline (Sec. IV-B) moves the robots along "the
 geodesic paths that connect the initial locations to the randomly selected
 meeting location", computed there with a fast-marching toolbox [53]. Here:
 

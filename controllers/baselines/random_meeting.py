@@ -1,4 +1,4 @@
-"""Seed 000's heuristic baseline (Sec. IV-B): ``strategy.kind = "random_meeting"``.
+"""The intermittent paper's heuristic baseline (Sec. IV-B): ``strategy.kind = "random_meeting"``.
 
 "An intermittent connectivity heuristic that employs the same decomposition
 of robots into teams, but selects random meeting locations for each team."

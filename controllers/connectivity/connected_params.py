@@ -1,4 +1,4 @@
-"""Parameters of the ``connected`` strategy (seed 001 on MuJoCo quadrotors).
+"""Parameters of the ``connected`` strategy (Nestmeyer et al. 2017 on MuJoCo quadrotors).
 
 One frozen dataclass, built from a scenario's ``[strategy]`` table through
 :func:`sim.config.build` (unknown keys are errors, every problem names its
@@ -19,7 +19,7 @@ Units are in the field names (``_m``, ``_s``, ``_mps``, ``_n``, ``_j``,
 ``_kg``, ``_nspm`` = N s/m); field metadata carries unit and bounds (the
 tuning page draws sliders from them; :func:`sim.config.build` enforces them).
 
-R_s and the simulator's communication range: seed 001 takes the sensing and
+R_s and the simulator's communication range: Nestmeyer et al. 2017 takes the sensing and
 communication graphs as one (Sec. 2). The loop's communication graph
 (``sensing.comm_range_m`` plus ``mj_ray`` line of sight) carries the
 election and consensus messages, so a scenario must set
@@ -101,23 +101,23 @@ _EXPLORATION_FIELDS = {
 }
 
 
-# The "ground" preset (not in the paper): seed 001's controller on seed 000's
+# The "ground" preset (not in the paper): the continuous-connectivity paper's controller on the intermittent paper's
 # e-puck-sized ground robots (body radius 0.036 m, wheel limit 0.154 m/s),
 # virtual points in the plane of the range sensors. Body-scale ranges are
 # fixed; R'_s scales with R_s (office ratio 1.1 / 2.5); forces scale with the
-# cruise speed (seed 000's u_max = 0.1 m/s against the office's 1 m/s) and
+# cruise speed (the intermittent paper's u_max = 0.1 m/s against the office's 1 m/s) and
 # k_lambda with force x length (R_s), so the barrier holds a pulled link at
 # the same fraction of R_s as in the office. docs/paradigms.md gives the why.
 GROUND_BODY = dict(
     min_robot_distance_m=0.08,  # R_c: two bodies touch at 0.072 m, plus ~1 cm
     full_weight_robot_distance_m=0.10,  # R'_c
     min_obstacle_clearance_m=0.05,  # R_o: body radius 0.036 m plus ~1.4 cm
-    full_weight_obstacle_clearance_m=0.08,  # R'_o = seed 000's clearance_m
+    full_weight_obstacle_clearance_m=0.08,  # R'_o = the intermittent paper's clearance_m
     lambda2_min=0.0,
     lambda2_null=1.0,
     virtual_mass_kg=1.0,
     damping_nspm=2.0,
-    cruise_speed_mps=0.1,  # seed 000's |u| <= 0.1 m per 1 s step
+    cruise_speed_mps=0.1,  # the intermittent paper's |u| <= 0.1 m per 1 s step
     position_gain=25.0,
     velocity_gain=10.0,
     braking_distance_m=0.2,  # office 2 m at 1 m/s: the same braking time at 0.1 m/s
@@ -139,7 +139,7 @@ GROUND_BODY = dict(
     target_height_min_m=0.0,
     target_height_max_m=0.5,
 )
-GROUND_DEFAULT_RANGE_M = 0.2  # R_s when the scenario does not give it (seed 000's R)
+GROUND_DEFAULT_RANGE_M = 0.2  # R_s when the scenario does not give it (the intermittent paper's R)
 
 
 def ground_preset_values(sensing_range: float) -> dict[str, float]:
@@ -177,7 +177,7 @@ class ConnectedParams:
     # -- general (group headers "# -- NAME, ..." group the fields on the tuning page)
 
     # Table 2 column that fills every field left out: "office" (indoor) or "outdoor" (empty space, town)
-    # "ground": seed 000's e-puck ground robots, ranges scaled from R_s (see GROUND_BODY)
+    # "ground": the intermittent paper's e-puck ground robots, ranges scaled from R_s (see GROUND_BODY)
     preset: Literal["office", "outdoor", "ground"] = param("office", tunable=False)
     # Where lambda2 and the Fiedler vector come from: "exact" (centralised eigh) or
     # "estimator" (decentralised, Yang et al. 2010)

@@ -1,4 +1,4 @@
-"""Virtual second-order dynamics of seed 001, eq. (1), batched over N robots.
+"""Virtual second-order dynamics of Nestmeyer et al. 2017, eq. (1), batched over N robots.
 
     M v' = f_B + f_lambda + f,   q' = v,   f_B = -B v
 

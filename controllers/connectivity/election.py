@@ -1,4 +1,4 @@
-"""Election of the 'prime traveler' by flooding (seed 001, Sec. 3.3).
+"""Election of the 'prime traveler' by flooding (Nestmeyer et al. 2017, Sec. 3.3).
 
 Messages travel by store-and-forward flooding (Lim and Kim 2001) over the
 *current* communication graph: every robot that knows a message sends it to

@@ -1,6 +1,6 @@
 """Decentralised estimation of lambda2 and the Fiedler vector (Yang et al. 2010).
 
-Seed 001, Appendix A: "the robots perform a distributed estimation of both
+Nestmeyer et al. 2017, Appendix A: "the robots perform a distributed estimation of both
 lambda2(t) and nu_2i(t) ... as shown in Yang et al. (2010)". Each robot i
 keeps five scalars and updates them from its own values and its neighbours'
 through the current weighted adjacency W (W_ij > 0 only for linked robots):

@@ -1,4 +1,4 @@
-"""Decentralised multi-target exploration of seed 001: Algorithms 1 and 2 per control tick.
+"""Decentralised multi-target exploration of Nestmeyer et al. 2017: Algorithms 1 and 2 per control tick.
 
 ``ExplorationController.step`` is called once per control tick with the
 robots' virtual-point positions and velocities, the current communication

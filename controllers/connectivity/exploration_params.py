@@ -1,4 +1,4 @@
-"""Parameters of the multi-target exploration layer of seed 001 (Secs. 3.2-3.7, Tables 2-3).
+"""Parameters of the multi-target exploration layer of Nestmeyer et al. 2017 (Secs. 3.2-3.7, Tables 2-3).
 
 Symbols follow Nestmeyer et al. (2017). Table 2 lost its column alignment in
 the available text; read in the order of Table 3 its exploration rows are

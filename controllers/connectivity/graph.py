@@ -1,4 +1,4 @@
-"""Sensor-based weighted graph, lambda2 and its gradient (seed 001, Appendix A).
+"""Sensor-based weighted graph, lambda2 and its gradient (Nestmeyer et al. 2017, Appendix A).
 
 All robots at once: positions are (N, 3), m, world frame. Obstacles are a
 :class:`sim.geometry.Boxes` set (or None for empty space).

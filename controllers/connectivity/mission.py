@@ -1,4 +1,4 @@
-"""Set-up and bookkeeping of a seed 001 mission on the simulator.
+"""Set-up and bookkeeping of a continuous-connectivity mission on the simulator.
 
 - :func:`shared_planner`: one :class:`GridPlanner` per scene and planning
   parameters, cached (obstacles are static; building the free-space graph

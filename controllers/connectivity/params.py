@@ -1,4 +1,4 @@
-"""Parameters of the continuous-connectivity layer (seed 001, Appendix A, Tables 2-3).
+"""Parameters of the continuous-connectivity layer (Nestmeyer et al. 2017, Appendix A, Tables 2-3).
 
 Symbols follow Nestmeyer et al. (2017). The link weight W_ij of Appendix A is
 the product of three factors, each with a hard limit where it vanishes and a
@@ -53,7 +53,7 @@ def _require_less(obj, smaller: str, larger: str, why: str) -> None:
 
 @dataclass(frozen=True)
 class ConnectivityParams:
-    """Sensor model, connectivity potential and virtual dynamics of seed 001."""
+    """Sensor model, connectivity potential and virtual dynamics of Nestmeyer et al. 2017."""
 
     # Range factor of the link weight.
     sensing_range: float  # R_s, m: weight vanishes at and beyond this distance

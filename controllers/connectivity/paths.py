@@ -1,4 +1,4 @@
-"""Smooth obstacle-free paths gamma_i for the travelers of seed 001 (Sec. 3.2).
+"""Smooth obstacle-free paths gamma_i for the travelers of Nestmeyer et al. 2017 (Sec. 3.2).
 
 The paper builds gamma_i "with a two-step optimization method": a shortest
 path on a grid of spacing R_grid (Tables 2-3), then a smoothing cubic B-spline

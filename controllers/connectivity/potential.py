@@ -1,4 +1,4 @@
-"""Connectivity potential V(lambda2) of seed 001 (Appendix A, step 3).
+"""Connectivity potential V(lambda2) of Nestmeyer et al. 2017 (Appendix A, step 3).
 
 The paper asks for a potential that grows unbounded as lambda2 -> lambda2_min
 from above, and its Tables 2-3 give a second threshold lambda2_null beyond

@@ -1,4 +1,4 @@
-"""Roles of seed 001 and their switching: Algorithm 1, the Start-up procedure
+"""Roles of Nestmeyer et al. 2017 and their switching: Algorithm 1, the Start-up procedure
 and the 'prime traveler' election (Secs. 3.1-3.5).
 
 ``RoleMachine`` is the decision part of Algorithm 1 for all robots at once,

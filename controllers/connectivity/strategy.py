@@ -1,4 +1,4 @@
-"""The ``connected`` strategy: seed 001 (Nestmeyer et al. 2017) on MuJoCo quadrotors.
+"""The ``connected`` strategy: the continuous-connectivity method (Nestmeyer et al. 2017) on MuJoCo quadrotors.
 
 Every robot i owns a virtual point q_i with the second-order dynamics of
 eq. (1),
@@ -33,7 +33,7 @@ Per control tick (all robots at once):
 The run ends early (``finished``) once every target is visited and every
 robot is a connector again.
 
-Ground robots (seed 000's e-puck bodies; ``preset = "ground"``): the team is
+Ground robots (the intermittent paper's e-puck bodies; ``preset = "ground"``): the team is
 all ground robots or all quadrotors. On the ground the virtual points live in
 the horizontal plane of the range sensors (z = the sensors' mean height at the
 start): q_i starts at robot i's sensor, every force's z component is dropped
@@ -143,7 +143,7 @@ _WARMUP_STEP_S = 0.01
 
 
 class ConnectedStrategy(Strategy):
-    """Seed 001 for a team of quadrotors (see the module docstring)."""
+    """Nestmeyer et al. 2017 for a team of quadrotors (see the module docstring)."""
 
     mission_can_end = True
 
@@ -260,7 +260,7 @@ class ConnectedStrategy(Strategy):
         return (estimator_weights > 0).astype(float)
 
     def violation(self, commands: Commands) -> str | None:
-        """The invariant the tick of ``commands`` broke, or None: seed 001
+        """The invariant the tick of ``commands`` broke, or None: Nestmeyer et al. 2017
         keeps lambda2 > lambda2_min and no two virtual points within R_c."""
         c = self.params.connectivity
         scalars = commands.info.get("scalars", {})
@@ -429,7 +429,7 @@ class ConnectedStrategy(Strategy):
         return f"{visited}/{self.targets_total} targets visited"
 
     def summary(self) -> dict:
-        """Seed 001's figures for metrics.json (docs/connected.md)."""
+        """The continuous-connectivity paper's figures for metrics.json (docs/connected.md)."""
         last = self.last
         visited = len(last.visits) if last is not None else 0
         return {

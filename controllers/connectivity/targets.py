@@ -1,4 +1,4 @@
-"""Targets of seed 001 (Sec. 2.1): per-robot target queues, dwell times and generators.
+"""Targets of Nestmeyer et al. 2017 (Sec. 2.1): per-robot target queues, dwell times and generators.
 
 Each robot i has a ``targetQueue_i`` filled online by its target generator
 with locations z_i^k (m, world frame) and dwell times Delta t_i^k (s). A

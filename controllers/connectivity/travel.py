@@ -1,4 +1,4 @@
-"""Traveling, anchoring and efficiency laws of seed 001 (Secs. 3.6-3.7, eqs. 3-15).
+"""Traveling, anchoring and efficiency laws of Nestmeyer et al. 2017 (Secs. 3.6-3.7, eqs. 3-15).
 
 Pure functions over arrays batched over robots: positions q (N, 3), m;
 velocities (N, 3), m/s; forces (N, 3), N. A path reference (closest point,

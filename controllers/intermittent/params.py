@@ -1,4 +1,4 @@
-"""Parameters shared by seed 000's method and its two baselines.
+"""Parameters shared by the intermittent paper's method and its two baselines.
 
 One frozen dataclass serves the three strategy kinds ``intermittent``,
 ``all_time`` and ``random_meeting``, so a scenario written for one runs with

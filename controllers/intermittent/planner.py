@@ -1,4 +1,4 @@
-"""Joint-space sampling-based informative path planner of seed 000.
+"""Joint-space sampling-based informative path planner of Khodayi-mehr et al. 2019.
 
 When the robots of a team T_i meet, they plan together (Sec. III-B/C) the next
 path segment of every member: paths that start where (and when) each robot's
@@ -154,7 +154,7 @@ def _check_real(name: str, value, *, positive: bool) -> None:
 
 @dataclass(frozen=True)
 class PlannerParams:
-    """Parameters of Algorithm 1 (seed 000 values where the paper gives them)."""
+    """Parameters of Algorithm 1 (Khodayi-mehr et al. 2019 values where the paper gives them)."""
 
     n_sample: int = 300  # samples, n_sample of Alg. 1, -
     n_uniform: int = 100  # B: the first B samples come from f1 (uniform), -

@@ -1,4 +1,4 @@
-"""Predicted team belief along planned paths: Algorithm 4 of seed 000, batched.
+"""Predicted team belief along planned paths: Algorithm 4 of Khodayi-mehr et al. 2019, batched.
 
 At planning time no measurement values exist, so the estimate only follows the
 target model, x_hat(t + 1) = A x_hat(t) + B u(t) (eq. 8a; the predicted reading

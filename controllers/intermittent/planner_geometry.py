@@ -1,4 +1,4 @@
-"""Geometric predicates of the intermittent-connectivity planner (seed 000).
+"""Geometric predicates of the intermittent-connectivity planner (Khodayi-mehr et al. 2019).
 
 Pure numpy (and compiled kernels) over :class:`sim.geometry.Boxes`; no MuJoCo. Ground robots live in
 the plane; their sensors and radios sit at a fixed height ``z`` above the

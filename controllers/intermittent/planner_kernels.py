@@ -1,4 +1,4 @@
-"""Compiled kernels of seed 000's planner (numba, cached on disk).
+"""Compiled kernels of the intermittent paper's planner (numba, cached on disk).
 
 The planner evaluates Algorithm 4 on a few candidate edges at a time, tens of
 steps each, with 3x3 covariance blocks per target: numpy's per-call overhead

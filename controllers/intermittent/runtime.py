@@ -1,4 +1,4 @@
-"""Run-time pieces shared by seed 000's strategies on the simulator.
+"""Run-time pieces shared by the intermittent paper's strategies on the simulator.
 
 The three strategies (``intermittent``, ``all_time``, ``random_meeting``)
 drive MuJoCo ground robots with single-integrator plans, take the
@@ -29,7 +29,7 @@ import numpy as np
 
 from controllers.intermittent.params import IntermittentParams
 from controllers.intermittent.planner import PlannerParams, RobotPath
-# Seed 000's task as every method sees it (re-exported: the strategies import it from here).
+# The intermittent paper's task as every method sees it (re-exported: the strategies import it from here).
 from controllers.task import EstimateSeries, check_time_base, measurement_records, prior_state  # noqa: F401
 from sim.compiled import kernel
 from sim.config import ConfigError

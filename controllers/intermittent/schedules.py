@@ -1,4 +1,4 @@
-"""Conflict-free communication schedules of seed 000 (Sec. III-A).
+"""Conflict-free communication schedules of Khodayi-mehr et al. 2019 (Sec. III-A).
 
 Definition III.1: robot r_ij follows sched_ij = s_ij s_ij ..., the infinite
 repetition of a finite sequence s_ij of length T that holds the event i (meet

@@ -1,4 +1,4 @@
-"""Algorithm 5 of seed 000 on MuJoCo ground robots: ``strategy.kind = "intermittent"``.
+"""Algorithm 5 of Khodayi-mehr et al. 2019 on MuJoCo ground robots: ``strategy.kind = "intermittent"``.
 
 Every robot r_ij follows its communication schedule sched_ij forever
 (:mod:`controllers.intermittent.schedules`). It drives along the planned path
@@ -537,7 +537,7 @@ class MeetingStrategy(Strategy):
 
 
 class IntermittentStrategy(MeetingStrategy):
-    """Seed 000's method: segments from the joint-space informative planner."""
+    """The intermittent paper's method: segments from the joint-space informative planner."""
 
     kind = "intermittent"
 

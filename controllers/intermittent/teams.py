@@ -1,4 +1,4 @@
-"""Robot teams and the graph of teams of seed 000 (Sec. II, Fig. 1).
+"""Robot teams and the graph of teams of Khodayi-mehr et al. 2019 (Sec. II, Fig. 1).
 
 N robots are divided into M > 1 teams T_i; every robot belongs to exactly two
 teams (the robot r_ij travels between T_i and T_j). The graph of teams G_T has
@@ -26,7 +26,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-# Seed 000, Sec. IV-A and Fig. 1(a): N = 8 robots, M = 8 teams in a ring (G_T^1).
+# Khodayi-mehr et al. 2019, Sec. IV-A and Fig. 1(a): N = 8 robots, M = 8 teams in a ring (G_T^1).
 PAPER_RING_TEAMS: tuple[tuple[int, ...], ...] = (
     (12, 18),
     (12, 23),
@@ -38,7 +38,7 @@ PAPER_RING_TEAMS: tuple[tuple[int, ...], ...] = (
     (18, 78),
 )
 
-# Seed 000, Sec. IV-A and Fig. 1(b): N = 8 robots, M = 5 teams (G_T^2).
+# Khodayi-mehr et al. 2019, Sec. IV-A and Fig. 1(b): N = 8 robots, M = 5 teams (G_T^2).
 PAPER_DENSE_TEAMS: tuple[tuple[int, ...], ...] = (
     (12, 14, 15),
     (12, 23, 25),
@@ -47,7 +47,7 @@ PAPER_DENSE_TEAMS: tuple[tuple[int, ...], ...] = (
     (15, 25, 35, 45),
 )
 
-# Seed 000, Sec. IV-B (Table I, 4 targets): N = 4 robots, M = 4 teams in a ring.
+# Khodayi-mehr et al. 2019, Sec. IV-B (Table I, 4 targets): N = 4 robots, M = 4 teams in a ring.
 PAPER_FOUR_ROBOT_TEAMS: tuple[tuple[int, ...], ...] = (
     (12, 14),
     (12, 23),

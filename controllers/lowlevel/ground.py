@@ -7,7 +7,7 @@ the body pose to the wheels. The heading is libm's atan2 (numpy's vectorised
 arctan2 differs from it in the last bit on some CPUs, so figures computed
 with numpy's may differ by round-off).
 
-Seed 000 plans for single integrators, p(t+1) = p(t) + u(t). A differential
+Intermittent plans for single integrators, p(t+1) = p(t) + u(t). A differential
 drive robot (a unicycle: forward speed v, turn rate omega, heading theta) is
 not one, but the point P_b a distance b ahead of the wheel axle is
 (point-offset feedback linearisation, e.g. Robotarium's si-to-uni mapping)::

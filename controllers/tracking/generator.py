@@ -1,4 +1,4 @@
-"""The EKF as seed 001's target generator (Sec. 2.1: active localization).
+"""The EKF as the continuous-connectivity paper's target generator (Sec. 2.1: active localization).
 
 Each explorer's next target z_i is a *viewpoint* for the currently most
 uncertain target (largest lambda_max of its 3 x 3 covariance block) that no
@@ -23,7 +23,7 @@ Re-issuing (``update``, every tick; estimates change on reading ticks):
   its viewpoint was chosen: a new viewpoint for the same target (replanned).
 An anchor keeps its place: the readings from there are what it is for.
 
-The generator talks to seed 001's exploration layer only through its
+The generator talks to the continuous-connectivity paper's exploration layer only through its
 interfaces: ``TargetQueues.push`` (new targets) and
 ``ExplorationController.retarget`` (re-issued ones), reading the roles and
 current targets it exposes.

@@ -1,11 +1,11 @@
-"""Parameters of ``connected_tracking``: seed 001's controller on seed 000's task.
+"""Parameters of ``connected_tracking``: the continuous-connectivity paper's controller on the intermittent paper's task.
 
-Seed 000's fields (:class:`IntermittentParams`: prior, delta, step, speed
-limit...) are inherited unchanged, so a seed 000 scenario such as
+The intermittent paper's fields (:class:`IntermittentParams`: prior, delta, step, speed
+limit...) are inherited unchanged, so a Khodayi-mehr et al. 2019 scenario such as
 ``intermittent-8`` runs with ``--set strategy.kind=connected_tracking`` and
 all four methods share the prior, delta and speed limit (``teams`` and the
 RRT* fields are ignored here). The fields below drive the EKF target
-generator; seed 001's controller takes the ``ground`` preset of
+generator; the continuous-connectivity paper's controller takes the ``ground`` preset of
 :mod:`controllers.connectivity.connected_params` with R_s =
 ``sensing.comm_range_m`` and v_cruise = ``speed_mps``. docs/paradigms.md
 explains every value.

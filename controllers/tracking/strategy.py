@@ -1,7 +1,7 @@
-"""``connected_tracking``: seed 001's continuous connectivity on seed 000's tracking task.
+"""``connected_tracking``: the continuous-connectivity paper's continuous connectivity on the intermittent paper's tracking task.
 
-The fourth method for seed 000's task (DESIGN.md, "Both paradigms on one
-task"). The robots run seed 001's controller whole - virtual dynamics
+The fourth method for the intermittent paper's task (DESIGN.md, "Both paradigms on one
+task"). The robots run the continuous-connectivity paper's controller whole - virtual dynamics
 M v' = f_B + f_lambda + f, the sensor-based lambda2 force (range R_s = the
 communication range, line-of-sight clearance R_o, inter-robot distance R_c),
 roles and the prime-traveler election by flooding, travel and anchor forces -
@@ -15,7 +15,7 @@ Estimation. The team is connected at every tick (lambda2 > lambda2_min is the
 controller's invariant), so every reading is fused the tick it is taken into
 one network-wide EKF: the belief is the global one, t*(t) = t, no delay. The
 readings, the EKF (:class:`estimation.beliefs.Belief`), the prior and the
-e_g / lambda-bar metrics are those of the three seed 000 methods
+e_g / lambda-bar metrics are those of the three intermittent-task methods
 (:mod:`controllers.task`).
 
 Explorers and connectors: ``explorers`` robots (default 2 of 8) explore, the
@@ -43,8 +43,8 @@ from sim.types import Commands, Observation, WorldInfo
 
 
 def controller_params(params: ConnectedTrackingParams, comm_range: float) -> ConnectedParams:
-    """Seed 001's parameters on the ground robots: the ``ground`` preset at R_s =
-    ``comm_range`` (m) and v_cruise = seed 000's speed limit."""
+    """The continuous-connectivity paper's parameters on the ground robots: the ``ground`` preset at R_s =
+    ``comm_range`` (m) and v_cruise = the intermittent paper's speed limit."""
     try:
         return ConnectedParams(preset="ground", sensing_range_m=float(comm_range),
                                cruise_speed_mps=params.speed_mps, lambda2_source="exact")
