@@ -7,6 +7,7 @@ EKF from the same prior and report the same e_g and lambda-bar:
 
 - :func:`check_time_base` - the target model and one reading per step;
 - :func:`prior_state` - x^0 and C(0) of Sec. IV;
+- :func:`neutral_prior` - the prior made non-informative in another scene;
 - :func:`measurement_records` - an Observation's range readings as
   :class:`estimation.beliefs.RangeMeasurement` records, per robot;
 - :class:`EstimateSeries` - lambda_max(C_g(t)) per step and the ``info``
@@ -28,7 +29,7 @@ import numpy as np
 from estimation.beliefs import RangeMeasurement
 from estimation.ekf import PAPER_INITIAL_ESTIMATE, FilterState
 from sim.config import ConfigError
-from sim.types import Observation, WorldInfo
+from sim.types import Observation, SceneChange, WorldInfo
 
 
 def prior_state(params, n_targets: int) -> FilterState:
@@ -44,6 +45,30 @@ def prior_state(params, n_targets: int) -> FilterState:
         mean = PAPER_INITIAL_ESTIMATE[:n_targets]
     mean = mean.reshape(-1)
     return FilterState(0, mean, params.prior_variance_m2 * np.eye(mean.size))
+
+
+def neutral_prior(strategy_table: dict, change: SceneChange, keep: frozenset[str]) -> list[str]:
+    """The EKF prior of a scenario moved into another scene (the methods' ``adapt_to_scene``).
+
+    A built-in's prior is a guess about its own scene; in another one every
+    target starts at the scene's centre with a variance that spans the scene.
+    ``strategy.prior_mean`` or ``strategy.prior_variance_m2`` set by the user
+    (in ``keep``) stay.
+    """
+    if not change.n_targets or "strategy.prior_mean" in keep:
+        return []
+    centre = [round(float(v), 3) for v in change.center]
+    half_diagonal = float(np.linalg.norm((change.bounds[1] - change.bounds[0])[:2])) / 2
+    # 2 sigma of the prior reach from the centre to the scene's corners.
+    variance = round((half_diagonal / 2) ** 2, 3)
+    strategy_table["prior_mean"] = [centre] * change.n_targets
+    if "strategy.prior_variance_m2" not in keep:
+        strategy_table["prior_variance_m2"] = variance
+    return [f"strategy.prior_mean: the built-in's EKF prior describes its own scene; every target's estimate "
+            f"now starts at the centre of {change.scene_name}, {tuple(centre)} m, with C(0) = "
+            f"{strategy_table['prior_variance_m2']:g} I m^2 (non-informative; if you know roughly where "
+            "the targets are, set strategy.prior_mean there: a range-only EKF started far off can settle "
+            "on a wrong point)"]
 
 
 def check_time_base(world: WorldInfo, params) -> None:

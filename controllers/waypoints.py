@@ -22,11 +22,19 @@ import numpy as np
 
 from sim.compiled import kernel
 from sim.config import param, require
-from sim.types import Commands, Observation, WorldInfo
+from sim.free_space import candidate_grid, nearest_free, route_is_clear, scale_plan
+from sim.types import Commands, Observation, SceneChange, WorldInfo
 from sim.strategy import Strategy
 
 _MIN_JERK_PEAK_RATIO = 1.875  # peak / mean speed of s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5
 Vec3 = tuple[float, float, float]
+# Waypoints (and the straight legs between them) keep this clearance from obstacles, m:
+# a quadrotor's rotor disc plus margin; a ground robot's radius plus margin.
+ROUTE_CLEARANCE_M = {"quadrotor": 0.35, "ground": 0.08}
+# A route that crosses an obstacle is replaced by a back-and-forth to a free point at one of
+# these distances (the farthest that works) and bearings around the start.
+FALLBACK_LEG_M = (1.5, 1.0, 0.6, 0.3)
+FALLBACK_BEARINGS = 12
 
 
 @dataclass(frozen=True)
@@ -188,6 +196,19 @@ class WaypointStrategy(Strategy):
         self._offsets = np.full(n, initial.time_s)
         self._time_s = initial.time_s
 
+    @classmethod
+    def adapt_to_scene(cls, strategy_table: dict, change: SceneChange, keep: frozenset[str]) -> list[str]:
+        """Routes scaled from the old floor plan into the new one, each waypoint moved to the
+        nearest free spot; a route that would still cross an obstacle becomes a back-and-forth
+        between the robot's start and the farthest free point nearby it reaches in a straight line."""
+        routes = strategy_table.get("routes")
+        if not routes or "strategy.routes" in keep:
+            return []
+        strategy_table["routes"], replaced = fit_routes(change, routes)
+        crossing = f"; {', '.join(change.robot_names[i] for i in replaced)}: route crossed an obstacle, now a " \
+                   "back-and-forth to a free point nearby" if replaced else ""
+        return [f"strategy.routes: scaled to {change.scene_name}'s floor plan, waypoints moved to free spots{crossing}"]
+
     def update_params(self, params: WaypointParams) -> bool:
         """Take new speeds and dwell from the next tick on, each robot keeping
         its place on its route. Returns False (asking for a restart from the
@@ -212,3 +233,33 @@ class WaypointStrategy(Strategy):
             speed = np.linalg.norm(velocity, axis=1)
             info = {"scalars": {"reference_speed_max_mps": float(speed.max(initial=0.0))}}
         return Commands(position, velocity, acceleration, np.zeros(len(position)), info)
+
+
+def fit_routes(change: SceneChange, routes: list) -> tuple[list, list[int]]:
+    """Waypoint routes moved into the new scene (see :meth:`WaypointStrategy.adapt_to_scene`);
+    also the robots whose route became a back-and-forth."""
+    grid = candidate_grid(change)
+    lo, hi = change.bounds
+    out, replaced = [], []
+    for i, (kind, start, route) in enumerate(zip(change.robot_kinds, change.starts, routes)):
+        clearance, ground = ROUTE_CLEARANCE_M[kind], kind == "ground"
+        points = []
+        for point in scale_plan(np.array(route, dtype=float).reshape(-1, 3), change.old_bounds, change.bounds):
+            spot = nearest_free(change, grid, point, clearance, ground)
+            points.append(point if spot is None else spot)
+        if points and route_is_clear(change, np.array([start, *points]), clearance, ground):
+            out.append([[round(float(v), 3) for v in p] for p in points])
+            continue
+        replaced.append(i)
+        out.append([])  # hold the start if nothing nearby can be reached
+        for leg in FALLBACK_LEG_M:
+            for k in range(FALLBACK_BEARINGS):
+                angle = 2 * np.pi * k / FALLBACK_BEARINGS
+                end = start + leg * np.array([np.cos(angle), np.sin(angle), 0.0])
+                if np.all(end[:2] >= lo[:2] + clearance) and np.all(end[:2] <= hi[:2] - clearance) \
+                        and route_is_clear(change, np.array([start, end]), clearance, ground):
+                    out[-1] = [[round(float(v), 3) for v in end]]
+                    break
+            if out[-1]:
+                break
+    return out, replaced

@@ -104,3 +104,23 @@ class Commands:
         for name in ("position", "velocity", "acceleration"):
             assert getattr(self, name).shape == (n, 3), (name, getattr(self, name).shape)
         assert self.yaw.shape == (n,), self.yaw.shape
+
+
+@dataclass(frozen=True)
+class SceneChange:
+    """A scenario moved from its own scene into another one, as
+    :meth:`sim.strategy.Strategy.adapt_to_scene` sees it (a :class:`sim.free_space.FloorPlan`)."""
+
+    scene_name: str  # the new scene's file name, for the user's messages
+    obstacles: Boxes  # the new scene's static collision geometry, world frame
+    bounds: np.ndarray  # (2, 3) the new scene's min / max corner, m
+    old_bounds: np.ndarray  # (2, 3) the scenario's own scene's (or its starts' box without one), m
+    robot_names: tuple[str, ...]  # robot order, as the run names them
+    robot_kinds: tuple[str, ...]  # "quadrotor" | "ground"
+    starts: np.ndarray  # (N, 3) the robots' starts as placed in the new scene, m
+    n_targets: int
+
+    @property
+    def center(self) -> np.ndarray:
+        """(3,) the new scene's centre, m."""
+        return self.bounds.mean(axis=0)

@@ -20,7 +20,8 @@ from tether.cli import main
 from sim.geometry import point_clearance, segment_clearance
 from sim.loop import end_of_run
 from tether.runner import run
-from tether.placement import ROUTE_CLEARANCE_M, START_SEPARATION_M, SceneGeometry, load_in_scene, starts_fit
+from controllers.waypoints import ROUTE_CLEARANCE_M
+from tether.placement import START_SEPARATION_M, SceneGeometry, load_in_scene, starts_fit
 from sim.scenario import MODELS_DIR, builtin_scenarios, load, to_scenario_table
 from sim.targets import nominal_path_samples
 

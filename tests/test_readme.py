@@ -18,7 +18,6 @@ from pathlib import Path
 
 
 from tether.cli import _parser, main
-from tether.placement import INTERMITTENT_KINDS
 from sim.scenario import load
 
 REPO = Path(__file__).resolve().parent.parent
@@ -26,6 +25,7 @@ README = REPO / "README.md"
 SHORT_DURATION_S = "0.2"
 # Fewer RRT* samples for the intermittent methods' a priori plans (300 and 100 in the scenarios).
 CHEAP_PLANNING = ["--set", "strategy.n_sample=40", "--set", "strategy.n_uniform=20"]
+RRT_KINDS = ("intermittent", "all_time", "random_meeting")  # the kinds that read those fields
 # Subcommands and programs not run here, and why.
 SKIPPED = {
     "make": "make demo / make test: this suite is make test, and make demo is a run like the ones below",
@@ -79,7 +79,7 @@ def short(argv: list[str], out_dir: Path, scratch: Path) -> list[str]:
     argv += ["--out", str(out_dir)]
     scenario = argv[1]
     overrides = [argv[i + 1] for i, a in enumerate(argv) if a == "--set"]
-    if load(scenario, overrides).strategy.kind in INTERMITTENT_KINDS:
+    if load(scenario, overrides).strategy.kind in RRT_KINDS:
         argv += CHEAP_PLANNING
     return argv
 

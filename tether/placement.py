@@ -15,16 +15,15 @@ TOML table, before the scenario is validated:
   A team spread out on purpose (the waypoint demo, not connected at the
   start) is placed robot by robot instead: each start is scaled from the old
   scene's floor plan into the new one's and moved to the nearest free spot.
-- waypoint routes (``strategy.routes``): scaled the same way, each waypoint
-  moved to the nearest free spot; a route that would still cross an obstacle
-  becomes a back-and-forth between the robot's start and the farthest free
-  point nearby that it can reach in a straight line.
 - targets (``[[targets]]``): a path that leaves the bounds or passes through
   an obstacle is redrawn, same shape and speed, at the first free spot of a
   deterministic low-discrepancy sequence over the scene.
-- prior (intermittent methods): the built-in's prior is a guess about its own
-  scene; in another one every target starts at the scene's centre with a
-  variance that spans the scene (non-informative).
+- the ``[strategy]`` table: the method's own coordinates are its business, so
+  its class adapts them (:meth:`sim.strategy.Strategy.adapt_to_scene`, given a
+  :class:`sim.types.SceneChange`): waypoint routes are scaled the same way as
+  the starts and moved clear of obstacles; the EKF prior of the tracking
+  methods (intermittent, all_time, random_meeting, connected_tracking) is made
+  non-informative over the new scene.
 
 Every change is returned as one line for the user. Nothing here is random:
 the same scenario, scene and overrides always give the same placement, so
@@ -40,9 +39,12 @@ import mujoco
 import numpy as np
 
 from sim.config import ConfigError, build
+from sim.free_space import GROUND_PROBE_LIFT_M, candidate_grid, nearest_free, scale_plan
 from sim.geometry import Boxes, point_clearance, segment_clearance
 from sim.scenario import SCENE_DIR, Scenario, TargetConfig, from_table, load_table, resolve_scene
+from sim.strategy import strategy_class
 from sim.targets import nominal_path_samples
+from sim.types import SceneChange
 from sim.world import ROBOT_PREFIX, extract_obstacles, load_scene_spec, scene_bounds
 
 # Clearance of each start from obstacles, m. Quadrotors: the connected method's
@@ -50,28 +52,12 @@ from sim.world import ROBOT_PREFIX, extract_obstacles, load_scene_spec, scene_bo
 # start graph has full weights. Ground robots: their 0.036 m radius plus the
 # intermittent planner's 0.08 m path clearance, rounded up.
 START_CLEARANCE_M = {"quadrotor": 0.6, "ground": 0.12}
-# A ground robot's footprint is checked this far above its clearance (so the
-# floor itself does not count as an obstacle near it), m.
-GROUND_PROBE_LIFT_M = 0.01
-# Candidate team centres lie on a grid this fine (at least), m; coarser in
-# large scenes so the search stays within ~40,000 candidates.
-CANDIDATE_STEP_M = 0.05
-MAX_CANDIDATES_PER_AXIS = 200
-# Waypoints (and the straight legs between them) keep this clearance from obstacles, m:
-# a quadrotor's rotor disc plus margin; a ground robot's radius plus margin.
-ROUTE_CLEARANCE_M = {"quadrotor": 0.35, "ground": 0.08}
 # Robots placed one by one keep at least this distance between their starts, m.
 START_SEPARATION_M = 0.6
-# A route that crosses an obstacle is replaced by a back-and-forth to a free point at one of
-# these distances (the farthest that works) and bearings around the start.
-FALLBACK_LEG_M = (1.5, 1.0, 0.6, 0.3)
-FALLBACK_BEARINGS = 12
 # Redrawn targets keep this clearance from obstacles and bounds, m.
 TARGET_CLEARANCE_M = 0.3
 # Low-discrepancy candidates tried per redrawn target.
 TARGET_CANDIDATES = 4096
-# The intermittent methods' strategy kinds (they share one parameter class).
-INTERMITTENT_KINDS = ("intermittent", "all_time", "random_meeting")
 
 
 class SceneGeometry:
@@ -161,47 +147,6 @@ def move_team(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, com
     return None
 
 
-def candidate_grid(geometry: SceneGeometry) -> np.ndarray:
-    """(K, 2) x, y candidates over the scene's floor plan, CANDIDATE_STEP_M apart (coarser in large scenes)."""
-    lo, hi = geometry.bounds
-    step = max(CANDIDATE_STEP_M, float((hi - lo)[:2].max()) / MAX_CANDIDATES_PER_AXIS)
-    xs = np.arange(lo[0], hi[0] + 1e-9, step)
-    ys = np.arange(lo[1], hi[1] + 1e-9, step)
-    return np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
-
-
-def scale_plan(points: np.ndarray, old_bounds: np.ndarray, new_bounds: np.ndarray) -> np.ndarray:
-    """``points`` with x, y mapped from one floor plan's box onto the other's (z unchanged)."""
-    out = np.array(points, dtype=float)
-    size = np.maximum(old_bounds[1, :2] - old_bounds[0, :2], 1e-9)
-    out[:, :2] = new_bounds[0, :2] + (out[:, :2] - old_bounds[0, :2]) / size * (new_bounds[1, :2] - new_bounds[0, :2])
-    return out
-
-
-def nearest_free(geometry: SceneGeometry, grid: np.ndarray, point: np.ndarray, clearance: float,
-                 lift_ground: bool, away_from: list[np.ndarray] = (), separation: float = 0.0) -> np.ndarray | None:
-    """The grid point (at ``point``'s height, kept inside the bounds' height) nearest ``point`` that is
-    ``clearance`` from obstacles and the bounds and ``separation`` from every point of ``away_from``."""
-    lo, hi = geometry.bounds
-    z = lo[2] + clearance + GROUND_PROBE_LIFT_M if lift_ground else float(np.clip(point[2], lo[2] + clearance,
-                                                                                 hi[2] - clearance))
-    inside = np.all((grid >= lo[:2] + clearance) & (grid <= hi[:2] - clearance), axis=1)
-    for other in away_from:
-        inside &= np.linalg.norm(grid - other[:2], axis=1) >= separation
-    candidates = grid[inside]
-    if not len(candidates):
-        return None
-    order = np.lexsort((candidates[:, 1], candidates[:, 0], np.linalg.norm(candidates - point[:2], axis=1).round(9)))
-    for start in range(0, len(order), 512):  # nearest first, a block at a time
-        block = candidates[order[start:start + 512]]
-        probe = np.column_stack([block, np.full(len(block), z)])
-        free = np.flatnonzero(point_clearance(geometry.obstacles, probe) >= clearance)
-        if len(free):
-            x, y = block[free[0]]
-            return np.array([x, y, point[2] if lift_ground else z])
-    return None
-
-
 def place_each(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray,
                old_bounds: np.ndarray) -> np.ndarray | None:
     """A team that need not be connected, placed robot by robot: each start scaled from the old
@@ -216,45 +161,6 @@ def place_each(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray,
             return None
         placed.append(spot)
     return np.array(placed)
-
-
-def _route_is_clear(geometry: SceneGeometry, loop: np.ndarray, clearance: float, ground: bool) -> bool:
-    probe = loop.copy()
-    if ground:  # the floor is not an obstacle to a ground robot
-        probe[:, 2] = geometry.bounds[0, 2] + clearance + GROUND_PROBE_LIFT_M
-    closed = np.vstack([probe, probe[:1]])
-    return bool(np.all(segment_clearance(geometry.obstacles, closed[:-1], closed[1:]).distance >= clearance))
-
-
-def fit_routes(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, routes: list,
-               old_bounds: np.ndarray) -> tuple[list, list[int]]:
-    """Waypoint routes moved into the scene (see the module's docstring); also the robots whose
-    route became a back-and-forth."""
-    grid = candidate_grid(geometry)
-    lo, hi = geometry.bounds
-    out, replaced = [], []
-    for i, (kind, start, route) in enumerate(zip(kinds, starts, routes)):
-        clearance, ground = ROUTE_CLEARANCE_M[kind], kind == "ground"
-        points = []
-        for point in scale_plan(np.array(route, dtype=float).reshape(-1, 3), old_bounds, geometry.bounds):
-            spot = nearest_free(geometry, grid, point, clearance, ground)
-            points.append(point if spot is None else spot)
-        if points and _route_is_clear(geometry, np.array([start, *points]), clearance, ground):
-            out.append([[round(float(v), 3) for v in p] for p in points])
-            continue
-        replaced.append(i)
-        out.append([])  # hold the start if nothing nearby can be reached
-        for leg in FALLBACK_LEG_M:
-            for k in range(FALLBACK_BEARINGS):
-                angle = 2 * np.pi * k / FALLBACK_BEARINGS
-                end = start + leg * np.array([np.cos(angle), np.sin(angle), 0.0])
-                if np.all(end[:2] >= lo[:2] + clearance) and np.all(end[:2] <= hi[:2] - clearance) \
-                        and _route_is_clear(geometry, np.array([start, end]), clearance, ground):
-                    out[-1] = [[round(float(v), 3) for v in end]]
-                    break
-            if out[-1]:
-                break
-    return out, replaced
 
 
 def _halton(count: int, base: int) -> np.ndarray:
@@ -386,33 +292,20 @@ def place_in_scene(table: dict, source: str, scene: str, keep: set[str] = frozen
                              "plan, each moved to the nearest free spot")
             starts = moved
 
-    routes = table.get("strategy", {}).get("routes")
-    if scenario.strategy.kind == "waypoints" and routes and "strategy.routes" not in keep:
-        kinds = [kind for kind, _ in scenario.robot_starts()]
-        table["strategy"]["routes"], replaced = fit_routes(geometry, kinds, starts, routes, old_bounds)
-        names = [f"{ROBOT_PREFIX[kind]}{sum(k == kind for k in kinds[:i])}" for i, kind in enumerate(kinds)]
-        crossing = f"; {', '.join(names[i] for i in replaced)}: route crossed an obstacle, now a back-and-forth " \
-                   "to a free point nearby" if replaced else ""
-        notes.append(f"strategy.routes: scaled to {scene_name}'s floor plan, waypoints moved to free spots{crossing}")
+    # The method adapts its own coordinates (routes, prior): placement names no strategy kind.
+    kinds = tuple(kind for kind, _ in scenario.robot_starts())
+    change = SceneChange(
+        scene_name=scene_name, obstacles=geometry.obstacles, bounds=geometry.bounds, old_bounds=old_bounds,
+        robot_names=tuple(f"{ROBOT_PREFIX[kind]}{kinds[:i].count(kind)}" for i, kind in enumerate(kinds)),
+        robot_kinds=kinds, starts=starts, n_targets=len(table.get("targets", ())))
+    strategy_table = table.get("strategy", {})
+    notes += strategy_class(scenario.strategy.kind).adapt_to_scene(strategy_table, change, frozenset(keep))
+    if strategy_table:
+        table["strategy"] = strategy_table
 
     if table.get("targets") and not any(k == "targets" or k.startswith("targets.") for k in keep):
         table["targets"], target_notes = redraw_targets(geometry, list(table["targets"]), scene_name)
         notes += target_notes
-
-    kind = scenario.strategy.kind
-    if kind in INTERMITTENT_KINDS and table.get("targets") and "strategy.prior_mean" not in keep:
-        centre = [round(float(v), 3) for v in geometry.center]
-        half_diagonal = float(np.linalg.norm((geometry.bounds[1] - geometry.bounds[0])[:2])) / 2
-        # 2 sigma of the prior reach from the centre to the scene's corners.
-        variance = round((half_diagonal / 2) ** 2, 3)
-        table["strategy"]["prior_mean"] = [centre] * len(table["targets"])
-        if "strategy.prior_variance_m2" not in keep:
-            table["strategy"]["prior_variance_m2"] = variance
-        notes.append(f"strategy.prior_mean: the built-in's EKF prior describes its own scene; every target's estimate "
-                     f"now starts at the centre of {scene_name}, {tuple(centre)} m, with C(0) = "
-                     f"{table['strategy']['prior_variance_m2']:g} I m^2 (non-informative; if you know roughly where "
-                     "the targets are, set strategy.prior_mean there: a range-only EKF started far off can settle "
-                     "on a wrong point)")
     return table, notes
 
 

@@ -50,9 +50,10 @@ from controllers.intermittent.runtime import (
     team_color,
 )
 from controllers.intermittent.strategy import team_connected
+from controllers.task import neutral_prior
 from estimation.beliefs import Belief
 from sim.config import ConfigError
-from sim.types import Commands, Observation, WorldInfo
+from sim.types import Commands, Observation, SceneChange, WorldInfo
 from sim.strategy import Strategy
 
 HOLD_STEPS = 5  # steps to stay put when neither the planner nor the fallback finds a path
@@ -63,6 +64,11 @@ class AllTimeStrategy(Strategy):
 
     def __init__(self, params: IntermittentParams):
         self.params = params
+
+    @classmethod
+    def adapt_to_scene(cls, strategy_table: dict, change: SceneChange, keep: frozenset[str]) -> list[str]:
+        """In another scene the EKF prior is made non-informative (:func:`controllers.task.neutral_prior`)."""
+        return neutral_prior(strategy_table, change, keep)
 
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
         params = self.params

@@ -77,12 +77,13 @@ from controllers.intermittent.runtime import (
     team_color,
 )
 from controllers.intermittent.schedules import build_schedule
+from controllers.task import neutral_prior
 from estimation.beliefs import NetworkBeliefs
 from estimation.ekf import FilterState
 from estimation.metrics import delay_report
 from sim.config import ConfigError
 from sim.geometry import pairwise_min_distance
-from sim.types import Commands, Observation, WorldInfo
+from sim.types import Commands, Observation, SceneChange, WorldInfo
 from sim.strategy import Strategy
 
 RING_RADIUS_M = 0.06  # members of a geodesic meeting stop on a ring this wide around its point, m
@@ -203,6 +204,11 @@ class MeetingStrategy(Strategy):
 
     def __init__(self, params: IntermittentParams):
         self.params = params
+
+    @classmethod
+    def adapt_to_scene(cls, strategy_table: dict, change: SceneChange, keep: frozenset[str]) -> list[str]:
+        """In another scene the EKF prior is made non-informative (:func:`controllers.task.neutral_prior`)."""
+        return neutral_prior(strategy_table, change, keep)
 
     # ------------------------------------------------------------------ set-up
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:

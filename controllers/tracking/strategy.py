@@ -33,13 +33,13 @@ import numpy as np
 
 from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.strategy import ConnectedStrategy
-from controllers.task import EstimateSeries, check_time_base, measurement_records, prior_state
+from controllers.task import EstimateSeries, check_time_base, measurement_records, neutral_prior, prior_state
 from controllers.tracking.generator import EKFTargetGenerator, spread_robots
 from controllers.tracking.params import ConnectedTrackingParams
 from estimation.beliefs import Belief
 from sim.config import ConfigError
 from sim.strategy import WrappingStrategy
-from sim.types import Commands, Observation, WorldInfo
+from sim.types import Commands, Observation, SceneChange, WorldInfo
 
 
 def controller_params(params: ConnectedTrackingParams, comm_range: float) -> ConnectedParams:
@@ -60,6 +60,11 @@ class ConnectedTrackingStrategy(WrappingStrategy):
 
     def __init__(self, params: ConnectedTrackingParams):
         self.params = params
+
+    @classmethod
+    def adapt_to_scene(cls, strategy_table: dict, change: SceneChange, keep: frozenset[str]) -> list[str]:
+        """In another scene the EKF prior is made non-informative (:func:`controllers.task.neutral_prior`)."""
+        return neutral_prior(strategy_table, change, keep)
 
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
         params = self.params
