@@ -32,7 +32,9 @@ system-deps:
 $(STAMP): pyproject.toml
 	python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[test]'
+	# setuptools' "Editable installation" notice (folders named like a package in
+	# the working folder take precedence on import) is information, not a fault.
+	PYTHONWARNINGS='ignore:Editable installation' $(PY) -m pip install -q -e '.[test]'
 	touch $(STAMP)
 
 demo: system-deps $(STAMP)
