@@ -29,11 +29,11 @@ system-deps:
 	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq chromium >/dev/null; \
 	fi
 
+# PYTHONWARNINGS: setuptools' "Editable installation" notice (folders named like
+# a package in the working folder take precedence on import) is information.
 $(STAMP): pyproject.toml
 	python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	# setuptools' "Editable installation" notice (folders named like a package in
-	# the working folder take precedence on import) is information, not a fault.
 	PYTHONWARNINGS='ignore:Editable installation' $(PY) -m pip install -q -e '.[test]'
 	touch $(STAMP)
 
