@@ -13,6 +13,7 @@ most of it installing the dependencies into the fresh venv.
 """
 
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -66,7 +67,13 @@ def test_wheel_installs_and_runs_outside_the_repo(tmp_path):
     start = time.monotonic()
     env = clean_env()
     dist = tmp_path / "dist"
-    build = run([sys.executable, "-m", "build", "--outdir", str(dist), str(REPO)], tmp_path, env)
+    egg_info = REPO / "tether.egg-info"
+    had_egg_info = egg_info.exists()
+    try:
+        build = run([sys.executable, "-m", "build", "--outdir", str(dist), str(REPO)], tmp_path, env)
+    finally:
+        if not had_egg_info:  # the sdist step writes it into the source tree
+            shutil.rmtree(egg_info, ignore_errors=True)
     warnings = [line for line in (build.stdout + build.stderr).splitlines() if "warn" in line.lower()]
     assert not warnings, "the build warned:\n" + "\n".join(warnings)
 
