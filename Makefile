@@ -13,7 +13,7 @@ export PYOPENGL_PLATFORM ?= egl
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libgles2
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: demo test test-all bench system-deps clean
+.PHONY: demo test test-all wheel-check bench system-deps clean
 
 system-deps:
 	@if ! ldconfig -p | grep -q 'libEGL_mesa.so.0'; then \
@@ -29,10 +29,12 @@ system-deps:
 	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq chromium >/dev/null; \
 	fi
 
+# PYTHONWARNINGS: setuptools' "Editable installation" notice (folders named like
+# a package in the working folder take precedence on import) is information.
 $(STAMP): pyproject.toml
 	python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[test]'
+	PYTHONWARNINGS='ignore:Editable installation' $(PY) -m pip install -q -e '.[test]'
 	touch $(STAMP)
 
 demo: system-deps $(STAMP)
@@ -44,6 +46,11 @@ test: system-deps $(STAMP)
 
 test-all: system-deps $(STAMP)
 	$(PY) -m pytest -q
+
+# Builds the sdist and wheel, installs the wheel into a fresh venv and runs the
+# tether script from outside the repo (tests/test_wheel.py; CI runs it after test).
+wheel-check: system-deps $(STAMP)
+	$(PY) -m pytest -q -s tests/test_wheel.py
 
 bench: system-deps $(STAMP)
 	$(PY) bench/bench_core.py
