@@ -18,7 +18,7 @@ import textwrap
 import typing
 from typing import Any, get_args, get_origin, get_type_hints
 
-from sim.config import field_comments, to_table, unit_from_name
+from sim.config import bounds_text, field_comments, to_table, unit_from_name
 from sim.registry import STRATEGIES, strategy_kinds
 from sim.scenario import Scenario, ScenarioBody, toml_value
 
@@ -53,13 +53,8 @@ def _facts(f: dataclasses.Field, tp: Any) -> str:
     default = _default_text(f)
     if default:
         parts.append(default if default == "required" else f"default {default}")
-    low, high = meta.get("min"), meta.get("max")
-    if low is not None and high is not None:
-        parts.append(f"{low:g} to {high:g}")
-    elif low is not None:
-        parts.append(f"at least {low:g}")
-    elif high is not None:
-        parts.append(f"at most {high:g}")
+    if bounds_text(f):
+        parts.append(bounds_text(f))
     if get_origin(tp) is typing.Literal:
         parts.append("one of " + ", ".join(toml_value(a) for a in get_args(tp)))
     return "; ".join(parts)
