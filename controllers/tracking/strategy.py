@@ -42,11 +42,11 @@ from sim.types import Commands, Observation, WorldInfo
 
 
 def controller_params(params: ConnectedTrackingParams, comm_range: float) -> ConnectedParams:
-    """Seed 001's parameters on the ground robots: the ``ground`` preset at R_s =
-    ``comm_range`` (m) and v_cruise = seed 000's speed limit."""
+    """The controller's parameters on the ground robots: the ``ground`` preset at R_s =
+    ``comm_range`` (m) and v_cruise = the task's speed limit."""
     try:
-        return ConnectedParams(preset="ground", sensing_range_m=float(comm_range),
-                               cruise_speed_mps=params.speed_mps, lambda2_source="exact")
+        return ConnectedParams(preset="ground", cruise_speed_mps=params.speed_mps,
+                               lambda2_source="exact").at_range(float(comm_range))
     except ValueError as err:
         raise ConfigError("sensing.comm_range_m", f"{comm_range:g} m is unusable for connected_tracking: "
                           f"{str(err).partition(': ')[2] or err}") from None
@@ -84,7 +84,7 @@ class ConnectedTrackingStrategy:
         """The controller's target generator at start-up (its queues)."""
         explorers = spread_robots(starts, self.params.explorers)
         self.generator = EKFTargetGenerator(self.params, planner, self.core.boxes, self.core.plane_z, self.motion,
-                                            explorers, self.world.target_range_m, self.core.params.exploration.cruise_speed)
+                                            explorers, self.world.target_range_m, self.core.params.cruise_speed_mps)
         return self.generator.first_targets(len(starts), starts, self.prior)
 
     # No ``finished``: tracking lasts the scenario's duration, so a run that lasts it is "completed"
