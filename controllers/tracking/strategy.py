@@ -60,13 +60,12 @@ class ConnectedTrackingStrategy:
 
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
         params = self.params
-        check_time_base(world, params)
+        self.step_s = check_time_base(world)
         n = world.n_robots
         if params.explorers >= n:
             raise ConfigError("strategy.explorers", f"must leave at least one connector: below the team size {n}, "
                               f"got {params.explorers}")
         self.world = world
-        self.step_s = params.step_s
         self.motion = world.target_motion
         self.prior = prior_state(params, world.n_targets)
         self.plane_z = float(np.mean(initial.sensor_position[:, 2]))
@@ -84,7 +83,8 @@ class ConnectedTrackingStrategy:
         """The controller's target generator at start-up (its queues)."""
         explorers = spread_robots(starts, self.params.explorers)
         self.generator = EKFTargetGenerator(self.params, planner, self.core.boxes, self.core.plane_z, self.motion,
-                                            explorers, self.world.target_range_m, self.core.params.cruise_speed_mps)
+                                            explorers, self.world.target_range_m, self.core.params.cruise_speed_mps,
+                                            self.step_s)
         return self.generator.first_targets(len(starts), starts, self.prior)
 
     # No ``finished``: tracking lasts the scenario's duration, so a run that lasts it is "completed"
@@ -101,8 +101,8 @@ class ConnectedTrackingStrategy:
             step = observation.target_step
             t = observation.time_s
             if abs(t - step * self.step_s) > 1e-6 or (self.last_step is not None and step != self.last_step + 1):
-                raise ConfigError("strategy.step_s", f"must equal sensing.period_s (reading of step {step} at "
-                                  f"t = {t:.3f} s)")
+                raise ConfigError("sensing.period_s", f"readings must come once per period (reading of step {step} "
+                                  f"at t = {t:.3f} s)")
             records = [r for robot in measurement_records(observation, step) for r in robot]
             self.readings_fused += self.belief.receive(records)
             self.last_step = step
