@@ -48,7 +48,7 @@ TASK_PARAMS: dict[str, dict] = {
     "prior_variance_m2": dict(default=0.25, unit="m^2", above=0.0),  # paper: C(0) = 0.25 I
     "resolve_mirror": dict(default=True),
 }
-# The keys the step used to be given by; one step is the scenario's sensing period.
+# strategy.step_s is not a key: one step of the task is the scenario's sensing period.
 STEP_KEY_REMOVED = {"step_s": "set sensing.period_s (one discrete step of the paper; target_motion.step_s "
                               "must equal it)"}
 
