@@ -85,7 +85,8 @@ def planner_setup(n_sample: int | None = None):
     strategy = IntermittentParams()
     n_sample = strategy.n_sample if n_sample is None else n_sample
     params = PlannerParams(n_sample=n_sample, n_uniform=min(strategy.n_uniform, n_sample),
-                           u_max=strategy.speed_mps * strategy.step_s, comm_range=0.2 - strategy.link_margin_m,
+                           u_max=strategy.speed_mps * scenario.sensing.period_s,
+                           comm_range=0.2 - strategy.link_margin_m,
                            delta=strategy.delta_m2, sensor_height=SENSOR_HEIGHT_M, robot_radius=CLEARANCE_M)
     return scenario, boxes, bounds, motion, params
 

@@ -5,6 +5,9 @@ Shared by the three intermittent-task strategies (``intermittent``, ``all_time``
 (``connected_tracking``), so all four take the same readings into the same
 EKF from the same prior and report the same e_g and lambda-bar:
 
+- :data:`TASK_PARAMS` - the keys every one of them reads (speed limit, delta,
+  the EKF's prior), declared once: each parameter class takes its field from
+  :func:`task_param`;
 - :func:`check_time_base` - the target model and one reading per step;
 - :func:`prior_state` - x^0 and C(0) of Sec. IV;
 - :func:`neutral_prior` - the prior made non-informative in another scene;
@@ -13,9 +16,16 @@ EKF from the same prior and report the same e_g and lambda-bar:
 - :class:`EstimateSeries` - lambda_max(C_g(t)) per step and the ``info``
   entries (estimate, covariance blocks) the estimation observer reads.
 
-``params`` is any parameter object with the Khodayi-mehr et al. 2019 fields used here
-(``step_s``, ``prior_mean``, ``prior_variance_m2``):
-:class:`controllers.intermittent.params.IntermittentParams` or its extension.
+``params`` is any parameter object with the task's keys used here
+(``prior_mean``, ``prior_variance_m2``):
+:class:`controllers.intermittent.params.IntermittentParams` or
+:class:`controllers.tracking.params.ConnectedTrackingParams`.
+
+Time: one discrete step of the paper is ``sensing.period_s`` of simulation
+(1 s): range readings and the target model (``target_motion.step_s``, which
+must equal it) both tick once per step; the strategies read it from
+``WorldInfo.sensing_period_s``. The paper's speed limit |u| <= 0.1 m per step
+is ``speed_mps`` = 0.1 m/s.
 """
 
 from __future__ import annotations
@@ -28,8 +38,25 @@ import numpy as np
 
 from estimation.beliefs import RangeMeasurement
 from estimation.ekf import PAPER_INITIAL_ESTIMATE, FilterState
-from sim.config import ConfigError
+from sim.config import ConfigError, param
 from sim.types import Observation, SceneChange, WorldInfo
+
+# The task's keys, shared by the four methods that run it (a scenario runs under any of them).
+TASK_PARAMS: dict[str, dict] = {
+    "speed_mps": dict(default=0.1, unit="m/s", above=0.0),  # paper: 0.1 m per 1 s step
+    "delta_m2": dict(default=0.0144, unit="m^2", above=0.0, note="a variance threshold, m^2"),  # paper: 0.12^2
+    "prior_mean": dict(default=(), unit="m"),  # empty: the paper's x^0
+    "prior_variance_m2": dict(default=0.25, unit="m^2", above=0.0),  # paper: C(0) = 0.25 I
+    "resolve_mirror": dict(default=True),
+}
+# strategy.step_s is not a key: one step of the task is the scenario's sensing period.
+STEP_KEY_REMOVED = {"step_s": "set sensing.period_s (one discrete step of the paper; target_motion.step_s "
+                              "must equal it)"}
+
+
+def task_param(name: str):
+    """The field of the task's key ``name`` (:data:`TASK_PARAMS`), for a parameter class."""
+    return param(**TASK_PARAMS[name])
 
 
 def prior_state(params, n_targets: int) -> FilterState:
@@ -71,23 +98,23 @@ def neutral_prior(strategy_table: dict, change: SceneChange, keep: frozenset[str
             "on a wrong point)"]
 
 
-def check_time_base(world: WorldInfo, params) -> None:
-    """The strategies need the target model and a whole number of control ticks per step."""
+def check_time_base(world: WorldInfo) -> float:
+    """One step of the task, s (``sensing.period_s``): the strategies need the target model
+    stepping with the readings and a whole number of control ticks per step."""
     if world.n_targets == 0:
         raise ConfigError("targets", "the intermittent-task strategies need at least one target")
     if getattr(world, "target_motion", None) is None:
         raise ConfigError("targets", "the simulator did not provide the target model")
-    if abs(world.target_motion.dt - params.step_s) > 1e-9:
-        raise ConfigError("strategy.step_s",
-                          f"must equal target_motion.step_s ({world.target_motion.dt} s), got {params.step_s}")
-    if abs(world.sensing_period_s - params.step_s) > 1e-9:
-        raise ConfigError("strategy.step_s",
-                          f"must equal sensing.period_s ({world.sensing_period_s} s), got {params.step_s}")
-    ratio = params.step_s / world.control_period_s
+    step_s = world.sensing_period_s
+    if abs(world.target_motion.dt - step_s) > 1e-9:
+        raise ConfigError("target_motion.step_s",
+                          f"must equal sensing.period_s ({step_s} s), got {world.target_motion.dt}")
+    ratio = step_s / world.control_period_s
     if abs(ratio - round(ratio)) > 1e-6:
-        raise ConfigError("strategy.step_s", f"must be a whole multiple of physics.control_period_s, got {params.step_s}")
+        raise ConfigError("sensing.period_s", f"must be a whole multiple of physics.control_period_s, got {step_s}")
     if any(kind != "ground" for kind in world.robot_kinds):
         raise ConfigError("robots", "the intermittent-task strategies drive ground robots only")
+    return step_s
 
 
 def measurement_records(observation: Observation, step: int) -> list[list[RangeMeasurement]]:

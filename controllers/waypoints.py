@@ -21,10 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.compiled import kernel
-from sim.config import param, require
+from sim.config import check_params, param
 from sim.free_space import candidate_grid, nearest_free, route_is_clear, scale_plan
-from sim.types import Commands, Observation, SceneChange, WorldInfo
 from sim.strategy import Strategy
+from sim.types import Commands, Observation, SceneChange, WorldInfo
 
 _MIN_JERK_PEAK_RATIO = 1.875  # peak / mean speed of s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5
 Vec3 = tuple[float, float, float]
@@ -45,9 +45,7 @@ class WaypointParams:
     routes: tuple[tuple[Vec3, ...], ...] = ()  # one route per robot, robot order; empty = hold start
 
     def __post_init__(self):
-        require(self.speed_mps > 0, "speed_mps", f"must be positive, got {self.speed_mps}")
-        require(self.ground_speed_mps > 0, "ground_speed_mps", f"must be positive, got {self.ground_speed_mps}")
-        require(self.dwell_s >= 0, "dwell_s", f"must be non-negative, got {self.dwell_s}")
+        check_params(self)
 
 
 @kernel

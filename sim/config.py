@@ -5,11 +5,21 @@ keys are errors, types are checked, and ``__post_init__`` validation errors
 (ValueError) are re-raised with the full dotted field path. The CLI turns a
 :class:`ConfigError` into one line and exit code 2.
 
-Tunable parameters declare their unit and bounds with :func:`param` (field
-metadata ``unit``, ``min``, ``max``, ``step``); :func:`build` enforces the
-bounds (inclusive) for every table it reads, so a scenario file, a ``--set``
-override and the tuning page are refused by the same rule. The tuning page
-reads the same metadata to draw sliders.
+Parameters declare their unit and bounds with :func:`param` (field metadata
+``unit``, ``min``, ``max``, ``step``, ``min_exclusive``, ``note``); :func:`build`
+enforces the bounds for every table it reads, so a scenario file, a ``--set``
+override and the tuning page are refused by the same rule, and a parameter
+class calls :func:`check_params` in ``__post_init__`` so an object built in
+code is held to them too. Checks that relate two fields stay in
+``__post_init__`` through :func:`require`. The tuning page reads the same
+metadata to draw sliders, :func:`keys_table` to write the documentation's
+tables of keys.
+
+A parameter class may declare two class attributes that :func:`build` reads:
+``REMOVED_KEYS`` (key -> what to set instead: a table that still sets the key
+is refused with that one line) and ``TABLE_SHARED_WITH`` (parameter classes
+whose keys a table may also hold: checked by their class and not kept, so one
+scenario file runs under several strategy kinds).
 """
 
 from __future__ import annotations
@@ -159,11 +169,22 @@ def build(cls: type, table: Any, field: str = "") -> Any:
     hints = get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
     prefix = f"{field}." if field else ""
+    for key in sorted(set(table) - names):
+        if key in getattr(cls, "REMOVED_KEYS", {}):
+            raise ConfigError(prefix + key, f"is no longer a key; {cls.REMOVED_KEYS[key]}")
+    shared = getattr(cls, "TABLE_SHARED_WITH", ())
+    for other in shared:
+        theirs = {key: value for key, value in table.items()
+                  if key not in names and key in {f.name for f in dataclasses.fields(other) if f.init}}
+        if theirs:
+            build(other, theirs, field)  # checked by their class, not kept here
+        table = {key: value for key, value in table.items() if key not in theirs}
     unknown = sorted(set(table) - names)
     if unknown:
+        also = "".join(f"; also {other.__name__}'s keys" for other in shared)
         raise ConfigError(
             f"{prefix}{unknown[0]}",
-            f"unknown key (allowed: {', '.join(sorted(names))})",
+            f"unknown key (allowed: {', '.join(sorted(names))}{also})",
         )
     kwargs = {}
     for f in dataclasses.fields(cls):
@@ -204,16 +225,22 @@ def to_table(obj: Any) -> Any:
 
 def param(default: Any = dataclasses.MISSING, *, unit: str = "", min: float | None = None,
           max: float | None = None, step: float | None = None, tunable: bool = True,
-          allow_inf: bool = False) -> Any:
-    """A dataclass field with its unit and inclusive bounds, e.g.
+          allow_inf: bool = False, above: float | None = None, note: str = "") -> Any:
+    """A dataclass field with its unit and bounds, e.g.
     ``speed_mps: float = param(0.5, unit="m/s", min=0.05, max=3.0)``.
 
-    :func:`build` refuses values outside ``[min, max]``; the tuning page draws
-    a slider over that range (``step``: slider resolution, default range/100)
-    and leaves out fields with ``tunable=False``. Numbers must be finite
-    unless ``allow_inf`` (or the default is infinite).
+    ``min`` and ``max`` are inclusive; ``above`` is an exclusive lower bound
+    (``above=0.0``: must be positive). :func:`build` and :func:`check_params`
+    refuse values outside them (``note``: why, in parentheses in the message);
+    the tuning page draws a slider over the range (``step``: slider
+    resolution, default range/100) and leaves out fields with
+    ``tunable=False``. Numbers must be finite unless ``allow_inf`` (or the
+    default is infinite). A tuple of numbers is held to the bounds entry by entry.
     """
-    metadata = {"unit": unit, "min": min, "max": max, "step": step, "tunable": tunable, "allow_inf": allow_inf}
+    if above is not None and min is not None:
+        raise TypeError("param takes min or above, not both")
+    metadata = {"unit": unit, "min": above if above is not None else min, "max": max, "step": step,
+                "tunable": tunable, "allow_inf": allow_inf, "min_exclusive": above is not None, "note": note}
     return dataclasses.field(default=default, metadata=metadata)
 
 
@@ -221,21 +248,63 @@ def _number(value: float) -> str:
     return f"{value:g}"
 
 
-def check_bounds(f: dataclasses.Field, value: Any, field: str) -> None:
-    """ConfigError if ``value`` lies outside the field's ``min``/``max`` metadata."""
+def bounds_text(f: dataclasses.Field) -> str:
+    """The field's accepted range in words ("0.05 to 3", "above 0", "at least 1"), or ""."""
     low, high = f.metadata.get("min"), f.metadata.get("max")
-    if (low is None and high is None) or isinstance(value, bool) or not isinstance(value, (int, float)):
+    exclusive = f.metadata.get("min_exclusive", False)
+    if low is not None and high is not None:
+        return f"above {_number(low)}, at most {_number(high)}" if exclusive else f"{_number(low)} to {_number(high)}"
+    if low is not None:
+        return f"above {_number(low)}" if exclusive else f"at least {_number(low)}"
+    if high is not None:
+        return f"at most {_number(high)}"
+    return ""
+
+
+def _rule(f: dataclasses.Field, value: Any) -> str | None:
+    """What ``value`` breaks of the field's bounds ("must be in [0, 1] m"), or None."""
+    meta = f.metadata
+    low, high, exclusive = meta.get("min"), meta.get("max"), meta.get("min_exclusive", False)
+    too_low = low is not None and not (value > low if exclusive else value >= low)
+    too_high = high is not None and not value <= high
+    if not (too_low or too_high):
+        return None
+    unit = f" {meta['unit']}" if meta.get("unit") else ""
+    if isinstance(value, int):  # a count: the side it breaks
+        if too_low:
+            return f"must be an integer {'>' if exclusive else '>='} {_number(low)}"
+        return f"must be at most {_number(high)}"
+    if low is not None and high is not None:
+        return f"must be in {'(' if exclusive else '['}{_number(low)}, {_number(high)}]{unit}"
+    if low is not None:
+        if exclusive:
+            return "must be positive" if low == 0 else f"must be above {_number(low)}{unit}"
+        return f"must be at least {_number(low)}{unit}"
+    return f"must be at most {_number(high)}{unit}"
+
+
+def check_bounds(f: dataclasses.Field, value: Any, field: str) -> None:
+    """ConfigError if ``value`` (or an entry of a tuple of numbers) lies outside the field's bounds."""
+    if f.metadata.get("min") is None and f.metadata.get("max") is None:
         return
-    unit = f.metadata.get("unit", "")
-    unit = f" {unit}" if unit else ""
-    if (low is not None and not value >= low) or (high is not None and not value <= high):
-        if low is not None and high is not None:
-            rule = f"must be in [{_number(low)}, {_number(high)}]{unit}"
-        elif low is not None:
-            rule = f"must be at least {_number(low)}{unit}"
-        else:
-            rule = f"must be at most {_number(high)}{unit}"
-        raise ConfigError(field, f"{rule}, got {value!r}")
+    entries = enumerate(value) if isinstance(value, (tuple, list)) else [(None, value)]
+    for i, entry in entries:
+        if isinstance(entry, bool) or not isinstance(entry, (int, float)):
+            continue
+        rule = _rule(f, entry)
+        if rule is not None:
+            note = f" ({f.metadata['note']})" if f.metadata.get("note") else ""
+            which = "" if i is None else f"entry {i} "
+            raise ConfigError(field, f"{which}{rule}{note}, got {entry!r}")
+
+
+def check_params(obj: Any) -> None:
+    """ConfigError (a ValueError: 'name: problem') for the first field of dataclass ``obj``
+    outside its :func:`param` bounds; for ``__post_init__``, so objects built in code are
+    held to the bounds a table is."""
+    for f in dataclasses.fields(obj):
+        if f.init:
+            check_bounds(f, getattr(obj, f.name), f.name)
 
 
 def require(condition: bool, field: str, problem: str) -> None:
@@ -293,3 +362,60 @@ def unit_from_name(name: str) -> str:
         if name.endswith(suffix):
             return unit
     return ""
+
+
+# ----------------------------------------------------------------------------- documentation
+
+DOCS_BEGIN = "<!-- generated by tether.annotated.strategy_keys_section; to rewrite: python -m tether.annotated FILE -->"
+DOCS_END = "<!-- end of the generated section -->"
+
+
+def _doc_value(value: Any) -> str:
+    """A value as the documentation's tables write it."""
+    import json
+
+    if value is None:
+        return "unset"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float) and math.isnan(value):
+        return "preset"
+    if isinstance(value, (int, float)):
+        return f"{value:g}"
+    return f"`{json.dumps(to_table(value))}`"
+
+
+def keys_table(cls: type, prefix: str = "strategy.") -> str:
+    """A Markdown table of the keys of parameter class ``cls``: unit, default, range and meaning,
+    from the fields' :func:`param` metadata and source comments (the help ``tether init`` writes).
+    A class with an ``examples()`` classmethod (name -> instance) gets one default per example."""
+    comments = field_comments(cls)
+    examples = cls.examples() if hasattr(cls, "examples") else {}
+    default = f"default ({' / '.join(examples)})" if examples else "default"
+    lines = [f"| key | unit | {default} | range | meaning |", "| --- | --- | --- | --- | --- |"]
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        if examples:
+            values = [_doc_value(getattr(example, f.name)) for example in examples.values()]
+            text = values[0] if len(set(values)) == 1 else " / ".join(values)
+        elif f.default is not dataclasses.MISSING:
+            text = _doc_value(f.default)
+        elif f.default_factory is not dataclasses.MISSING:
+            text = _doc_value(f.default_factory())
+        else:
+            text = "required"
+        unit = f.metadata.get("unit") or unit_from_name(f.name)
+        meaning = comments.get(f.name, "").replace("|", "\\|")
+        lines.append(f"| `{prefix}{f.name}` | {unit} | {text} | {bounds_text(f)} | {meaning} |")
+    return "\n".join(lines)
+
+
+def replace_generated(text: str, body: str) -> str:
+    """``text`` with its section between :data:`DOCS_BEGIN` and :data:`DOCS_END` replaced by ``body``."""
+    head, begin, rest = text.partition(DOCS_BEGIN)
+    _, end, tail = rest.partition(DOCS_END)
+    if not (begin and end):
+        raise ValueError("the text has no generated section (its begin and end markers)")
+    return f"{head}{DOCS_BEGIN}\n\n{body}\n\n{DOCS_END}{tail}"
+

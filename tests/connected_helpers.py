@@ -6,11 +6,21 @@ from __future__ import annotations
 
 import numpy as np
 
+from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.graph import connectivity_state
 from controllers.connectivity.roles import Role
 from sim.geometry import point_clearance
 from sim.loop import Simulation
 from tether.runner import build_simulation
+
+
+# R_s of the presets' built-in scenes (their sensing.comm_range_m).
+PRESET_RANGES_M = {"office": 2.5, "outdoor": 6.0, "ground": 0.2}
+
+
+def preset_params(preset: str = "office", **overrides) -> ConnectedParams:
+    """A preset's parameters as a run in its scenes uses them (R_s = its comm range)."""
+    return ConnectedParams(preset=preset, **overrides).at_range(PRESET_RANGES_M[preset])
 
 
 class InvariantLog:
@@ -19,7 +29,7 @@ class InvariantLog:
 
     def __init__(self, sim: Simulation):
         self.sim = sim
-        self.params = sim.strategy.params.connectivity
+        self.params = sim.strategy.params
         self.boxes = sim.world.obstacles
         self.ticks = 0
         self.lambda2_min = np.inf
@@ -36,8 +46,9 @@ class InvariantLog:
         primes = int(np.sum(frame.commands.info["robot_scalars"]["role"] == Role.PRIME_TRAVELER))
         t = frame.observation.time_s
         assert lambda2 > c.lambda2_min + 1e-9, f"t = {t:.2f} s: lambda2 = {lambda2} <= {c.lambda2_min}"
-        assert distance > c.min_robot_distance, f"t = {t:.2f} s: virtual points {distance:.3f} m apart"
-        assert clearance > c.min_obstacle_clearance, f"t = {t:.2f} s: virtual point {clearance:.3f} m from an obstacle"
+        assert distance > c.min_robot_distance_m, f"t = {t:.2f} s: virtual points {distance:.3f} m apart"
+        assert clearance > c.min_obstacle_clearance_m, \
+            f"t = {t:.2f} s: virtual point {clearance:.3f} m from an obstacle"
         assert primes <= 1, f"t = {t:.2f} s: {primes} prime travelers"
         self.ticks += 1
         self.lambda2_min = min(self.lambda2_min, lambda2)

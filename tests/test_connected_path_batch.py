@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from controllers.connectivity.exploration_params import ExplorationParams
+from connected_helpers import preset_params
 from controllers.connectivity.path_batch import PathBatch
 from controllers.connectivity.paths import GridPlanner
 from controllers.connectivity.targets import random_free_points
@@ -14,7 +14,7 @@ from sim.geometry import Boxes
 
 
 def test_batched_references_equal_the_single_path_ones():
-    params = ExplorationParams.office()
+    params = preset_params("office")
     walls = Boxes.axis_aligned([[5.0, 2.5, 2.5], [5.0, 8.75, 2.5]], [[0.1, 2.5, 2.5], [0.1, 1.25, 2.5]])
     planner = GridPlanner.from_params(walls, [0, 0, 0], [10, 10, 5], params)
     rng = np.random.default_rng(0)

@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from connected_helpers import preset_params
 from controllers.connectivity.graph import link_weights, weighted_laplacian
-from controllers.connectivity.params import ConnectivityParams
 from controllers.connectivity.smooth_spectrum import smooth_lambda2, smooth_lambda2_gradient
 from sim.geometry import Boxes
 
@@ -45,7 +45,7 @@ def _team(rng):
 
 @pytest.mark.parametrize("kappa", [0.0, 0.05, 0.3])
 def test_gradient_matches_finite_differences_of_eigvalsh(kappa):
-    params = ConnectivityParams.office()
+    params = preset_params("office")
     boxes = Boxes.axis_aligned([[2.5, 3.0, 1.0]], [[0.3, 0.3, 2.0]])
     q = _team(np.random.default_rng(3))
 
@@ -69,7 +69,7 @@ def test_gradient_matches_finite_differences_of_eigvalsh(kappa):
 
 def test_gradient_does_not_depend_on_the_basis_of_a_degenerate_eigenspace():
     # A symmetric star: the centre's two leaf pairs give lambda2 = lambda3 exactly.
-    params = ConnectivityParams.office()
+    params = preset_params("office")
     q = np.array([[0.0, 0.0, 1.0], [2.0, 0.0, 1.0], [-2.0, 0.0, 1.0], [0.0, 2.0, 1.0], [0.0, -2.0, 1.0]])
     links = link_weights(q, None, params)
     values, vectors = np.linalg.eigh(weighted_laplacian(links.weights))

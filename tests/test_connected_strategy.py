@@ -29,19 +29,22 @@ CONNECTED_SCENARIOS = ("connected-office", "connected-empty", "connected-town")
 
 
 def test_presets_fill_table_2_and_explicit_values_win():
-    office, outdoor = ConnectedParams(), ConnectedParams(preset="outdoor")
+    office, outdoor = (load(name).strategy.params.at_range(load(name).sensing.comm_range_m)  # R_s: the comm range
+                       for name in ("connected-office", "connected-town"))
     row = lambda p: (p.sensing_range_m, p.full_weight_range_m, p.min_obstacle_clearance_m,  # noqa: E731
                      p.full_weight_obstacle_clearance_m, p.min_robot_distance_m, p.full_weight_robot_distance_m,
                      p.grid_resolution_m, p.cruise_speed_mps, p.target_radius_m, p.dwell_time_s, p.sigma)
     assert row(office) == (2.5, 1.1, 0.25, 0.6, 0.8, 1.1, 0.25, 1.0, 1.0, 3.0, 3.0)
     assert row(outdoor) == (6.0, 2.5, 0.75, 1.75, 1.0, 2.5, 0.75, 3.0, 1.8, 3.0, 3.0)
-    assert (office.exploration.efficiency_error_full, office.exploration.efficiency_error_zero) == pytest.approx(
-        (0.1, 0.6))
-    assert outdoor.exploration.efficiency_error_zero == pytest.approx(1.8)  # (0.1, 0.6) v_cruise
+    assert (office.efficiency_error_full_mps, office.efficiency_error_zero_mps) == pytest.approx((0.1, 0.6))
+    assert outdoor.efficiency_error_zero_mps == pytest.approx(1.8)  # (0.1, 0.6) v_cruise
     tuned = build(ConnectedParams, {"preset": "outdoor", "cruise_speed_mps": 2.0}, "strategy")
-    assert tuned.cruise_speed_mps == 2.0 and tuned.exploration.efficiency_error_zero == pytest.approx(1.2)
-    assert tuned.connectivity.sensing_range == 6.0
-    assert tuned.exploration.virtual_mass == tuned.connectivity.virtual_mass
+    assert tuned.cruise_speed_mps == 2.0 and tuned.efficiency_error_zero_mps == pytest.approx(1.2)
+    assert tuned.at_range(6.0).sensing_range_m == 6.0 and tuned.sensing_range_m is None  # R_s: the scenario's
+    assert tuned.virtual_mass_kg == 1.0  # one M for the connectivity and the exploration layer
+    # The path planner's margins follow the link weights' obstacle clearances unless given.
+    assert (tuned.path_clearance_m, tuned.path_min_clearance_m) == (1.75, 0.75)
+    assert ConnectedParams(full_weight_obstacle_clearance_m=0.7).path_clearance_m == 0.7
     # A written table is complete and reads back to the same parameters.
     assert build(ConnectedParams, to_table(tuned), "strategy") == tuned
 
@@ -60,14 +63,14 @@ def test_tunable_fields_carry_unit_and_bounds():
 @pytest.mark.parametrize(
     "table, field",
     [
-        ({"min_robot_distance_m": 3.0}, "strategy.min_robot_distance_m"),  # R_c >= R_s
-        ({"full_weight_range_m": 3.0}, "strategy.full_weight_range_m"),
+        ({"full_weight_obstacle_clearance_m": 0.2}, "strategy.min_obstacle_clearance_m"),  # R_o >= R'_o
+        ({"path_min_clearance_m": 0.7}, "strategy.path_min_clearance_m"),  # beyond path_clearance_m (R'_o)
         ({"sigma": 0.5}, "strategy.sigma"),
         ({"efficiency_error_full_ratio": 0.7}, "strategy.efficiency_error_full_ratio"),
         ({"lambda2_source": "oracle"}, "strategy.lambda2_source"),
         ({"targets": "fixed"}, "strategy.target_lists"),
         ({"target_counts": [3, -1]}, "strategy.target_counts"),
-        ({"sensing_range_m": float("nan")}, "strategy.sensing_range_m"),
+        ({"sensing_range_m": 2.5}, "strategy.sensing_range_m"),  # no longer a key: sensing.comm_range_m
         ({"bogus": 1}, "strategy.bogus"),
     ],
 )
@@ -108,7 +111,11 @@ def test_cli_refuses_bad_connected_input(tmp_path, overrides, expected):
         (["robots.0.starts.9=[8.5, 8.5, 1.0]"], "robots", "quad9 cannot reach quad0"),
         (["robots.0.starts.1=[4.55, 0.9, 1.0]"], "robots", "start 0.40 m apart, within R_c = 0.8 m"),
         (["robots.0.starts.1=[5.25, 0.4, 1.0]", "strategy.min_obstacle_clearance_m=0.5"], "robots", "within R_o = 0.5 m"),
-        (["sensing.comm_range_m=3.0"], "sensing.comm_range_m", "must equal R_s"),
+        (["sensing.comm_range_m=1.0"], "strategy.full_weight_range_m",
+         "smaller than R_s = sensing.comm_range_m"),
+        (["sensing.comm_range_m=inf"], "sensing.comm_range_m", "must be a finite number"),
+        (["strategy.min_robot_distance_m=3.0"], "strategy.min_robot_distance_m", "smaller than R_s"),  # R_c >= R_s
+        (["strategy.full_weight_range_m=3.0"], "strategy.full_weight_range_m", "smaller than R_s"),
         (["strategy.target_lists=[[[2.0, 5.0, 1.0]]]", 'strategy.targets="fixed"'], "strategy.target_lists.0.0",
          "inside an obstacle"),
         (["strategy.target_counts=[1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1]"], "strategy.target_counts", "lists 11 robots"),
@@ -379,8 +386,8 @@ def test_tuning_updates_gains_in_place_and_restarts_for_set_up_fields():
     strategy = sim.strategy
     params = strategy.params
     assert sim.set_strategy_params(dataclasses.replace(params, potential_gain_j=8.0, cruise_speed_mps=0.8)) == "updated"
-    assert sim.strategy is strategy and strategy.params.connectivity.potential_gain == 8.0
-    assert strategy.explorer.params.cruise_speed == 0.8
+    assert sim.strategy is strategy and strategy.params.potential_gain_j == 8.0
+    assert strategy.explorer.params.cruise_speed_mps == 0.8
     sim.tick()
     assert sim.set_strategy_params(dataclasses.replace(strategy.params, grid_resolution_m=0.3)) == "restarted"
     assert sim.strategy is not strategy

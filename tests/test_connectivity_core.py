@@ -13,7 +13,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from connected_helpers import grown_positions
+from connected_helpers import grown_positions, preset_params
+from controllers.connectivity.connected_params import ConnectedParams, FiedlerEstimatorParams
 from controllers.connectivity.graph import (
     connectivity_state,
     generalized_connectivity_force,
@@ -21,15 +22,15 @@ from controllers.connectivity.graph import (
     link_weights,
     weighted_laplacian,
 )
-from controllers.connectivity.params import ConnectivityParams, FiedlerEstimatorParams
 from controllers.connectivity.potential import (
     connectivity_potential,
     connectivity_potential_slope,
     guarded_potential_slope,
 )
 from sim.geometry import Boxes, segment_clearance
+from sim.scenario import load
 
-OFFICE = ConnectivityParams.office()
+OFFICE = preset_params("office")
 # A wall occupying x in [1.9, 2.1], y in [-0.8, 0.8], z in [0, 2].
 WALL = Boxes.axis_aligned([[2.0, 0.0, 1.0]], [[0.1, 0.8, 1.0]])
 # Six robots around the wall's edge (office parameters): the link 1-2 grazes
@@ -47,7 +48,7 @@ AROUND_WALL = np.array(
 )
 
 
-def lambda2_of(positions: np.ndarray, boxes, params: ConnectivityParams) -> float:
+def lambda2_of(positions: np.ndarray, boxes, params: ConnectedParams) -> float:
     """Reference: numpy eigvalsh of the Laplacian of W(q)."""
     return np.linalg.eigvalsh(weighted_laplacian(link_weights(positions, boxes, params).weights))[1]
 
@@ -72,11 +73,11 @@ def jittered_wall_configuration(seed: int) -> np.ndarray:
     return AROUND_WALL + np.random.default_rng(seed).normal(0.0, 0.03, AROUND_WALL.shape)
 
 
-def grown_configuration(rng: np.random.Generator, n: int, params: ConnectivityParams) -> np.ndarray:
+def grown_configuration(rng: np.random.Generator, n: int, params: ConnectedParams) -> np.ndarray:
     """Random connected team: each robot placed 0.9-2.2 m from an earlier one,
     never closer than 1.05 R_c to any."""
     while True:
-        positions = grown_positions(rng, n, params.min_robot_distance)
+        positions = grown_positions(rng, n, params.min_robot_distance_m)
         if lambda2_of(positions, None, params) > 0.02:
             return positions
 
@@ -85,43 +86,43 @@ def grown_configuration(rng: np.random.Generator, n: int, params: ConnectivityPa
 
 
 def test_presets_hold_table_2_and_3_values():
-    office, outdoor = ConnectivityParams.office(), ConnectivityParams.outdoor()
-    experiment = ConnectivityParams.experiment()
+    office, outdoor = preset_params("office"), preset_params("outdoor")
+    lab = load("connected-lab")  # Table 3: the experiment's scenario
+    experiment = lab.strategy.params.at_range(lab.sensing.comm_range_m)
 
     def table_row(p):
         return (
-            (p.full_weight_range, p.sensing_range),
-            (p.min_obstacle_clearance, p.full_weight_obstacle_clearance),
-            (p.min_robot_distance, p.full_weight_robot_distance),
+            (p.full_weight_range_m, p.sensing_range_m),
+            (p.min_obstacle_clearance_m, p.full_weight_obstacle_clearance_m),
+            (p.min_robot_distance_m, p.full_weight_robot_distance_m),
             (p.lambda2_min, p.lambda2_null),
         )
 
     assert table_row(office) == ((1.1, 2.5), (0.25, 0.6), (0.8, 1.1), (0.0, 1.0))
     assert table_row(outdoor) == ((2.5, 6.0), (0.75, 1.75), (1.0, 2.5), (0.0, 1.0))
     assert table_row(experiment) == ((1.4, 2.5), (0.5, 0.75), (1.0, 1.4), (0.0, 1.0))
-    assert ConnectivityParams.office(damping=3.0).damping == 3.0
+    assert preset_params("office", damping_nspm=3.0).damping_nspm == 3.0
 
 
 @pytest.mark.parametrize(
-    "overrides, field",
+    "overrides, sensing_range, field",
     [
-        (dict(sensing_range=1.0), "full_weight_range"),  # R'_s must be < R_s
-        (dict(full_weight_obstacle_clearance=0.2), "min_obstacle_clearance"),
-        (dict(full_weight_robot_distance=0.7), "min_robot_distance"),
-        (dict(min_robot_distance=2.6, full_weight_robot_distance=2.7, sensing_range=2.55), "min_robot_distance"),
-        (dict(full_weight_robot_distance=2.6), "full_weight_robot_distance"),  # beyond R_s
-        (dict(lambda2_null=0.0), "lambda2_min"),
-        (dict(lambda2_min=-0.1), "lambda2_min"),
-        (dict(lambda2_guard=2.0), "lambda2_guard"),
-        (dict(virtual_mass=0.0), "virtual_mass"),
-        (dict(damping=-1.0), "damping"),
-        (dict(potential_gain=float("nan")), "potential_gain"),
-        (dict(sensing_range=float("inf")), "sensing_range"),
+        (dict(), 1.0, "full_weight_range_m"),  # R'_s must be < R_s
+        (dict(full_weight_obstacle_clearance_m=0.2), 2.5, "min_obstacle_clearance_m"),
+        (dict(full_weight_robot_distance_m=0.7), 2.5, "min_robot_distance_m"),
+        (dict(min_robot_distance_m=2.6, full_weight_robot_distance_m=2.7), 2.55, "min_robot_distance_m"),
+        (dict(full_weight_robot_distance_m=2.6), 2.5, "full_weight_robot_distance_m"),  # beyond R_s
+        (dict(lambda2_min=0.5, lambda2_null=0.5), 2.5, "lambda2_min"),
+        (dict(lambda2_min=-0.1), 2.5, "lambda2_min"),
+        (dict(lambda2_guard=2.0), 2.5, "lambda2_guard"),
+        (dict(virtual_mass_kg=0.0), 2.5, "virtual_mass_kg"),
+        (dict(damping_nspm=-1.0), 2.5, "damping_nspm"),
+        (dict(potential_gain_j=float("inf")), 2.5, "potential_gain_j"),
     ],
 )
-def test_invalid_parameters_are_rejected_naming_the_field(overrides, field):
+def test_invalid_parameters_are_rejected_naming_the_field(overrides, sensing_range, field):
     with pytest.raises(ValueError, match=field):
-        ConnectivityParams.office(**overrides)
+        ConnectedParams(**overrides).at_range(sensing_range)
 
 
 @pytest.mark.parametrize("name", [f.name for f in dataclasses.fields(FiedlerEstimatorParams) if f.name != "dither"])
@@ -134,12 +135,12 @@ def test_estimator_dither_may_be_zero_but_not_negative():
     assert FiedlerEstimatorParams(dither=0.0).dither == 0.0
     with pytest.raises(ValueError, match="dither"):
         FiedlerEstimatorParams(dither=-1e-3)
-    assert FiedlerEstimatorParams().lambda2_ceiling > ConnectivityParams.office().lambda2_null
+    assert FiedlerEstimatorParams().lambda2_ceiling > OFFICE.lambda2_null
 
 
 def test_parameters_are_frozen():
     with pytest.raises(dataclasses.FrozenInstanceError):
-        OFFICE.sensing_range = 3.0
+        OFFICE.sensing_range_m = 3.0
 
 
 # -------------------------------------------------------------- weight factors
@@ -185,11 +186,11 @@ def test_range_weight_vanishes_at_sensing_range_and_is_full_inside_fade_start():
     def pair_weight(distance):
         return link_weights(np.array([[0.0, 0.0, 1.0], [distance, 0.0, 1.0]]), None, OFFICE).weights[0, 1]
 
-    assert pair_weight(OFFICE.sensing_range) == 0.0
-    assert pair_weight(OFFICE.sensing_range + 0.5) == 0.0
-    assert 0.0 < pair_weight(OFFICE.sensing_range - 1e-3) < 1e-5
-    assert pair_weight(OFFICE.full_weight_range) == 1.0  # R'_c = R'_s in the office preset
-    assert 0.0 < pair_weight(0.5 * (OFFICE.full_weight_range + OFFICE.sensing_range)) < 1.0
+    assert pair_weight(OFFICE.sensing_range_m) == 0.0
+    assert pair_weight(OFFICE.sensing_range_m + 0.5) == 0.0
+    assert 0.0 < pair_weight(OFFICE.sensing_range_m - 1e-3) < 1e-5
+    assert pair_weight(OFFICE.full_weight_range_m) == 1.0  # R'_c = R'_s in the office preset
+    assert 0.0 < pair_weight(0.5 * (OFFICE.full_weight_range_m + OFFICE.sensing_range_m)) < 1.0
 
 
 def test_line_of_sight_weight_vanishes_at_obstacle_clearance():
@@ -198,12 +199,12 @@ def test_line_of_sight_weight_vanishes_at_obstacle_clearance():
         return link_weights(np.array([[1.0, y, 1.0], [3.0, y, 1.0]]), WALL, OFFICE).weights[0, 1]
 
     edge = 0.8
-    assert pair_weight(edge + OFFICE.min_obstacle_clearance) == 0.0
+    assert pair_weight(edge + OFFICE.min_obstacle_clearance_m) == 0.0
     assert pair_weight(0.0) == 0.0  # through the wall
-    assert 0.0 < pair_weight(edge + OFFICE.min_obstacle_clearance + 1e-3) < 1e-4
+    assert 0.0 < pair_weight(edge + OFFICE.min_obstacle_clearance_m + 1e-3) < 1e-4
     assert 0.0 < pair_weight(edge + 0.45) < pair_weight(edge + 0.55)
     no_wall = link_weights(np.array([[1.0, 2.0, 1.0], [3.0, 2.0, 1.0]]), None, OFFICE).weights[0, 1]
-    assert pair_weight(edge + OFFICE.full_weight_obstacle_clearance) == pytest.approx(no_wall, abs=1e-12)
+    assert pair_weight(edge + OFFICE.full_weight_obstacle_clearance_m) == pytest.approx(no_wall, abs=1e-12)
 
 
 def test_a_third_robot_within_collision_distance_cuts_all_links_of_both():
@@ -230,7 +231,7 @@ def test_lambda2_gradient_matches_finite_differences_with_obstacles(seed):
     # Preconditions: the configuration exercises all three weight factors.
     first, second = state.links.pairs.T
     clearance = segment_clearance(WALL, positions[first], positions[second]).distance
-    grazing = (clearance > OFFICE.min_obstacle_clearance) & (clearance < OFFICE.full_weight_obstacle_clearance)
+    grazing = (clearance > OFFICE.min_obstacle_clearance_m) & (clearance < OFFICE.full_weight_obstacle_clearance_m)
     assert np.any(grazing & (state.weights[first, second] > 0))
     assert np.any(state.links.collision_log_slope != 0)
     assert state.lambda2 > 1e-3
@@ -351,11 +352,11 @@ def test_potential_is_null_above_threshold_and_c1_there():
 
 
 def test_potential_blows_up_at_lambda2_min():
-    params = ConnectivityParams.office(lambda2_min=0.1, lambda2_null=0.6)
+    params = preset_params("office", lambda2_min=0.1, lambda2_null=0.6)
     gaps = 10.0 ** -np.arange(1, 12)
     values = connectivity_potential(params.lambda2_min + gaps, params)
     slopes = connectivity_potential_slope(params.lambda2_min + gaps, params)
-    assert np.all(np.diff(values) > 0) and values[-1] > 20 * params.potential_gain
+    assert np.all(np.diff(values) > 0) and values[-1] > 20 * params.potential_gain_j
     assert np.all(np.diff(slopes) < 0) and slopes[-1] < -1e10
     assert connectivity_potential(params.lambda2_min, params) == np.inf
     assert connectivity_potential_slope(0.05, params) == -np.inf
@@ -366,7 +367,7 @@ def test_potential_blows_up_at_lambda2_min():
 
 
 def test_connectivity_force_is_the_negative_gradient_of_the_potential_energy():
-    params = ConnectivityParams.office(potential_gain=2.0)
+    params = preset_params("office", potential_gain_j=2.0)
     positions = jittered_wall_configuration(5)
     state = connectivity_state(positions, WALL, params)
     assert params.lambda2_min < state.lambda2 < params.lambda2_null

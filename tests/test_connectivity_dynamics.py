@@ -4,9 +4,13 @@ connected and the robots apart from each other and from obstacles."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
+from connected_helpers import preset_params
+from controllers.connectivity.connected_params import FiedlerEstimatorParams
 from controllers.connectivity.dynamics import (
     connectivity_layer_force,
     damping_force,
@@ -14,11 +18,10 @@ from controllers.connectivity.dynamics import (
 )
 from controllers.connectivity.estimator import FiedlerEstimator
 from controllers.connectivity.graph import link_weights
-from controllers.connectivity.params import ConnectivityParams, FiedlerEstimatorParams
 from controllers.connectivity.potential import connectivity_potential
 from sim.geometry import Boxes, point_clearance
 
-OFFICE = ConnectivityParams.office()
+OFFICE = preset_params("office")
 DT = 0.01  # s
 # A wall beside a six-robot chain along x (y in [0.6, 1.8], x in [3.9, 4.1]).
 SIDE_WALL = Boxes.axis_aligned([[4.0, 1.2, 1.0]], [[0.1, 0.6, 1.0]])
@@ -68,14 +71,14 @@ def test_damping_alone_decays_velocity_geometrically_towards_exp():
     steps = 100
     for _ in range(steps):
         q, v = step_virtual_dynamics(q, v, np.zeros_like(v), DT, OFFICE)
-    ratio = 1.0 / (1.0 + DT * OFFICE.damping / OFFICE.virtual_mass)
+    ratio = 1.0 / (1.0 + DT * OFFICE.damping_nspm / OFFICE.virtual_mass_kg)
     np.testing.assert_allclose(v, velocities * ratio**steps, rtol=1e-12)
-    exact = velocities * np.exp(-OFFICE.damping / OFFICE.virtual_mass * steps * DT)
+    exact = velocities * np.exp(-OFFICE.damping_nspm / OFFICE.virtual_mass_kg * steps * DT)
     np.testing.assert_allclose(v, exact, atol=0.02 * np.abs(velocities).max())
     # Position is the sum of the velocities it moved with.
     travelled = DT * velocities * ratio * (1 - ratio**steps) / (1 - ratio)
     np.testing.assert_allclose(q, travelled, rtol=1e-12)
-    np.testing.assert_array_equal(damping_force(velocities, OFFICE), -OFFICE.damping * velocities)
+    np.testing.assert_array_equal(damping_force(velocities, OFFICE), -OFFICE.damping_nspm * velocities)
 
 
 def test_constant_force_reaches_terminal_velocity_f_over_b():
@@ -83,11 +86,11 @@ def test_constant_force_reaches_terminal_velocity_f_over_b():
     q, v = np.zeros((1, 3)), np.zeros((1, 3))
     for _ in range(1000):
         q, v = step_virtual_dynamics(q, v, force, DT, OFFICE)
-    np.testing.assert_allclose(v, force / OFFICE.damping, rtol=1e-6)
+    np.testing.assert_allclose(v, force / OFFICE.damping_nspm, rtol=1e-6)
 
 
 def test_implicit_damping_never_reverses_velocity():
-    heavy = ConnectivityParams.office(damping=1e4)
+    heavy = SimpleNamespace(virtual_mass_kg=1.0, damping_nspm=1e4)  # far beyond the keys' bounds
     _, v = step_virtual_dynamics(np.zeros((1, 3)), np.ones((1, 3)), np.zeros((1, 3)), DT, heavy)
     assert np.all((v > 0) & (v < 0.02))
 
@@ -107,10 +110,10 @@ def test_constant_pull_drags_the_team_without_breaking_connectivity():
     pull[-1] = [3.0, 0.5, 0.0]  # N, on the last robot of the chain only
     worst = simulate(chain(), lambda q: pull, SIDE_WALL, OFFICE, seconds=15.0)
     assert worst["lambda2"] > OFFICE.lambda2_min + 0.05
-    assert worst["distance"] > OFFICE.min_robot_distance
-    assert worst["clearance"] > OFFICE.min_obstacle_clearance
+    assert worst["distance"] > OFFICE.min_robot_distance_m
+    assert worst["clearance"] > OFFICE.min_obstacle_clearance_m
     # Connectivity made the whole team follow: mean displacement ~ F t / (N B).
-    assert worst["displacement"][0] > 0.6 * 3.0 * 12.0 / (6 * OFFICE.damping)
+    assert worst["displacement"][0] > 0.6 * 3.0 * 12.0 / (6 * OFFICE.damping_nspm)
 
 
 def test_stronger_pull_is_held_by_a_stiffer_response_not_a_break():
@@ -118,7 +121,7 @@ def test_stronger_pull_is_held_by_a_stiffer_response_not_a_break():
     pull[-1] = [10.0, 0.0, 0.0]
     worst = simulate(chain(), lambda q: pull, None, OFFICE, seconds=8.0)
     assert worst["lambda2"] > OFFICE.lambda2_min + 0.01
-    assert worst["distance"] > OFFICE.min_robot_distance
+    assert worst["distance"] > OFFICE.min_robot_distance_m
 
 
 def test_robots_pushed_into_each_other_keep_the_minimum_distance():
@@ -127,7 +130,7 @@ def test_robots_pushed_into_each_other_keep_the_minimum_distance():
     push[0] = [6.0, 0.0, 0.0]
     push[1] = [-6.0, 0.0, 0.0]
     worst = simulate(positions, lambda q: push, None, OFFICE, seconds=6.0)
-    assert worst["distance"] > OFFICE.min_robot_distance
+    assert worst["distance"] > OFFICE.min_robot_distance_m
     assert worst["lambda2"] > OFFICE.lambda2_min
 
 
@@ -137,7 +140,7 @@ def test_robot_pushed_into_a_wall_keeps_the_obstacle_clearance():
     push = np.zeros((3, 3))
     push[2] = [0.0, 6.0, 0.0]
     worst = simulate(positions, lambda q: push, wall, OFFICE, seconds=6.0)
-    assert worst["clearance"] > OFFICE.min_obstacle_clearance
+    assert worst["clearance"] > OFFICE.min_obstacle_clearance_m
     assert worst["lambda2"] > OFFICE.lambda2_min
 
 
@@ -151,7 +154,7 @@ def test_free_motion_dissipates_energy():
     energy, lambdas = [], []
     for _ in range(500):
         layer = connectivity_layer_force(positions, velocities, wall, OFFICE)
-        kinetic = 0.5 * OFFICE.virtual_mass * (velocities**2).sum()
+        kinetic = 0.5 * OFFICE.virtual_mass_kg * (velocities**2).sum()
         energy.append(kinetic + float(connectivity_potential(layer.state.lambda2, OFFICE)))
         lambdas.append(layer.state.lambda2)
         positions, velocities = step_virtual_dynamics(positions, velocities, layer.connectivity, DT, OFFICE)
@@ -164,7 +167,7 @@ def test_free_motion_dissipates_energy():
 def test_layer_force_reports_damping_and_connectivity_parts():
     positions, velocities = chain(), np.random.default_rng(1).normal(size=(6, 3))
     layer = connectivity_layer_force(positions, velocities, SIDE_WALL, OFFICE)
-    np.testing.assert_array_equal(layer.damping, -OFFICE.damping * velocities)
+    np.testing.assert_array_equal(layer.damping, -OFFICE.damping_nspm * velocities)
     np.testing.assert_allclose(layer.total, layer.damping + layer.connectivity)
     np.testing.assert_array_equal(layer.lambda2_used, np.full(6, layer.state.lambda2))
     assert np.any(layer.connectivity != 0)  # a stretched chain is below lambda2_null
@@ -178,8 +181,8 @@ def test_decentralised_estimates_keep_a_moderately_pulled_team_connected():
     estimator = FiedlerEstimator(6, FiedlerEstimatorParams(), np.random.default_rng(1))
     worst = simulate(chain(), lambda q: pull, SIDE_WALL, OFFICE, seconds=10.0, estimator=estimator, warmup=3.0)
     assert worst["lambda2"] > OFFICE.lambda2_min + 0.05
-    assert worst["distance"] > OFFICE.min_robot_distance
-    assert worst["clearance"] > OFFICE.min_obstacle_clearance
+    assert worst["distance"] > OFFICE.min_robot_distance_m
+    assert worst["clearance"] > OFFICE.min_obstacle_clearance_m
 
 
 def test_estimate_with_wrong_shape_is_rejected():

@@ -8,15 +8,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from connected_helpers import grown_positions
-from controllers.connectivity.connected_params import ConnectedParams
+from connected_helpers import grown_positions, preset_params
+from controllers.connectivity.connected_params import ConnectedParams, FiedlerEstimatorParams
 from controllers.connectivity.estimator import FiedlerEstimator, SubspaceEstimator, ritz_connectivity_gradient
 from controllers.connectivity.graph import fiedler_pair, link_weights, weighted_laplacian
-from controllers.connectivity.params import ConnectivityParams, FiedlerEstimatorParams
 from controllers.connectivity.smooth_spectrum import smooth_lambda2_gradient
 
 GAINS = FiedlerEstimatorParams()
-OFFICE = ConnectivityParams.office()
+OFFICE = preset_params("office")
 DT = 0.01  # s, the simulator's control period
 
 
@@ -25,7 +24,7 @@ def sensor_graph(seed: int, n: int) -> np.ndarray:
     lambda2 lies below the estimator's ceiling and is separated from lambda3."""
     rng = np.random.default_rng(seed)
     while True:
-        weights = link_weights(grown_positions(rng, n, OFFICE.min_robot_distance), None, OFFICE).weights
+        weights = link_weights(grown_positions(rng, n, OFFICE.min_robot_distance_m), None, OFFICE).weights
         eigenvalues = np.linalg.eigvalsh(weighted_laplacian(weights))
         if 0.1 < eigenvalues[1] < 0.8 * GAINS.lambda2_ceiling and eigenvalues[2] - eigenvalues[1] > 0.1:
             return weights
@@ -387,7 +386,7 @@ def test_strategy_estimates_the_graph_its_messages_travel_on(estimator_links):
                                                f'strategy.estimator_links="{estimator_links}"']))
     strategy = sim.strategy
     observation = sim.observe()
-    state = connectivity_state(strategy.q, strategy.boxes, strategy.params.connectivity)
+    state = connectivity_state(strategy.q, strategy.boxes, strategy.params)
     # Cut the message link whose loss lowers lambda2 the most but keeps W o A connected.
     candidates = []
     for i, j in state.edges:
@@ -401,7 +400,7 @@ def test_strategy_estimates_the_graph_its_messages_travel_on(estimator_links):
     cut_observation = dc.replace(observation, links=dc.replace(observation.links, adjacency=adjacency))
     for _ in range(100):  # the virtual points barely move in 1 s: the graph is nearly static
         commands = strategy.step(cut_observation)
-    state = connectivity_state(strategy.q, strategy.boxes, strategy.params.connectivity)
+    state = connectivity_state(strategy.q, strategy.boxes, strategy.params)
     restricted = state.links.restricted_to(adjacency)
     expected = state.lambda2 if estimator_links == "sensing" else np.linalg.eigvalsh(
         weighted_laplacian(restricted.weights))[1]

@@ -11,8 +11,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from connected_helpers import preset_params
+from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.exploration import ExplorationController
-from controllers.connectivity.exploration_params import ExplorationParams
 from controllers.connectivity.paths import GridPlanner, SplinePath
 from controllers.connectivity.roles import Role
 from controllers.connectivity.targets import TargetQueues
@@ -32,6 +33,7 @@ from controllers.connectivity.travel import (
     traveling_efficiency,
 )
 from sim.geometry import Boxes
+from sim.scenario import load
 
 unit = st.floats(0.0, 1.0, allow_nan=False)
 interior = st.floats(1e-3, 1.0 - 1e-3, allow_nan=False)
@@ -42,36 +44,36 @@ sigmas = st.floats(1.0, 20.0, allow_nan=False)
 
 
 def test_presets_follow_tables_2_and_3():
-    office, outdoor = ExplorationParams.office(), ExplorationParams.outdoor()
-    experiment = ExplorationParams.experiment()
-    table_row = lambda p: (p.grid_resolution, p.cruise_speed, p.target_radius, p.dwell_time)  # noqa: E731
+    office, outdoor = preset_params("office"), preset_params("outdoor")
+    experiment = load("connected-lab").strategy.params  # Table 3: the experiment's scenario
+    table_row = lambda p: (p.grid_resolution_m, p.cruise_speed_mps, p.target_radius_m, p.dwell_time_s)  # noqa: E731
     assert table_row(office) == (0.25, 1.0, 1.0, 3.0)
     assert table_row(outdoor) == (0.75, 3.0, 1.8, 3.0)
     assert office.sigma == outdoor.sigma == experiment.sigma == 3.0
-    assert (office.efficiency_error_full, office.efficiency_error_zero) == pytest.approx((0.1, 0.6))
-    assert (outdoor.efficiency_error_full, outdoor.efficiency_error_zero) == pytest.approx((0.3, 1.8))
-    assert (experiment.efficiency_error_full, experiment.efficiency_error_zero) == pytest.approx((0.1, 0.35))
-    assert (experiment.grid_resolution, experiment.target_radius, experiment.consensus_gain) == (0.2, 0.75, 1.0)
+    assert (office.efficiency_error_full_mps, office.efficiency_error_zero_mps) == pytest.approx((0.1, 0.6))
+    assert (outdoor.efficiency_error_full_mps, outdoor.efficiency_error_zero_mps) == pytest.approx((0.3, 1.8))
+    assert (experiment.efficiency_error_full_mps, experiment.efficiency_error_zero_mps) == pytest.approx((0.1, 0.35))
+    assert (experiment.grid_resolution_m, experiment.target_radius_m, experiment.consensus_gain) == (0.2, 0.75, 1.0)
     # Thresholds follow an overridden cruise speed, as "(0.1, 0.6) v_cruise" says.
-    assert ExplorationParams.office(cruise_speed=2.0).efficiency_error_zero == pytest.approx(1.2)
+    assert preset_params("office", cruise_speed_mps=2.0).efficiency_error_zero_mps == pytest.approx(1.2)
 
 
 @pytest.mark.parametrize(
     "override, field",
     [
-        (dict(cruise_speed=0.0), "cruise_speed"),
+        (dict(cruise_speed_mps=0.0), "cruise_speed"),
         (dict(sigma=0.5), "sigma"),
-        (dict(efficiency_error_full=0.7), "efficiency_error_full"),
+        (dict(efficiency_error_full_ratio=0.7), "efficiency_error_full"),
         (dict(position_error_weight=1.5), "position_error_weight"),
-        (dict(path_min_clearance=2.0), "path_min_clearance"),
+        (dict(path_min_clearance_m=2.0), "path_min_clearance"),
         (dict(message_latency_ticks=0), "message_latency_ticks"),
-        (dict(target_radius=float("nan")), "target_radius"),
-        (dict(dwell_time=-1.0), "dwell_time"),
+        (dict(target_radius_m=float("inf")), "target_radius"),
+        (dict(dwell_time_s=-1.0), "dwell_time"),
     ],
 )
 def test_invalid_parameters_name_the_field(override, field):
     with pytest.raises(ValueError, match=field):
-        ExplorationParams.office(**override)
+        preset_params("office", **override)
 
 
 # -- eqs. (8), (9), (14): Theta, Lambda, rho ----------------------------------
@@ -197,29 +199,29 @@ def test_anchor_force_limits():
 
 
 def test_anchor_keeps_a_disturbed_robot_within_the_target_radius():
-    params = ExplorationParams.office()
+    params = preset_params("office")
     rng = np.random.default_rng(2)
     dt, damping = 0.005, 2.0
     target = np.array([[4.0, 4.0, 2.0]])
-    q = target + [[0.9 * params.target_radius, 0.0, 0.0]]
+    q = target + [[0.9 * params.target_radius_m, 0.0, 0.0]]
     v = np.array([[0.5, 0.0, 0.0]])  # drifting outwards on arrival
     worst = 0.0
     for _ in range(4000):
         disturbance = rng.normal(size=(1, 3))
-        disturbance *= 2.0 * params.anchor_gain / np.linalg.norm(disturbance)  # 2 k_z, N
-        force = anchor_force(q, target, params.target_radius, params.anchor_gain, params.anchor_force_limit)
+        disturbance *= 2.0 * params.anchor_gain_n / np.linalg.norm(disturbance)  # 2 k_z, N
+        force = anchor_force(q, target, params.target_radius_m, params.anchor_gain_n, params.anchor_force_limit_n)
         v = v + dt * (force + disturbance - damping * v)
         q = q + dt * v
         worst = max(worst, float(np.linalg.norm(q - target)))
-    assert worst < params.target_radius
+    assert worst < params.target_radius_m
     # Under a 2 k_z push the equilibrium is at tan(l pi / 2 R_z) = 2.
-    assert worst > 0.5 * params.target_radius
+    assert worst > 0.5 * params.target_radius_m
 
 
 # -- eqs. (3), (11), (12): travel ----------------------------------------------
 
 
-def office_planner(walls: Boxes, params: ExplorationParams) -> GridPlanner:
+def office_planner(walls: Boxes, params: ConnectedParams) -> GridPlanner:
     """Planner for a 10 x 10 x 5 m room with the preset's grid and margins."""
     return GridPlanner.from_params(walls, [0, 0, 0], [10, 10, 5], params)
 
@@ -271,7 +273,7 @@ def test_tracking_error_and_efficiency_of_eqs_11_12():
 
 @pytest.mark.parametrize("damping, expected_speed_fraction", [(0.0, 1.0), (2.0, 10.0 / 12.0)])
 def test_travel_force_drives_a_point_mass_along_the_path_at_cruise_speed(damping, expected_speed_fraction):
-    params = ExplorationParams.office()
+    params = preset_params("office")
     walls = Boxes.axis_aligned([[5.0, 2.5, 2.5], [5.0, 8.75, 2.5]], [[0.1, 2.5, 2.5], [0.1, 1.25, 2.5]])
     planner = office_planner(walls, params)
     start, goal = np.array([1.0, 1.0, 1.5]), np.array([9.0, 1.5, 3.0])
@@ -280,23 +282,23 @@ def test_travel_force_drives_a_point_mass_along_the_path_at_cruise_speed(damping
     q, v = start[None].copy(), np.zeros((1, 3))
     speeds, lateral, cruising = [], [], []
     # The trip at cruise speed plus the exponential approach of the braking ramp.
-    cruise_time = path.length / (expected_speed_fraction * params.cruise_speed)
-    duration = cruise_time + 6 * params.braking_distance / params.cruise_speed
+    cruise_time = path.length / (expected_speed_fraction * params.cruise_speed_mps)
+    duration = cruise_time + 6 * params.braking_distance_m / params.cruise_speed_mps
     for _ in range(int(duration / dt)):
-        reference = path_reference(path, q, params.cruise_speed, params.braking_distance)
-        force = travel_force(q, v, reference, params.position_gain, params.velocity_gain, params.virtual_mass)
-        v = v + dt * (force - damping * v) / params.virtual_mass
+        reference = path_reference(path, q, params.cruise_speed_mps, params.braking_distance_m)
+        force = travel_force(q, v, reference, params.position_gain, params.velocity_gain, params.virtual_mass_kg)
+        v = v + dt * (force - damping * v) / params.virtual_mass_kg
         q = q + dt * v
         speeds.append(np.linalg.norm(v))
         lateral.append(reference.distance[0])
-        cruising.append(2.0 < reference.arc_length[0] < path.length - params.braking_distance)
+        cruising.append(2.0 < reference.arc_length[0] < path.length - params.braking_distance_m)
     speeds, lateral, cruising = np.array(speeds), np.array(lateral), np.array(cruising)
     assert np.linalg.norm(q[0] - goal) < 0.05  # it reaches the target and stops
     assert np.linalg.norm(v) < 0.05
-    np.testing.assert_allclose(speeds[cruising].mean(), expected_speed_fraction * params.cruise_speed, rtol=0.05)
-    assert speeds.max() < 1.1 * params.cruise_speed
+    np.testing.assert_allclose(speeds[cruising].mean(), expected_speed_fraction * params.cruise_speed_mps, rtol=0.05)
+    assert speeds.max() < 1.1 * params.cruise_speed_mps
     assert lateral.max() < 0.1  # stays on gamma_i
-    assert planner.clearance_of(path.sample(0.02)).min() >= params.path_clearance - 1e-9
+    assert planner.clearance_of(path.sample(0.02)).min() >= params.path_clearance_m - 1e-9
 
 
 # -- Algorithms 1 and 2 ----------------------------------------------------------
@@ -313,19 +315,19 @@ def simulate(controller: ExplorationController, q: np.ndarray, duration: float, 
         yield k * dt, out, q.copy()
         if out.finished:
             return
-        v = v + dt * (out.forces - damping * v) / controller.params.virtual_mass
+        v = v + dt * (out.forces - damping * v) / controller.params.virtual_mass_kg
         q = q + dt * v
 
 
 @pytest.fixture(scope="module")
 def room_planner() -> GridPlanner:
-    params = ExplorationParams.office()
+    params = preset_params("office")
     walls = Boxes.axis_aligned([[5.0, 2.5, 2.5], [5.0, 8.75, 2.5]], [[0.1, 2.5, 2.5], [0.1, 1.25, 2.5]])
     return office_planner(walls, params)
 
 
 def test_team_visits_all_targets_with_their_dwell_times(room_planner):
-    params = ExplorationParams.office(dwell_time=1.0)
+    params = preset_params("office", dwell_time_s=1.0)
     start = np.array([[1.0, 1.0, 1.5], [1.5, 2.0, 1.5], [2.0, 1.0, 2.0], [2.0, 2.0, 1.0]])
     targets = [
         np.array([[3.0, 8.0, 2.0], [8.0, 2.0, 2.0]]),  # robot 0: two targets, the second behind the wall
@@ -360,12 +362,12 @@ def test_team_visits_all_targets_with_their_dwell_times(room_planner):
     for visit in out.visits:
         assert visit.completion_time - visit.arrival_time >= visit.target.dwell_time - 1e-9
     assert visits[(0, 0)].completion_time < visits[(0, 1)].arrival_time  # queue order
-    assert max(visit_log) < params.target_radius  # anchors stay within R_z
+    assert max(visit_log) < params.target_radius_m  # anchors stay within R_z
     assert not out.skipped
 
 
 def test_secondary_traveler_replans_when_dragged_off_its_path(room_planner):
-    params = ExplorationParams.office()
+    params = preset_params("office")
     start = np.array([[1.0, 1.0, 1.5], [1.0, 2.5, 1.5]])
     queues = TargetQueues.from_lists([np.array([[3.0, 1.0, 1.5]]), np.array([[3.0, 8.0, 2.0]])], 1.0)
     controller = ExplorationController(params, room_planner, queues)
@@ -379,7 +381,7 @@ def test_secondary_traveler_replans_when_dragged_off_its_path(room_planner):
     dragged[0] = [2.0, 2.8, 1.5]  # both robots farther than R_gamma = 1 m from their paths
     dragged[1] = [2.5, 2.0, 3.0]
     for robot in range(2):
-        assert old_paths[robot].project(dragged[robot])[2][0] > params.replan_distance
+        assert old_paths[robot].project(dragged[robot])[2][0] > params.replan_distance_m
     out = controller.step(0.05, dragged, zeros, complete, zeros)
     assert out.paths[1] is not old_paths[1]
     np.testing.assert_allclose(out.paths[1].start, dragged[1])
@@ -389,7 +391,7 @@ def test_secondary_traveler_replans_when_dragged_off_its_path(room_planner):
 
 
 def test_secondary_force_is_scaled_by_rho_and_prime_efficiency_is_broadcast(room_planner):
-    params = ExplorationParams.office(consensus_gain=5.0)
+    params = preset_params("office", consensus_gain=5.0)
     start = np.array([[1.0, 1.0, 1.5], [1.0, 2.5, 1.5], [1.5, 1.5, 1.5]])
     queues = TargetQueues.from_lists([np.array([[4.0, 1.0, 1.5]]), np.array([[3.0, 8.0, 2.0]]), np.zeros((0, 3))], 1.0)
     controller = ExplorationController(params, room_planner, queues)
@@ -408,11 +410,12 @@ def test_secondary_force_is_scaled_by_rho_and_prime_efficiency_is_broadcast(room
     # Now the prime traveler moves at cruise speed along its path.
     moving = np.zeros((3, 3))
     for k in range(200, 600):
-        moving[0] = path_reference(last.paths[0], start[:1], params.cruise_speed, params.braking_distance).velocity[0]
+        moving[0] = path_reference(last.paths[0], start[:1], params.cruise_speed_mps,
+                                   params.braking_distance_m).velocity[0]
         out = controller.step(0.02 * k, start, moving, chain, pushing_back)
     assert out.prime_efficiency == pytest.approx(1.0)
     np.testing.assert_allclose(out.efficiency_estimate, 1.0, atol=1e-3)
-    reference = path_reference(out.paths[1], start[1:2], params.cruise_speed, params.braking_distance)
+    reference = path_reference(out.paths[1], start[1:2], params.cruise_speed_mps, params.braking_distance_m)
     f_travel = travel_force(start[1:2], moving[1:2], reference, params.position_gain, params.velocity_gain)
     theta = force_alignment(pushing_back[1:2], f_travel)
     rho = adaptive_gain(theta, out.efficiency_estimate[1], params.sigma)
@@ -421,7 +424,7 @@ def test_secondary_force_is_scaled_by_rho_and_prime_efficiency_is_broadcast(room
 
 
 def test_unreachable_target_is_skipped(room_planner):
-    params = ExplorationParams.office()
+    params = preset_params("office")
     inside_wall = np.array([5.0, 1.0, 2.0])
     queues = TargetQueues.from_lists([np.array([inside_wall, [2.0, 2.0, 2.0]])], 0.0)
     controller = ExplorationController(params, room_planner, queues)
@@ -431,6 +434,6 @@ def test_unreachable_target_is_skipped(room_planner):
 
 
 def test_step_rejects_wrong_shapes(room_planner):
-    controller = ExplorationController(ExplorationParams.office(), room_planner, TargetQueues(2))
+    controller = ExplorationController(preset_params("office"), room_planner, TargetQueues(2))
     with pytest.raises(ValueError, match="velocities"):
         controller.step(0.0, np.zeros((2, 3)), np.zeros((3, 3)), np.zeros((2, 2), bool), np.zeros((2, 3)))

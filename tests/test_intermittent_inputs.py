@@ -26,7 +26,10 @@ CASES = {
                                  "strategy.teams: robot index 4 does not exist"),
     "no teams": (["strategy.teams=[]"], "strategy.teams: is required"),
     "negative speed": (["strategy.speed_mps=-0.1"], "strategy.speed_mps: must be positive"),
-    "step differs from the sensing period": (["strategy.step_s=2.0"], "strategy.step_s: must equal"),
+    "step is the sensing period": (["strategy.step_s=2.0"],
+                                   "strategy.step_s: is no longer a key; set sensing.period_s"),
+    "target model steps differ from the readings": (["target_motion.step_s=2.0"],
+                                                    "target_motion.step_s: must equal sensing.period_s"),
     "prior of the wrong size": (["strategy.prior_mean=[[1.0,1.0,1.0]]"], "strategy.prior_mean: has 1 entries"),
     "lag team out of range": (["strategy.lag_team=4"], "strategy.lag_team: must be a team index below 4"),
     "all_time needs a connected start": (

@@ -144,8 +144,8 @@ def test_init_writes_every_key_commented_and_reloads_to_the_same_scenario(name, 
         assert re.fullmatch(r"# \[.*(default|required).*\]", lines[i - 1]), lines[i]
         assert lines[i - 2].startswith("# ") or lines[i].split()[0] in ("kind", "count", "spawn_center"), lines[i]
     if name == CONNECTED:
-        assert ("# R_s: weights vanish at this distance; must equal sensing.comm_range_m\n"
-                "# [unit m; default from the preset; 0.2 to 50]\nsensing_range_m = 2.5\n") in text
+        assert ("# R'_s: range factor is 1 up to this distance (below R_s)\n"
+                "# [unit m; default from the preset; 0.01 to 50]\nfull_weight_range_m = 1.1\n") in text
 
 
 def test_end_of_run_words():

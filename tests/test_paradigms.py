@@ -32,7 +32,7 @@ class GroundInvariants:
 
     def __init__(self, sim: Simulation):
         self.core = getattr(sim.strategy, "core", sim.strategy)
-        self.params = self.core.params.connectivity
+        self.params = self.core.params
         self.ticks = 0
         self.lambda2_min = np.inf
 
@@ -46,8 +46,8 @@ class GroundInvariants:
         clearance = point_clearance(self.core.boxes, q).min()
         primes = int(np.sum(self.core.roles == Role.PRIME_TRAVELER))
         assert lambda2 > c.lambda2_min + 1e-9, f"t = {t:.2f} s: lambda2 = {lambda2}"
-        assert distance > c.min_robot_distance, f"t = {t:.2f} s: virtual points {distance:.3f} m apart"
-        assert clearance > c.min_obstacle_clearance, f"t = {t:.2f} s: virtual point {clearance:.3f} m from a wall"
+        assert distance > c.min_robot_distance_m, f"t = {t:.2f} s: virtual points {distance:.3f} m apart"
+        assert clearance > c.min_obstacle_clearance_m, f"t = {t:.2f} s: virtual point {clearance:.3f} m from a wall"
         assert primes <= 1, f"t = {t:.2f} s: {primes} prime travelers"
         self.ticks += 1
         self.lambda2_min = min(self.lambda2_min, lambda2)

@@ -145,8 +145,7 @@ def test_drawn_paths_start_at_their_robot_and_never_serve_a_stale_path():
 
     from controllers.connectivity.strategy import ConnectedStrategy
 
-    strategy = SimpleNamespace(_drawn_paths={}, params=SimpleNamespace(
-        exploration=SimpleNamespace(grid_resolution=0.25)))
+    strategy = SimpleNamespace(_drawn_paths={}, params=SimpleNamespace(grid_resolution_m=0.25))
     draw = lambda path, q: ConnectedStrategy._path_points(strategy, path, np.asarray(q, float))  # noqa: E731
     path = _Line()
     points = draw(path, (3.1, 0.2, 1.0))

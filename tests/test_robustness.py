@@ -616,9 +616,10 @@ def test_a_tuning_change_that_breaks_an_invariant_is_refused_before_it_applies()
         sim.set_strategy_params(dataclasses.replace(params, min_robot_distance_m=2.6,
                                                     full_weight_robot_distance_m=3.0))
     assert refused.value.field == "strategy.min_robot_distance_m" and "inside" in refused.value.problem
-    with pytest.raises(ConfigError) as refused:  # R_s must equal the scenario's comm range: named as it is
-        sim.set_strategy_params(dataclasses.replace(params, sensing_range_m=params.sensing_range_m + 1.0))
-    assert refused.value.field == "sensing.comm_range_m", refused.value
+    with pytest.raises(ConfigError) as refused:  # R'_s must stay below R_s, the scenario's comm range: named as it is
+        sim.set_strategy_params(dataclasses.replace(params, full_weight_range_m=sim.info.comm_range_m + 1.0))
+    assert refused.value.field == "strategy.full_weight_range_m", refused.value
+    assert "R_s = sensing.comm_range_m" in refused.value.problem
     frame, healthy = sim.tick()
     assert healthy, sim.divergence
 

@@ -14,13 +14,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import textwrap
 import typing
+from pathlib import Path
 from typing import Any, get_args, get_origin, get_type_hints
 
-from sim.config import field_comments, to_table, unit_from_name
-from sim.strategy import strategy_kind, strategy_kinds
+from sim.config import bounds_text, field_comments, keys_table, replace_generated, to_table, unit_from_name
+from sim.strategy import strategy_kind, strategy_kinds, strategy_params_class
 from sim.scenario import Scenario, ScenarioBody, toml_value
+from tether.strategies import BUILTIN_STRATEGIES
 
 COMMENT_WIDTH = 100
 # Top-level fields never written: a file takes its name from its own file name.
@@ -53,13 +56,8 @@ def _facts(f: dataclasses.Field, tp: Any) -> str:
     default = _default_text(f)
     if default:
         parts.append(default if default == "required" else f"default {default}")
-    low, high = meta.get("min"), meta.get("max")
-    if low is not None and high is not None:
-        parts.append(f"{low:g} to {high:g}")
-    elif low is not None:
-        parts.append(f"at least {low:g}")
-    elif high is not None:
-        parts.append(f"at most {high:g}")
+    if bounds_text(f):
+        parts.append(bounds_text(f))
     if get_origin(tp) is typing.Literal:
         parts.append("one of " + ", ".join(toml_value(a) for a in get_args(tp)))
     return "; ".join(parts)
@@ -135,3 +133,24 @@ def annotated_scenario(scenario: Scenario, scene_text: str | None = None, header
         for entry in entries:
             out += ["", f"[[{f.name}]]"] + _table_lines(entry)[0]
     return "\n".join(out).replace("\n\n\n\n", "\n\n\n") + "\n"
+
+
+def strategy_keys_section() -> str:
+    """The documentation's tables of strategy keys: one per parameter class of the registered kinds."""
+    kinds: dict[type, list[str]] = {}
+    for kind in BUILTIN_STRATEGIES:
+        kinds.setdefault(strategy_params_class(kind), []).append(kind)
+    parts = []
+    for cls, names in kinds.items():
+        parts.append(f"Keys of {', '.join(f'`{name}`' for name in names)} (`{cls.__name__}`):")
+        parts.append(keys_table(cls))
+        for other in getattr(cls, "TABLE_SHARED_WITH", ()):
+            parts.append(f"A table may also hold the keys of `{other.__name__}` (checked there, not used).")
+        for key, instead in getattr(cls, "REMOVED_KEYS", {}).items():
+            parts.append(f"`strategy.{key}` is no longer a key: {instead}.")
+    return "\n\n".join(parts)
+
+
+if __name__ == "__main__":
+    target = Path(sys.argv[1])
+    target.write_text(replace_generated(target.read_text(), strategy_keys_section()))

@@ -72,10 +72,9 @@ class AllTimeStrategy(Strategy):
 
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
         params = self.params
-        check_time_base(world, params)
+        self.step_s = check_time_base(world)
         self.world = world
         self.rng = rng
-        self.step_s = params.step_s
         n = world.n_robots
         if not team_connected(initial.links.adjacency, tuple(range(n))):
             raise ConfigError("robots", "all_time keeps the start configuration as its formation: the robots must "
@@ -170,8 +169,8 @@ class AllTimeStrategy(Strategy):
         if observation.target_ranges is not None:
             step = observation.target_step
             if abs(t - step * self.step_s) > 1e-6 or (self.last_step is not None and step != self.last_step + 1):
-                raise ConfigError("strategy.step_s", f"must equal sensing.period_s (reading of step {step} at "
-                                  f"t = {t:.3f} s)")
+                raise ConfigError("sensing.period_s", f"readings must come once per period (reading of step {step} "
+                                  f"at t = {t:.3f} s)")
             records = [r for robot in measurement_records(observation, step) for r in robot]
             self.belief.receive(records)
             self.last_step = step

@@ -31,14 +31,14 @@ import numpy as np
 
 from controllers.connectivity.estimator import FiedlerEstimate
 from controllers.connectivity.graph import ConnectivityState, connectivity_state, generalized_connectivity_force
-from controllers.connectivity.params import ConnectivityParams
+from controllers.connectivity.connected_params import ConnectedParams
 from sim.compiled import kernel
 from sim.geometry import Boxes
 
 
-def damping_force(velocities: np.ndarray, params: ConnectivityParams) -> np.ndarray:
+def damping_force(velocities: np.ndarray, params: ConnectedParams) -> np.ndarray:
     """f_B = -B v, (N, 3), N."""
-    return -params.damping * np.asarray(velocities, dtype=float)
+    return -params.damping_nspm * np.asarray(velocities, dtype=float)
 
 
 def step_virtual_dynamics(
@@ -46,7 +46,7 @@ def step_virtual_dynamics(
     velocities: np.ndarray,
     applied_force: np.ndarray,
     dt: float,
-    params: ConnectivityParams,
+    params: ConnectedParams,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Advance (q, v) by ``dt`` (s) under f_B (implicit) + ``applied_force``.
 
@@ -63,14 +63,14 @@ def step_virtual_dynamics(
         )
     if not dt > 0:
         raise ValueError(f"dt must be positive, got {dt}")
-    mass = params.virtual_mass
-    new_velocities = (mass * velocities + dt * applied_force) / (mass + dt * params.damping)
+    mass = params.virtual_mass_kg
+    new_velocities = (mass * velocities + dt * applied_force) / (mass + dt * params.damping_nspm)
     return positions + dt * new_velocities, new_velocities
 
 
 def step_virtual_dynamics_applied(positions: np.ndarray, velocities: np.ndarray, connectivity_force: np.ndarray,
                                   other_force: np.ndarray, planar: bool, dt: float,
-                                  params: ConnectivityParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                                  params: ConnectedParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The control tick's integration in one compiled pass: the applied force f_lambda + f (its z
     component dropped when ``planar``), ``step_virtual_dynamics`` and the acceleration (v' - v) / dt,
     element by element in numpy's order (the same bits). Float (N, 3) arrays; returns (q', v', a)."""
@@ -78,7 +78,7 @@ def step_virtual_dynamics_applied(positions: np.ndarray, velocities: np.ndarray,
         raise ValueError(f"dt must be positive, got {dt}")
     new_positions, new_velocities, acceleration = (np.empty(positions.shape) for _ in range(3))
     _virtual_step_kernel(positions, velocities, connectivity_force, other_force, bool(planar), float(dt),
-                         float(params.virtual_mass), float(params.damping), new_positions, new_velocities,
+                         float(params.virtual_mass_kg), float(params.damping_nspm), new_positions, new_velocities,
                          acceleration)
     return new_positions, new_velocities, acceleration
 
@@ -124,7 +124,7 @@ def connectivity_layer_force(
     positions: np.ndarray,
     velocities: np.ndarray,
     boxes: Boxes | None,
-    params: ConnectivityParams,
+    params: ConnectedParams,
     estimate: FiedlerEstimate | None = None,
 ) -> ConnectivityLayerForce:
     """f_B + f_lambda for all robots.

@@ -79,7 +79,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from controllers.connectivity.params import FiedlerEstimatorParams
+from controllers.connectivity.connected_params import FiedlerEstimatorParams
 from controllers.connectivity.smooth_spectrum import _smooth_lambda2_kernel
 from sim.compiled import kernel
 

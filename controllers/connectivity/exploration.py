@@ -27,7 +27,7 @@ The strategy integrates M v' = -B v + f_lambda + f_i with the returned forces.
 
 Deviations from the paper
 -------------------------
-See exploration_params.py, paths.py, travel.py, election.py, roles.py and
+See connected_params.py, paths.py, travel.py, election.py, roles.py and
 targets.py. Here:
 - A target the planner cannot reach is skipped (reported in ``skipped``); a
   failed replanning keeps the previous path. The paper assumes paths exist.
@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.connectivity.exploration_params import ExplorationParams
+from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.path_batch import PathBatch
 from controllers.connectivity.paths import GridPlanner, NoPathError, SplinePath
 from controllers.connectivity.roles import ANCHOR_CODE, CONNECTOR_CODE, PRIME_CODE, SECONDARY_CODE, RoleMachine
@@ -99,11 +99,11 @@ class ExplorationStep:
 class ExplorationController:
     """The exploration layer for N robots sharing one static scene.
 
-    params: ExplorationParams; planner: GridPlanner of the scene; queues:
+    params: ConnectedParams; planner: GridPlanner of the scene; queues:
     TargetQueues (the target generators may keep pushing during the run).
     """
 
-    def __init__(self, params: ExplorationParams, planner: GridPlanner, queues: TargetQueues) -> None:
+    def __init__(self, params: ConnectedParams, planner: GridPlanner, queues: TargetQueues) -> None:
         n = queues.n_robots
         if not params.election_host < n:
             raise ValueError(f"election_host ({params.election_host}) must be a robot index below {n}")
@@ -170,7 +170,7 @@ class ExplorationController:
 
     def _reference(self, robot: int, position: np.ndarray) -> PathReference:
         p = self.params
-        return path_reference(self.paths[robot], position[None], p.cruise_speed, p.braking_distance)
+        return path_reference(self.paths[robot], position[None], p.cruise_speed_mps, p.braking_distance_m)
 
     def _references(self, q: np.ndarray) -> tuple[np.ndarray, PathReference | None]:
         """Robots with a path (ascending indices) and their path references, one
@@ -188,7 +188,7 @@ class ExplorationController:
                 a is not b for a, b in zip(self._batch.paths, paths)
             ):
                 self._batch = PathBatch(paths)
-            stacked = batch_path_reference(self._batch, q[batched], p.cruise_speed, p.braking_distance)
+            stacked = batch_path_reference(self._batch, q[batched], p.cruise_speed_mps, p.braking_distance_m)
             if len(batched) == len(robots):
                 return np.array(robots, dtype=int), stacked
         single = {i: self._reference(i, q[i]) for i in robots if self.paths[i].spline is None}
@@ -254,14 +254,14 @@ class ExplorationController:
         travelers, references = self._references(q)
         if references is not None:
             secondary = self.role_machine.roles[travelers] == SECONDARY_CODE
-            for k in np.flatnonzero(secondary & needs_replanning(references, p.replan_distance)):  # Alg. 1 line 17
+            for k in np.flatnonzero(secondary & needs_replanning(references, p.replan_distance_m)):  # Alg. 1 line 17
                 i = int(travelers[k])
                 self._replan(i, q[i])
                 references = self._replace_row(references, k, self._reference(i, q[i]))
 
         target_points, dwell_needed = self._targets_now()
         to_target = row_norm(q - target_points)
-        near_target = to_target < p.target_radius  # False where there is no target (NaN)
+        near_target = to_target < p.target_radius_m  # False where there is no target (NaN)
         anchors = self.role_machine.roles == ANCHOR_CODE
         self.dwell.update(float(time), anchors & near_target)
         task_done = anchors & near_target & (self.dwell.elapsed(float(time)) >= dwell_needed)
@@ -297,10 +297,11 @@ class ExplorationController:
         else:
             points, velocities_ref, accelerations = references.point, references.velocity, references.acceleration
         _motion_control(q, v, f_lambda, roles, travelers, points, velocities_ref, accelerations, target_points,
-                        adjacency, self.estimates, dt, p.position_gain, p.velocity_gain, p.virtual_mass,
-                        p.travel_force_limit, p.position_error_weight, p.cruise_speed,
-                        _MIN_REFERENCE_FRACTION * p.cruise_speed, p.efficiency_error_full, p.efficiency_error_zero,
-                        p.consensus_gain, p.sigma, p.target_radius, p.anchor_gain, p.anchor_force_limit,
+                        adjacency, self.estimates, dt, p.position_gain, p.velocity_gain, p.virtual_mass_kg,
+                        p.travel_force_limit_n, p.position_error_weight, p.cruise_speed_mps,
+                        _MIN_REFERENCE_FRACTION * p.cruise_speed_mps, p.efficiency_error_full_mps,
+                        p.efficiency_error_zero_mps, p.consensus_gain, p.sigma, p.target_radius_m, p.anchor_gain_n,
+                        p.anchor_force_limit_n,
                         forces, lam, error, path_points, estimates, alignment, gain)
         self.estimates = estimates
 

@@ -59,7 +59,7 @@ try:  # numpy's own LAPACK gufunc behind np.linalg.eigh (a private module: a lat
 except ImportError:  # then the public function, the same LAPACK routine with its checks
     _eigh_lo = None
 
-from controllers.connectivity.params import ConnectivityParams
+from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.potential import guarded_potential_slope
 from sim.compiled import kernel
 from sim.geometry import CONTACT_TOLERANCE_M, Boxes, segment_box_distance_into, world_half_extents
@@ -353,7 +353,7 @@ def _link_weights_kernel(positions, r_s_full, r_s, r_c, r_c_full, r_o, r_o_full,
 _NO_BOXES = Boxes.axis_aligned(np.zeros((0, 3)), np.zeros((0, 3)))
 
 
-def link_weights(positions: np.ndarray, boxes: Boxes | None, params: ConnectivityParams) -> LinkWeights:
+def link_weights(positions: np.ndarray, boxes: Boxes | None, params: ConnectedParams) -> LinkWeights:
     """Weights W_ij(q) of Appendix A for all robots, with their derivative data (one compiled pass)."""
     positions = np.ascontiguousarray(positions, dtype=float)
     n = len(positions)
@@ -368,8 +368,8 @@ def link_weights(positions: np.ndarray, boxes: Boxes | None, params: Connectivit
     collision_factor = np.empty(n)
     p = params
     count = _link_weights_kernel(
-        positions, p.full_weight_range, p.sensing_range, p.min_robot_distance, p.full_weight_robot_distance,
-        p.min_obstacle_clearance, p.full_weight_obstacle_clearance, boxes.centers, boxes.half_sizes,
+        positions, p.full_weight_range_m, p.sensing_range_m, p.min_robot_distance_m, p.full_weight_robot_distance_m,
+        p.min_obstacle_clearance_m, p.full_weight_obstacle_clearance_m, boxes.centers, boxes.half_sizes,
         np.ascontiguousarray(boxes.rotations), world_half_extents(boxes), boxes.aligned,
         pairs, weights, link_factor, grad_first, grad_second, collision_factor, log_slope, unit,
     )
@@ -453,7 +453,7 @@ class ConnectivityState:
         return self.links.edges
 
 
-def connectivity_state(positions: np.ndarray, boxes: Boxes | None, params: ConnectivityParams) -> ConnectivityState:
+def connectivity_state(positions: np.ndarray, boxes: Boxes | None, params: ConnectedParams) -> ConnectivityState:
     """Weights, Laplacian and its eigendecomposition (one eigh); lambda2, the
     Fiedler vector and dlambda2/dq derive from them when read."""
     links = link_weights(positions, boxes, params)
@@ -463,7 +463,7 @@ def connectivity_state(positions: np.ndarray, boxes: Boxes | None, params: Conne
 
 
 def generalized_connectivity_force(
-    links: LinkWeights, lambda2, fiedler: np.ndarray, params: ConnectivityParams
+    links: LinkWeights, lambda2, fiedler: np.ndarray, params: ConnectedParams
 ) -> np.ndarray:
     """f_lambda_i = -dV/dlambda2 * dlambda2/dq_i (eq. 16), (N, 3), N.
 

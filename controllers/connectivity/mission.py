@@ -54,17 +54,16 @@ _planners: dict[tuple, GridPlanner] = {}
 
 def shared_planner(boxes: Boxes, bounds: np.ndarray, params: ConnectedParams) -> GridPlanner:
     """The planner of this scene (boxes, (2, 3) bounds) for these planning parameters."""
-    e = params.exploration
     key = (
         boxes.centers.tobytes(), boxes.half_sizes.tobytes(), boxes.rotations.tobytes(),
         np.asarray(bounds, dtype=float).tobytes(),
-        e.grid_resolution, e.path_clearance, e.path_min_clearance, e.smoothing_tolerance,
+        params.grid_resolution_m, params.path_clearance_m, params.path_min_clearance_m, params.smoothing_tolerance_m,
     )
     planner = _planners.get(key)
     if planner is None:
         if len(_planners) >= _PLANNER_CACHE_SIZE:
             _planners.pop(next(iter(_planners)))
-        planner = GridPlanner.from_params(boxes, bounds[0], bounds[1], e)
+        planner = GridPlanner.from_params(boxes, bounds[0], bounds[1], params)
         _planners[key] = planner
     return planner
 
@@ -107,7 +106,7 @@ def target_queues(params: ConnectedParams, planner: GridPlanner, starts: np.ndar
                   rng: np.random.Generator) -> TargetQueues:
     """targetQueue_i of every robot, from the scenario's generator settings."""
     n = len(starts)
-    dwell = params.exploration.dwell_time
+    dwell = params.dwell_time_s
     if params.targets == "fixed":
         lists = [np.asarray(route, dtype=float).reshape(-1, 3) for route in params.target_lists]
         if len(lists) > n:
@@ -135,26 +134,26 @@ def target_queues(params: ConnectedParams, planner: GridPlanner, starts: np.ndar
 def check_start(state: ConnectivityState, positions: np.ndarray, boxes: Boxes, names: tuple[str, ...],
                 params: ConnectedParams) -> None:
     """ConfigError('robots', ...) unless lambda2(0) > lambda2_min, naming what breaks the graph."""
-    c = params.connectivity
     reached = _component(state.weights > 0, 0)
-    if state.lambda2 > c.lambda2_min + LAMBDA2_TOLERANCE and reached.all():
+    if state.lambda2 > params.lambda2_min + LAMBDA2_TOLERANCE and reached.all():
         return
-    rules = (f"a link needs distance < R_s = {c.sensing_range:g} m, line-of-sight clearance > R_o = "
-             f"{c.min_obstacle_clearance:g} m and no robot within R_c = {c.min_robot_distance:g} m of either end")
+    rules = (f"a link needs distance < R_s = {params.sensing_range_m:g} m, line-of-sight clearance > R_o = "
+             f"{params.min_obstacle_clearance_m:g} m and no robot within R_c = {params.min_robot_distance_m:g} m "
+             f"of either end")
     distance = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
     np.fill_diagonal(distance, np.inf)
     i, j = np.unravel_index(np.argmin(distance), distance.shape)
-    if distance[i, j] <= c.min_robot_distance:
+    if distance[i, j] <= params.min_robot_distance_m:
         raise ConfigError("robots", f"the starting graph is disconnected: {names[i]} and {names[j]} start "
-                          f"{distance[i, j]:.2f} m apart, within R_c = {c.min_robot_distance:g} m ({rules})")
+                          f"{distance[i, j]:.2f} m apart, within R_c = {params.min_robot_distance_m:g} m ({rules})")
     clearance = point_clearance(boxes, positions)
     k = int(np.argmin(clearance))
-    if clearance[k] <= c.min_obstacle_clearance:
+    if clearance[k] <= params.min_obstacle_clearance_m:
         raise ConfigError("robots", f"the starting graph is disconnected: {names[k]} starts {clearance[k]:.2f} m "
-                          f"from an obstacle, within R_o = {c.min_obstacle_clearance:g} m ({rules})")
+                          f"from an obstacle, within R_o = {params.min_obstacle_clearance_m:g} m ({rules})")
     cut = [names[r] for r in range(len(names)) if not reached[r]]
     raise ConfigError("robots", f"the starting graph is disconnected (lambda2 = {state.lambda2:.3g} <= lambda2_min "
-                      f"= {c.lambda2_min:g}): {', '.join(cut)} cannot reach {names[0]} ({rules})")
+                      f"= {params.lambda2_min:g}): {', '.join(cut)} cannot reach {names[0]} ({rules})")
 
 
 def _component(adjacency: np.ndarray, root: int) -> np.ndarray:

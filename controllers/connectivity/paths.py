@@ -60,7 +60,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
-from controllers.connectivity.exploration_params import ExplorationParams
+from controllers.connectivity.connected_params import ConnectedParams
 from sim.geometry import Boxes, point_clearance, segments_free
 
 # Gauss-Legendre nodes/weights on [0, 1] for arc-length integrals: 5 nodes are
@@ -439,16 +439,16 @@ class GridPlanner:
         self._graphs: dict[float, _MarginGraph] = {}
 
     @classmethod
-    def from_params(cls, boxes: Boxes, lower, upper, params: ExplorationParams) -> "GridPlanner":
+    def from_params(cls, boxes: Boxes, lower, upper, params: ConnectedParams) -> "GridPlanner":
         """Planner with R_grid, clearances and smoothing tolerance of ``params``."""
         return cls(
             boxes,
             lower,
             upper,
-            params.grid_resolution,
-            params.path_clearance,
-            params.path_min_clearance,
-            params.smoothing_tolerance,
+            params.grid_resolution_m,
+            params.path_clearance_m,
+            params.path_min_clearance_m,
+            params.smoothing_tolerance_m,
         )
 
     # -- geometry queries ---------------------------------------------------

@@ -28,46 +28,46 @@ Deviations from the paper
   lambda2_min) would instead make forces grow with N on sparse large graphs,
   where lambda2 is small even when nothing is about to break).
 - ``guarded_potential_slope`` holds the slope below lambda2_min +
-  lambda2_guard (see params.py): sampled-data safety, not part of the paper.
+  lambda2_guard (see connected_params.py): sampled-data safety, not part of the paper.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from controllers.connectivity.params import ConnectivityParams
+from controllers.connectivity.connected_params import ConnectedParams
 from sim.compiled import kernel
 
 
-def _normalised(lambda2, params: ConnectivityParams) -> np.ndarray:
+def _normalised(lambda2, params: ConnectedParams) -> np.ndarray:
     return (np.asarray(lambda2, dtype=float) - params.lambda2_min) / (params.lambda2_null - params.lambda2_min)
 
 
-def connectivity_potential(lambda2, params: ConnectivityParams) -> np.ndarray:
+def connectivity_potential(lambda2, params: ConnectedParams) -> np.ndarray:
     """V(lambda2), J; +inf at or below lambda2_min, 0 at or above lambda2_null."""
     x = _normalised(lambda2, params)
     inside = (x > 0) & (x < 1)
     safe_x = np.where(inside, x, 1.0)
-    value = np.where(inside, params.potential_gain * (safe_x - 1.0 - np.log(safe_x)), 0.0)
+    value = np.where(inside, params.potential_gain_j * (safe_x - 1.0 - np.log(safe_x)), 0.0)
     return np.where(x <= 0, np.inf, value)
 
 
-def connectivity_potential_slope(lambda2, params: ConnectivityParams) -> np.ndarray:
+def connectivity_potential_slope(lambda2, params: ConnectedParams) -> np.ndarray:
     """dV/dlambda2, J per unit lambda2; -inf at or below lambda2_min, 0 at or above lambda2_null."""
     return _slopes(lambda2, params, -np.inf)
 
 
-def guarded_potential_slope(lambda2, params: ConnectivityParams) -> np.ndarray:
+def guarded_potential_slope(lambda2, params: ConnectedParams) -> np.ndarray:
     """dV/dlambda2 with lambda2 floored at lambda2_min + lambda2_guard: always finite."""
     return _slopes(lambda2, params, params.lambda2_min + params.lambda2_guard)
 
 
-def _slopes(lambda2, params: ConnectivityParams, floor: float) -> np.ndarray:
+def _slopes(lambda2, params: ConnectedParams, floor: float) -> np.ndarray:
     """dV/dlambda2 at max(lambda2, floor), element by element (compiled: the control tick asks for one or N)."""
     values = np.asarray(lambda2, dtype=float)
     slope = np.empty(values.shape)
     _slope_kernel(values.ravel(), float(floor), float(params.lambda2_min), float(params.lambda2_null),
-                  float(params.potential_gain), slope.reshape(-1))
+                  float(params.potential_gain_j), slope.reshape(-1))
     return slope
 
 

@@ -59,9 +59,9 @@ visits wait in ``events`` until then.
 
 Deviations from the paper
 -------------------------
-See connected_params.py, mission.py and the library modules (params.py,
-graph.py, potential.py, estimator.py, dynamics.py, exploration_params.py,
-paths.py, travel.py, roles.py, election.py, targets.py). Here:
+See connected_params.py, mission.py and the library modules (graph.py,
+potential.py, estimator.py, dynamics.py, paths.py, travel.py, roles.py,
+election.py, targets.py). Here:
 - The paper integrates at 1 kHz; we integrate at the control period (10 ms).
 - With ``lambda2_source = "estimator"`` the estimator first runs
   ``estimator_warmup_s`` seconds on the start graph (the robots exchange
@@ -148,6 +148,7 @@ class ConnectedStrategy(Strategy):
     mission_can_end = True
 
     def __init__(self, params: ConnectedParams, targets=None):
+        self.table = params  # the scenario's keys; ``params`` adds the scenario's R_s (reset)
         self.params = params
         self._target_generator = targets
         self.timings = {"lambda2": 0.0, "forces": 0.0}  # s of wall time per stage, for benchmarks
@@ -155,8 +156,6 @@ class ConnectedStrategy(Strategy):
 
     # ------------------------------------------------------------------ set-up
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
-        p = self.params
-        c = p.connectivity
         n = world.n_robots
         if n < 2:
             raise ConfigError("robots", f"the connected strategy needs at least 2 robots, got {n}")
@@ -165,10 +164,11 @@ class ConnectedStrategy(Strategy):
             ground = [name for name, kind in zip(world.robot_names, world.robot_kinds) if kind != "quadrotor"]
             raise ConfigError("robots", f"the connected strategy drives one kind of robot at a time; "
                               f"{', '.join(ground)} are ground robots among quadrotors")
-        if abs(world.comm_range_m - c.sensing_range) > 1e-9:
-            raise ConfigError("sensing.comm_range_m", f"must equal R_s = strategy.sensing_range_m "
-                              f"({c.sensing_range:g} m) for the connected strategy (one graph for sensing and "
-                              f"communication, Sec. 2), got {world.comm_range_m:g}")
+        try:
+            self.params = p = self.table.at_range(world.comm_range_m)
+        except ValueError as err:
+            name, _, problem = str(err).partition(": ")
+            raise ConfigError(f"strategy.{name}", problem) from None
         if not 0 <= p.election_host < n:
             raise ConfigError("strategy.election_host", f"must be a robot index below {n}, got {p.election_host}")
         self.world = world
@@ -187,7 +187,7 @@ class ConnectedStrategy(Strategy):
             self.boxes = world.obstacles
             self.q = np.array(initial.position, dtype=float)
         self.v = np.zeros_like(self.q)
-        state = connectivity_state(self.q, self.boxes, c)
+        state = connectivity_state(self.q, self.boxes, p)
         check_start(state, self.q, self.boxes, self.names, p)
 
         self.planner = shared_planner(self.boxes, bounds, p)
@@ -198,7 +198,7 @@ class ConnectedStrategy(Strategy):
             self.queues = self._target_generator(self.planner, self.q.copy(), rng)
         self.targets_total = len(self.queues)
         self.explorers = np.flatnonzero(self.queues.pending())
-        self.explorer = ExplorationController(p.exploration, self.planner, self.queues)
+        self.explorer = ExplorationController(p, self.planner, self.queues)
         self.estimator = None
         if p.lambda2_source == "estimator":
             if p.estimator_modes == 1:
@@ -227,21 +227,23 @@ class ConnectedStrategy(Strategy):
         that shapes the set-up (graph ranges, planner, targets, estimator,
         election) changes."""
         for f in dataclasses.fields(params):
-            if f.init and not f.metadata.get("tunable", True) and getattr(params, f.name) != getattr(self.params, f.name):
+            restarts = not f.metadata.get("tunable", True)
+            if f.init and restarts and getattr(params, f.name) != getattr(self.table, f.name):
                 return False
-        if params.message_latency_ticks != self.params.message_latency_ticks:
+        if params.message_latency_ticks != self.table.message_latency_ticks:
             return False
+        resolved = params.at_range(self.world.comm_range_m)
         # A change that would break the invariants at the current state is refused before it applies.
         distance = pairwise_min_distance(self.q)
-        if not distance >= params.connectivity.min_robot_distance:
+        if not distance >= resolved.min_robot_distance_m:
             raise ValueError(f"min_robot_distance_m: two virtual points are {distance:.3f} m apart now, inside "
-                             f"R_c = {params.min_robot_distance_m:g} m")
-        lambda2 = connectivity_state(self.q, self.boxes, params.connectivity).lambda2
-        if not lambda2 > params.connectivity.lambda2_min + LAMBDA2_TOLERANCE:
+                             f"R_c = {resolved.min_robot_distance_m:g} m")
+        lambda2 = connectivity_state(self.q, self.boxes, resolved).lambda2
+        if not lambda2 > resolved.lambda2_min + LAMBDA2_TOLERANCE:
             raise ValueError(f"lambda2_min: must stay below the current lambda2 ({lambda2:.3g}) of the "
-                             f"virtual points, got {params.lambda2_min:g}")
-        self.params = params
-        self.explorer.params = params.exploration
+                             f"virtual points, got {resolved.lambda2_min:g}")
+        self.table, self.params = params, resolved
+        self.explorer.params = resolved
         return True
 
     def _estimator_links(self, state, adjacency: np.ndarray):
@@ -262,15 +264,15 @@ class ConnectedStrategy(Strategy):
     def violation(self, commands: Commands) -> str | None:
         """The invariant the tick of ``commands`` broke, or None: Nestmeyer et al. 2017
         keeps lambda2 > lambda2_min and no two virtual points within R_c."""
-        c = self.params.connectivity
+        p = self.params
         scalars = commands.info.get("scalars", {})
         lambda2 = scalars.get("lambda2", np.inf)
-        if not lambda2 > c.lambda2_min + LAMBDA2_TOLERANCE:
-            return f"lambda2 = {lambda2:.3g} fell to lambda2_min = {c.lambda2_min:g} (connectivity lost)"
+        if not lambda2 > p.lambda2_min + LAMBDA2_TOLERANCE:
+            return f"lambda2 = {lambda2:.3g} fell to lambda2_min = {p.lambda2_min:g} (connectivity lost)"
         distance = scalars.get("min_robot_distance_m", np.inf)
-        if not distance >= c.min_robot_distance:
+        if not distance >= p.min_robot_distance_m:
             return (f"two virtual points came {distance:.3f} m apart, inside R_c = "
-                    f"{c.min_robot_distance:g} m")
+                    f"{p.min_robot_distance_m:g} m")
         return None
 
     # ------------------------------------------------------------------ per tick
@@ -281,12 +283,11 @@ class ConnectedStrategy(Strategy):
 
     def step(self, observation: Observation) -> Commands:
         p = self.params
-        c = p.connectivity
         t = observation.time_s
         q, v = self.q, self.v
 
         start = time.perf_counter()
-        state = connectivity_state(q, self.boxes, c)
+        state = connectivity_state(q, self.boxes, p)
         estimate = None
         if self.estimator is not None:
             links = self._estimator_links(state, observation.links.adjacency)
@@ -295,26 +296,26 @@ class ConnectedStrategy(Strategy):
             # (Fiedler 1973): it never uses an estimate above its own bound.
             n = len(q)
             bound = n / (n - 1) * links.weights.sum(axis=1)
-            floor = c.lambda2_min + p.estimator_floor
+            floor = p.lambda2_min + p.estimator_floor
             if isinstance(self.estimator, SubspaceEstimator):
                 # Soft minimum of each robot's Ritz values and its gradient from its Ritz vectors.
                 smooth, gradient = ritz_connectivity_gradient(links, estimate, p.spectrum_smoothing)
                 lambda2_used = np.maximum(np.minimum(smooth, bound), floor)
-                f_lambda = -guarded_potential_slope(lambda2_used, c)[:, None] * gradient
+                f_lambda = -guarded_potential_slope(lambda2_used, p)[:, None] * gradient
             else:
                 lambda2_used = np.maximum(np.minimum(estimate.lambda2, bound), floor)
-                f_lambda = generalized_connectivity_force(links, lambda2_used, estimate.fiedler, c)
+                f_lambda = generalized_connectivity_force(links, lambda2_used, estimate.fiedler, p)
         elif p.spectrum_smoothing > 0:
             smooth, gradient = smooth_lambda2_gradient(state.links, state.eigenvalues, state.eigenvectors,
                                                        p.spectrum_smoothing)
-            f_lambda = -guarded_potential_slope(smooth, c) * gradient
+            f_lambda = -guarded_potential_slope(smooth, p) * gradient
         else:
-            f_lambda = generalized_connectivity_force(state.links, state.lambda2, state.fiedler, c)
+            f_lambda = generalized_connectivity_force(state.links, state.lambda2, state.fiedler, p)
         middle = time.perf_counter()
         out = self.explorer.step(t, q, v, observation.links.adjacency, f_lambda)
         # f_lambda + f (z dropped for planar virtual dynamics), integrated; the acceleration (v' - v) / dt.
         q_next, v_next, acceleration = step_virtual_dynamics_applied(q, v, f_lambda, out.forces, self.planar,
-                                                                     self.dt, c)
+                                                                     self.dt, p)
         self.timings["lambda2"] += middle - start
         self.timings["forces"] += time.perf_counter() - middle
 
@@ -359,7 +360,7 @@ class ConnectedStrategy(Strategy):
         nearest the robot on (never backwards along the path)."""
         cached = self._drawn_paths.get(id(path))
         if cached is None or cached[0] is not path:  # (an id is reused once its path is gone)
-            cached = [path, path.sample(_PATH_DRAW_SPACING * self.params.exploration.grid_resolution), 0]
+            cached = [path, path.sample(_PATH_DRAW_SPACING * self.params.grid_resolution_m), 0]
             self._drawn_paths[id(path)] = cached
         _, points, start = cached
         ahead = points[start:]

@@ -17,7 +17,7 @@ this module holds what they share:
   ``meeting_points``, ``target_estimates``, ``target_covariances``).
 
 Units: m, s; plane positions (x, y) in the world frame; discrete steps are
-``step_s`` seconds.
+``sensing.period_s`` seconds (``step_s``).
 """
 
 from __future__ import annotations
@@ -101,7 +101,7 @@ def planner_params(params: IntermittentParams, world: WorldInfo, planning: Plann
             n_sample=params.n_sample,
             n_uniform=min(params.n_uniform, params.n_sample),
             step_size=params.step_size_m,
-            u_max=params.speed_mps * params.step_s,
+            u_max=params.speed_mps * world.sensing_period_s,
             comm_range=comm,
             delta=params.delta_m2,
             sensor_height=planning.sensor_height,

@@ -213,7 +213,7 @@ class MeetingStrategy(Strategy):
     # ------------------------------------------------------------------ set-up
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
         params = self.params
-        check_time_base(world, params)
+        self.step_s = check_time_base(world)
         n = world.n_robots
         try:
             self.teams = params.team_structure(n)
@@ -221,7 +221,6 @@ class MeetingStrategy(Strategy):
             raise as_config_error(err) from None
         self.world = world
         self.rng = rng
-        self.step_s = params.step_s
         self.schedule = build_schedule(self.teams)
         self.planning = PlanningWorld.from_world(world, initial)
         self.planner = planner_params(params, world, self.planning)
@@ -333,8 +332,8 @@ class MeetingStrategy(Strategy):
         step = observation.target_step
         if abs(observation.time_s - step * self.step_s) > 1e-6 or (
                 self.last_step is not None and step != self.last_step + 1):
-            raise ConfigError("strategy.step_s", f"must equal sensing.period_s and target_motion.step_s "
-                              f"(reading of step {step} at t = {observation.time_s:.3f} s)")
+            raise ConfigError("sensing.period_s", f"readings must come once per period (reading of step {step} "
+                              f"at t = {observation.time_s:.3f} s)")
         for robot, records in enumerate(measurement_records(observation, step)):
             self.beliefs.collect(robot, records)
         self.last_step = step

@@ -75,11 +75,12 @@ class EKFTargetGenerator:
     params: ConnectedTrackingParams; planner: the controller's GridPlanner
     (planar); boxes: the obstacles of line of sight; plane_z: sensor height,
     m; motion: the targets' model (A, Q); explorers: robot indices;
-    target_range: range sensors' limit, m; cruise_speed: m/s.
+    target_range: range sensors' limit, m; cruise_speed: m/s; step_s: one step of
+    the task (the readings' period), s.
     """
 
     def __init__(self, params, planner: GridPlanner, boxes: Boxes, plane_z: float, motion: TargetMotion,
-                 explorers: np.ndarray, target_range: float, cruise_speed: float) -> None:
+                 explorers: np.ndarray, target_range: float, cruise_speed: float, step_s: float) -> None:
         self.params = params
         self.planner = planner
         self.boxes = boxes
@@ -88,8 +89,8 @@ class EKFTargetGenerator:
         self.explorers = np.asarray(explorers, dtype=int)
         self.target_range = target_range
         self.cruise_speed = cruise_speed
-        self.step_s = params.step_s
-        self.horizon = max(1, int(math.ceil(params.max_dwell_s / params.step_s)))
+        self.step_s = step_s
+        self.horizon = max(1, int(math.ceil(params.max_dwell_s / step_s)))
         self.assigned: dict[int, Assignment | None] = {int(i): None for i in self.explorers}
         self.issued = 0  # viewpoints issued (new and re-issued)
         self.reissued = 0  # of which re-issued to a traveler

@@ -1,31 +1,51 @@
-"""Parameters of ``connected_tracking``: the continuous-connectivity paper's controller on the intermittent paper's task.
+"""Parameters of ``connected_tracking``: the continuous-connectivity controller on the intermittent paper's task.
 
-The intermittent paper's fields (:class:`IntermittentParams`: prior, delta, step, speed
-limit...) are inherited unchanged, so a Khodayi-mehr et al. 2019 scenario such as
-``intermittent-8`` runs with ``--set strategy.kind=connected_tracking`` and
-all four methods share the prior, delta and speed limit (``teams`` and the
-RRT* fields are ignored here). The fields below drive the EKF target
-generator; the continuous-connectivity paper's controller takes the ``ground`` preset of
-:mod:`controllers.connectivity.connected_params` with R_s =
-``sensing.comm_range_m`` and v_cruise = ``speed_mps``. docs/paradigms.md
+The task's keys (speed limit, delta, the EKF's prior: :data:`controllers.task.TASK_PARAMS`)
+are those of the intermittent method and its baselines, so the four methods
+share them; the other fields drive the EKF target generator. The controller
+takes the ``ground`` preset of :mod:`controllers.connectivity.connected_params`
+at R_s = ``sensing.comm_range_m``, with v_cruise = ``speed_mps``
+(:func:`controllers.tracking.strategy.controller_params`). docs/paradigms.md
 explains every value.
+
+A scenario written for the intermittent method (``intermittent-8``) runs with
+``--set strategy.kind=connected_tracking``: its own keys (``teams``, the RRT*
+fields) are checked by :class:`IntermittentParams` and not used here
+(``TABLE_SHARED_WITH``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 from controllers.intermittent.params import IntermittentParams
-from sim.config import param, require
+from controllers.task import STEP_KEY_REMOVED, task_param
+from sim.config import check_params, param, require
+
+Vec3 = tuple[float, float, float]
 
 
 @dataclass(frozen=True)
-class ConnectedTrackingParams(IntermittentParams):
+class ConnectedTrackingParams:
+    # -- task, the intermittent paper's (shared with intermittent, all_time and random_meeting)
+
+    speed_mps: float = task_param("speed_mps")  # robot speed limit and the controller's v_cruise, m/s
+    delta_m2: float = task_param("delta_m2")  # a target is served when its lambda_max falls below this, m^2
+    # EKF initial estimate x^0 per target, m; empty: the paper's x^0
+    prior_mean: tuple[Vec3, ...] = task_param("prior_mean")
+    prior_variance_m2: float = task_param("prior_variance_m2")  # EKF initial covariance C(0) = this * I, m^2
+    # Reflect estimates that fall below the sensors' plane (range readings cannot tell a target
+    # from its mirror image); false: the paper's plain EKF.
+    resolve_mirror: bool = task_param("resolve_mirror")
+
+    # -- explorers, the EKF target generator
+
     # Robots that explore (travel to viewpoints and anchor there); the others connect. Chosen at the
     # start by farthest-point order from the team's centroid (the ends of the start cluster).
     explorers: int = param(2, min=1, max=64, tunable=False)
     # Planar distances from a target's estimate at which viewpoints are tried, m
-    viewpoint_radii_m: tuple[float, ...] = param((0.3, 0.6, 1.0, 1.5), unit="m", tunable=False)
+    viewpoint_radii_m: tuple[float, ...] = param((0.3, 0.6, 1.0, 1.5), unit="m", above=0.0, tunable=False)
     # Bearings tried per distance, evenly spaced
     viewpoint_bearings: int = param(12, min=1, max=64, tunable=False)
     # Longest dwell at one viewpoint (the readings' predicted need is cut here), s
@@ -35,13 +55,9 @@ class ConnectedTrackingParams(IntermittentParams):
     # A traveler's viewpoint is re-issued when its target's estimate has moved this far since, m
     reissue_distance_m: float = param(0.3, unit="m", min=0.01, max=10.0)
 
+    TABLE_SHARED_WITH: ClassVar[tuple[type, ...]] = (IntermittentParams,)
+    REMOVED_KEYS: ClassVar[dict[str, str]] = STEP_KEY_REMOVED
+
     def __post_init__(self):
-        super().__post_init__()
-        require(isinstance(self.explorers, int) and self.explorers >= 1, "explorers",
-                f"must be an integer >= 1, got {self.explorers!r}")
-        require(len(self.viewpoint_radii_m) > 0 and all(r > 0 for r in self.viewpoint_radii_m),
-                "viewpoint_radii_m", f"must list positive distances, got {list(self.viewpoint_radii_m)}")
-        require(self.viewpoint_bearings >= 1, "viewpoint_bearings", f"must be >= 1, got {self.viewpoint_bearings}")
-        require(self.max_dwell_s > 0, "max_dwell_s", f"must be positive, got {self.max_dwell_s}")
-        require(0 <= self.dwell_stall < 1, "dwell_stall", f"must lie in [0, 1), got {self.dwell_stall}")
-        require(self.reissue_distance_m > 0, "reissue_distance_m", f"must be positive, got {self.reissue_distance_m}")
+        check_params(self)
+        require(len(self.viewpoint_radii_m) > 0, "viewpoint_radii_m", "must list at least one distance")

@@ -43,11 +43,11 @@ from sim.types import Commands, Observation, SceneChange, WorldInfo
 
 
 def controller_params(params: ConnectedTrackingParams, comm_range: float) -> ConnectedParams:
-    """The continuous-connectivity paper's parameters on the ground robots: the ``ground`` preset at R_s =
-    ``comm_range`` (m) and v_cruise = the intermittent paper's speed limit."""
+    """The controller's parameters on the ground robots: the ``ground`` preset at R_s =
+    ``comm_range`` (m) and v_cruise = the task's speed limit."""
     try:
-        return ConnectedParams(preset="ground", sensing_range_m=float(comm_range),
-                               cruise_speed_mps=params.speed_mps, lambda2_source="exact")
+        return ConnectedParams(preset="ground", cruise_speed_mps=params.speed_mps,
+                               lambda2_source="exact").at_range(float(comm_range))
     except ValueError as err:
         raise ConfigError("sensing.comm_range_m", f"{comm_range:g} m is unusable for connected_tracking: "
                           f"{str(err).partition(': ')[2] or err}") from None
@@ -68,13 +68,12 @@ class ConnectedTrackingStrategy(WrappingStrategy):
 
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
         params = self.params
-        check_time_base(world, params)
+        self.step_s = check_time_base(world)
         n = world.n_robots
         if params.explorers >= n:
             raise ConfigError("strategy.explorers", f"must leave at least one connector: below the team size {n}, "
                               f"got {params.explorers}")
         self.world = world
-        self.step_s = params.step_s
         self.motion = world.target_motion
         self.prior = prior_state(params, world.n_targets)
         self.plane_z = float(np.mean(initial.sensor_position[:, 2]))
@@ -93,7 +92,8 @@ class ConnectedTrackingStrategy(WrappingStrategy):
         """The controller's target generator at start-up (its queues)."""
         explorers = spread_robots(starts, self.params.explorers)
         self.generator = EKFTargetGenerator(self.params, planner, self.core.boxes, self.core.plane_z, self.motion,
-                                            explorers, self.world.target_range_m, self.core.params.exploration.cruise_speed)
+                                            explorers, self.world.target_range_m, self.core.params.cruise_speed_mps,
+                                            self.step_s)
         return self.generator.first_targets(len(starts), starts, self.prior)
 
     @property
@@ -113,8 +113,8 @@ class ConnectedTrackingStrategy(WrappingStrategy):
             step = observation.target_step
             t = observation.time_s
             if abs(t - step * self.step_s) > 1e-6 or (self.last_step is not None and step != self.last_step + 1):
-                raise ConfigError("strategy.step_s", f"must equal sensing.period_s (reading of step {step} at "
-                                  f"t = {t:.3f} s)")
+                raise ConfigError("sensing.period_s", f"readings must come once per period (reading of step {step} "
+                                  f"at t = {t:.3f} s)")
             records = [r for robot in measurement_records(observation, step) for r in robot]
             self.readings_fused += self.belief.receive(records)
             self.last_step = step
