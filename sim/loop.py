@@ -290,9 +290,9 @@ def _readonly_observation(observation: Observation) -> Observation:
     links = observation.links
     frame_links = Links(readonly(links.distance), readonly(links.line_of_sight), readonly(links.adjacency),
                         links.clearance_of)
-    for name in ("edges", "clearance"):  # cached_property values, computed once
-        if name in links.__dict__:
-            frame_links.__dict__[name] = readonly(links.__dict__[name])
+    frame_links.__dict__["edges"] = readonly(links.edges)  # (cached_property values, computed once)
+    if "clearance" in links.__dict__:
+        frame_links.__dict__["clearance"] = readonly(links.clearance)
     ranges = observation.target_ranges
     return dataclasses.replace(
         observation, position=readonly(observation.position), velocity=readonly(observation.velocity),
