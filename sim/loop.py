@@ -133,6 +133,8 @@ class Simulation:
         self._warning_numbers = self.world.data.warning.number  # (mjNWARNING,) view, updated by mj_step
         # Views of MjData's arrays kept once (each attribute read builds a new array object).
         self._qpos, self._qvel, self._mocap_pos = self.world.data.qpos, self.world.data.qvel, self.world.data.mocap_pos
+        data = self.world.data
+        self._state_arrays = (data.qpos, data.qvel, data.act, data.mocap_pos, data.mocap_quat)  # PhysicsState's
         self._sanity_limits = sanity_limits(self.world)
         self._warnings = self._warning_count()
         # Index arrays for reading every robot's free-joint state in one fancy-index each.
@@ -262,7 +264,7 @@ class Simulation:
             self._estimation = EstimationError(e_g, int(observation.target_step), fresh=True)
         elif self._estimation is not None and self._estimation.fresh:
             self._estimation = dataclasses.replace(self._estimation, fresh=False)
-        return Frame(_readonly_observation(observation), commands, truth, PhysicsState.of(self.world.data),
+        return Frame(_readonly_observation(observation), commands, truth, PhysicsState.of(*self._state_arrays),
                      self._estimation)
 
     def _check(self, commands) -> str:
@@ -288,17 +290,23 @@ def _readonly_observation(observation: Observation) -> Observation:
     """``observation`` with read-only views of its arrays (the strategy's own stay
     writeable); the links' figures already computed are kept."""
     links = observation.links
-    frame_links = Links(readonly(links.distance), readonly(links.line_of_sight), readonly(links.adjacency),
-                        links.clearance_of)
-    frame_links.__dict__["edges"] = readonly(links.edges)  # (cached_property values, computed once)
+    # Built through __dict__, every tick: a frozen dataclass's __init__ sets each field through object.__setattr__.
+    frame_links = object.__new__(Links)
+    frame_links.__dict__.update(links.__dict__)
+    frame_links.__dict__.update(distance=readonly(links.distance), line_of_sight=readonly(links.line_of_sight),
+                                adjacency=readonly(links.adjacency))  # (edges, computed or not, are read-only)
     if "clearance" in links.__dict__:
         frame_links.__dict__["clearance"] = readonly(links.clearance)
-    ranges = observation.target_ranges
-    return dataclasses.replace(
-        observation, position=readonly(observation.position), velocity=readonly(observation.velocity),
-        quaternion=readonly(observation.quaternion), angular_velocity=readonly(observation.angular_velocity),
-        sensor_position=readonly(observation.sensor_position), links=frame_links,
-        target_ranges=None if ranges is None else readonly(ranges))
+    frame = object.__new__(Observation)
+    fields = frame.__dict__
+    fields.update(observation.__dict__)
+    fields.update(position=readonly(observation.position), velocity=readonly(observation.velocity),
+                  quaternion=readonly(observation.quaternion),
+                  angular_velocity=readonly(observation.angular_velocity),
+                  sensor_position=readonly(observation.sensor_position), links=frame_links)
+    if observation.target_ranges is not None:
+        fields["target_ranges"] = readonly(observation.target_ranges)
+    return frame
 
 
 def timing_summary(timing: dict[str, float], setup_s: float, closing_s: float) -> dict[str, float | None]:

@@ -33,8 +33,10 @@ class PhysicsState:
     mocap_quat: np.ndarray
 
     @classmethod
-    def of(cls, data) -> "PhysicsState":
-        arrays = [np.array(a) for a in (data.qpos, data.qvel, data.act, data.mocap_pos, data.mocap_quat)]
+    def of(cls, qpos, qvel, act, mocap_pos, mocap_quat) -> "PhysicsState":
+        """Read-only copies of ``MjData``'s arrays (pass views kept once: each
+        attribute read of MjData builds a new array object)."""
+        arrays = [a.copy() for a in (qpos, qvel, act, mocap_pos, mocap_quat)]
         for array in arrays:
             array.flags.writeable = False
         return cls(*arrays)

@@ -54,14 +54,16 @@ class Links:
     def clearance(self) -> np.ndarray:
         """Segment distance to the nearest obstacle, m, for pairs in comm range (inf elsewhere)."""
         if self.clearance_of is None:
-            return np.full(self.distance.shape, np.inf)
-        return self.clearance_of()
+            return readonly(np.full(self.distance.shape, np.inf))
+        return readonly(self.clearance_of())
 
     @functools.cached_property
     def edges(self) -> np.ndarray:
-        """(E, 2) index pairs i < j of communicating robots (built once, on first use)."""
+        """(E, 2) index pairs i < j of communicating robots (built once, on first use; read-only)."""
         i, j = np.nonzero(np.triu(self.adjacency, 1))
-        return np.stack([i, j], axis=1)
+        edges = np.stack([i, j], axis=1)
+        edges.flags.writeable = False
+        return edges
 
 
 @dataclass(frozen=True)
@@ -89,7 +91,8 @@ class Observation:
 def readonly(array: Any) -> np.ndarray:
     """``array`` as a read-only ndarray: itself when it already is one, else a
     read-only view (the owner's array stays writeable)."""
-    array = np.asarray(array)
+    if type(array) is not np.ndarray:
+        array = np.asarray(array)
     if not array.flags.writeable:
         return array
     view = array.view()
@@ -215,12 +218,15 @@ class Commands(_PicklableMappings):
     decorations: Decorations = NO_DECORATIONS
 
     def __post_init__(self):
-        n = len(self.position)
-        for name in ("position", "velocity", "acceleration"):
-            value = readonly(getattr(self, name))
-            assert value.shape == (n, 3), (name, value.shape)
-            object.__setattr__(self, name, value)
-        object.__setattr__(self, "yaw", readonly(self.yaw))
-        assert self.yaw.shape == (n,), self.yaw.shape
-        if not isinstance(self.scalars, MappingProxyType):
-            object.__setattr__(self, "scalars", MappingProxyType(self.scalars))
+        # Every tick, so the fields are set through __dict__ (a frozen dataclass's setattr is slow).
+        fields = self.__dict__
+        position = fields["position"] = readonly(self.position)
+        velocity = fields["velocity"] = readonly(self.velocity)
+        acceleration = fields["acceleration"] = readonly(self.acceleration)
+        yaw = fields["yaw"] = readonly(self.yaw)
+        n = len(position)
+        assert position.shape == velocity.shape == acceleration.shape == (n, 3), (
+            position.shape, velocity.shape, acceleration.shape)
+        assert yaw.shape == (n,), yaw.shape
+        if type(self.scalars) is not MappingProxyType:
+            fields["scalars"] = MappingProxyType(self.scalars)
