@@ -100,10 +100,6 @@ def readonly(array: Any) -> np.ndarray:
     return view
 
 
-def _readonly_or_none(array: Any) -> np.ndarray | None:
-    return None if array is None else readonly(array)
-
-
 @dataclass(frozen=True)
 class TargetEstimate:
     """A method's global estimate of the moving targets at discrete step ``step``
@@ -170,25 +166,28 @@ class Decorations(_PicklableMappings):
         for name in ("robot_colors", "link_weights", "meeting_points", "meeting_point_colors", "markers",
                      "marker_colors"):
             value = getattr(self, name)
-            if value is not None and not (isinstance(value, np.ndarray) and not value.flags.writeable):
+            if value is not None:
                 object.__setattr__(self, name, readonly(value))
         if self.robot_scalars and not isinstance(self.robot_scalars, MappingProxyType):
             object.__setattr__(self, "robot_scalars", MappingProxyType(
                 {key: readonly(values) for key, values in self.robot_scalars.items()}))
         if not isinstance(self.robot_scalar_levels, MappingProxyType):
             object.__setattr__(self, "robot_scalar_levels", MappingProxyType(dict(self.robot_scalar_levels)))
-        if self.paths is not None and not _frozen_paths(self.paths):
+        if self.paths is not None and not _frozen_pairs(self.paths):
             object.__setattr__(self, "paths", tuple((readonly(points), readonly(rgba)) for points, rgba in self.paths))
-        if not isinstance(self.legend, tuple):
-            object.__setattr__(self, "legend", tuple(self.legend))
+        if not _frozen_pairs(self.legend):
+            object.__setattr__(self, "legend", tuple((label, readonly(rgba)) for label, rgba in self.legend))
         if not isinstance(self.events, tuple):
             object.__setattr__(self, "events", tuple(self.events))
 
 
-def _frozen_paths(paths: Any) -> bool:
-    return isinstance(paths, tuple) and all(
-        isinstance(path, tuple) and all(isinstance(a, np.ndarray) and not a.flags.writeable for a in path)
-        for path in paths)
+def _frozen_pairs(pairs: Any) -> bool:
+    """Whether ``pairs`` (paths, legend) is already a tuple of tuples of read-only
+    arrays (and labels): kept as it is, so its identity says it did not change."""
+    return isinstance(pairs, tuple) and all(
+        isinstance(pair, tuple) and all(isinstance(a, str) or (isinstance(a, np.ndarray) and not a.flags.writeable)
+                                        for a in pair)
+        for pair in pairs)
 
 
 NO_DECORATIONS = Decorations()

@@ -1,11 +1,11 @@
 """Offscreen video through MuJoCo's renderer (EGL), streamed to ffmpeg.
 
-An observer: it draws the tick's frame (its MuJoCo state,
-``frame.state``, and decorations), never writes to the simulation. Frames are taken at the video fps in sim time; a renderer
-process draws them and writes them one by one to the encoder (an ffmpeg
-process fed through a pipe), so the simulation does not wait for rendering
-or encoding (beyond a bounded queue's back-pressure) and memory does not
-grow with the video's length.
+An observer: it draws the tick's frame (its MuJoCo state ``frame.state``
+and its decorations), never writes to the simulation. Frames are taken at
+the video fps in sim time; a renderer process draws them and writes them
+one by one to the encoder (an ffmpeg process fed through a pipe), so the
+simulation does not wait for rendering or encoding (beyond a bounded
+queue's back-pressure) and memory does not grow with the video's length.
 Communication links are drawn as capsules between robots; robot references
 (virtual points) as small spheres. :class:`FrameRenderer` draws one frame
 (scene, decorations, overlay band); the video recorder and the tuning page
@@ -244,6 +244,7 @@ class FrameRenderer:
         # Metres per pixel of a view of the whole floor: the scale of the minimum marker sizes.
         self.metres_per_px = TOP_MARGIN * max((hi[0] - lo[0]) / config.width, (hi[1] - lo[1]) / config.height)
         self._ortho_height_m: float | None = None
+        self._data: mujoco.MjData | None = None  # frame.state's, drawn (made on first use)
         self.set_camera(config.camera)
 
     def set_camera(self, name: str) -> None:
@@ -257,17 +258,29 @@ class FrameRenderer:
         stay visible in a 70 m scene as in a 10 m one."""
         return max(size_m, pixels * self.metres_per_px)
 
-    def _update_scene(self) -> None:
+    def _update_scene(self, data: mujoco.MjData) -> None:
         vis = self.world.model.vis.global_
         if self._ortho_height_m is None:
-            self.renderer.update_scene(self.world.data, self.camera, self.options)
+            self.renderer.update_scene(data, self.camera, self.options)
             return
         # An orthographic free camera reads its view height (m) from the model's free-camera fovy.
         fovy, vis.fovy = vis.fovy, self._ortho_height_m
         try:
-            self.renderer.update_scene(self.world.data, self.camera, self.options)
+            self.renderer.update_scene(data, self.camera, self.options)
         finally:
             vis.fovy = fovy
+
+    def _data_of(self, frame: Frame) -> mujoco.MjData:
+        """The MuJoCo state to draw: ``frame.state`` in the renderer's own MjData
+        (the live one may be a tick ahead), else ``world.data``."""
+        state = getattr(frame, "state", None)
+        if state is None:
+            return self.world.data
+        if self._data is None:
+            self._data = mujoco.MjData(self.world.model)
+        state.load_into(self._data)
+        mujoco.mj_forward(self.world.model, self._data)
+        return self._data
 
     def _camera(self, name: str):
         model = self.world.model
@@ -311,8 +324,9 @@ class FrameRenderer:
         add_sphere(self.renderer.scene, p, radius, rgba)
 
     def render(self, frame: Frame) -> np.ndarray:
-        """The current state of ``world.data`` with ``frame``'s decorations."""
-        self._update_scene()
+        """``frame``'s MuJoCo state (``frame.state``; ``world.data`` for a frame
+        without one) with its decorations."""
+        self._update_scene(self._data_of(frame))
         draw_decorations(self, frame)
         image = self.renderer.render()
         return burn_overlay(image, overlay_text(frame), frame_legend(frame))
@@ -467,7 +481,6 @@ def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, 
         import imageio.v2 as imageio
 
         world = pickle.loads(world_pickle)
-        model, data = world.model, world.data
         view = FrameRenderer(world, config)
         writer = imageio.get_writer(
             path, fps=config.fps, codec="libx264", quality=7, macro_block_size=1,
@@ -477,9 +490,7 @@ def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, 
         try:
             while (item := _next_state(states, parent)) is not None:
                 frame, repeats = pickle.loads(item)
-                frame.state.load_into(data)
-                mujoco.mj_forward(model, data)
-                image = view.render(frame)
+                image = view.render(frame)  # its own state (frame.state)
                 for _ in range(repeats):
                     writer.append_data(image)
                     written += 1

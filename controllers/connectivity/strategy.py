@@ -134,8 +134,9 @@ PRIME_PATH_RGBA = np.array([0.0, 0.85, 0.75, 0.9])
 SECONDARY_PATH_RGBA = np.array([0.2, 0.2, 0.25, 0.6])
 TARGET_RGBA = np.array([0.95, 0.2, 0.6, 0.8])
 # What the colours mean (``Decorations.legend``: video, tuning page) and the role codes' names (plots).
-LEGEND = (*((ROLE_NAMES[r], ROLE_COLORS[r]) for r in Role), ("prime's path", PRIME_PATH_RGBA),
-          ("secondary's path", SECONDARY_PATH_RGBA), ("target", TARGET_RGBA))
+LEGEND = Decorations(legend=(*((ROLE_NAMES[r], ROLE_COLORS[r]) for r in Role), ("prime's path", PRIME_PATH_RGBA),
+                             ("secondary's path", SECONDARY_PATH_RGBA),
+                             ("target", TARGET_RGBA))).legend  # read-only once, not every tick
 ROLE_LEVELS = {float(r): ROLE_NAMES[r] for r in Role}
 # Spacing of the points that draw a planned path, as a fraction of R_grid.
 _PATH_DRAW_SPACING = 2.0

@@ -482,11 +482,11 @@ class MeetingStrategy(Strategy):
         if self._visual_dirty:
             self._refresh_visual()
         held = int(self._scalars.get("meetings_held", 0))
+        waiting = int(self._scalars["robots_waiting"])
         events, self.events = tuple(self.events), []
         # The plans' objects stay those of _visual until they change (the recording logs them then).
-        return dataclasses.replace(
-            self._visual, events=events,
-            overlay=f"{self.kind}: {held} meetings held, {int(self._scalars['robots_waiting'])} robots at their meeting point")
+        return dataclasses.replace(self._visual, events=events,
+                                   overlay=f"{self.kind}: {held} meetings held, {waiting} robots at their meeting point")
 
     def progress(self) -> str:
         """Meetings held so far against those scheduled, for the run's status message."""
