@@ -71,7 +71,7 @@ def measure(scenario_name: str, overrides: list[str], seconds: float, warmup_s: 
 
 def _measure_ticks(simulation, observers, scenario_name, overrides, seconds, warmup_s) -> dict:
     for _ in range(int(round(warmup_s / simulation.dt))):
-        simulation.tick(info_wanted=False)
+        simulation.tick(decorations_wanted=False)
     model, world_data = simulation.world.model, simulation.world.data
     bare_data = mujoco.MjData(model)
     timing_before = dict(simulation.timing)
@@ -87,7 +87,7 @@ def _measure_ticks(simulation, observers, scenario_name, overrides, seconds, war
         bare_cpu += time.thread_time() - start
         start_wall, start = time.perf_counter(), time.thread_time()
         for _ in range(block):
-            frame, healthy = simulation.tick(info_wanted=False)
+            frame, healthy = simulation.tick(decorations_wanted=False)
             observed = time.perf_counter()
             for observer in observers:
                 observer.on_tick(frame)

@@ -13,8 +13,8 @@ EKF from the same prior and report the same e_g and lambda-bar:
 - :func:`neutral_prior` - the prior made non-informative in another scene;
 - :func:`measurement_records` - an Observation's range readings as
   :class:`estimation.beliefs.RangeMeasurement` records, per robot;
-- :class:`EstimateSeries` - lambda_max(C_g(t)) per step and the ``info``
-  entries (estimate, covariance blocks) the estimation observer reads.
+- :class:`EstimateSeries` - lambda_max(C_g(t)) per step and the latest
+  :class:`sim.types.TargetEstimate` (``Commands.estimate``).
 
 ``params`` is any parameter object with the task's keys used here
 (``prior_mean``, ``prior_variance_m2``):
@@ -39,7 +39,7 @@ import numpy as np
 from estimation.beliefs import RangeMeasurement
 from estimation.ekf import PAPER_INITIAL_ESTIMATE, FilterState
 from sim.config import ConfigError, param
-from sim.types import Observation, SceneChange, WorldInfo
+from sim.types import Observation, SceneChange, TargetEstimate, WorldInfo
 
 # The task's keys, shared by the four methods that run it (a scenario runs under any of them).
 TASK_PARAMS: dict[str, dict] = {
@@ -132,17 +132,13 @@ def measurement_records(observation: Observation, step: int) -> list[list[RangeM
 
 @dataclass
 class EstimateSeries:
-    """lambda_max of the global covariance per step, and the latest estimate.
-
-    ``info`` entries (for observers): ``target_estimate`` (M, 3) m and
-    ``target_estimate_step`` (the step it refers to), ``target_estimates``
-    (the same, for drawing) and ``target_covariances`` (M, 3, 3) m^2.
-    """
+    """lambda_max of the global covariance per step, and the latest estimate
+    (:attr:`estimate`, for ``Commands.estimate``: the same object until the next step)."""
 
     steps: list[int] = field(default_factory=list)
     lambda_max: list[float] = field(default_factory=list)
     last: FilterState | None = None
-    _info: dict = field(default_factory=dict)
+    estimate: TargetEstimate | None = None
 
     def record(self, state: FilterState) -> float:
         value = float(np.linalg.eigvalsh(state.covariance)[-1])
@@ -152,17 +148,8 @@ class EstimateSeries:
         m = state.n_targets
         mean = state.mean.reshape(m, 3)
         idx = np.arange(m)
-        self._info = {
-            "target_estimate": mean,
-            "target_estimate_step": state.step,
-            "target_estimates": mean,
-            "target_covariances": state.covariance.reshape(m, 3, m, 3)[idx, :, idx, :],
-        }
+        self.estimate = TargetEstimate(state.step, mean, state.covariance.reshape(m, 3, m, 3)[idx, :, idx, :])
         return value
-
-    def info(self) -> dict:
-        """The entries of the latest recorded state (the same objects until the next)."""
-        return self._info
 
     def summary(self) -> dict:
         """lambda-bar of eq. (13b): mean and population std over steps >= 1."""

@@ -226,11 +226,11 @@ class WaypointStrategy(Strategy):
     def step(self, observation: Observation) -> Commands:
         self._time_s = observation.time_s
         position, velocity, acceleration = self._table.sample(observation.time_s - self._offsets)
-        info = {}
-        if observation.info_wanted:
+        scalars = {}
+        if observation.decorations_wanted:
             speed = np.linalg.norm(velocity, axis=1)
-            info = {"scalars": {"reference_speed_max_mps": float(speed.max(initial=0.0))}}
-        return Commands(position, velocity, acceleration, np.zeros(len(position)), info)
+            scalars = {"reference_speed_max_mps": float(speed.max(initial=0.0))}
+        return Commands(position, velocity, acceleration, np.zeros(len(position)), scalars)
 
 
 def fit_routes(change: SceneChange, routes: list) -> tuple[list, list[int]]:

@@ -1,19 +1,16 @@
 """Estimation error against the truth, as an observer (Khodayi-mehr et al. 2019, Sec. IV).
 
 Strategies never see the true target states. A strategy that estimates the
-targets reports, in ``commands.info``, its global estimate ``target_estimate``
-((M, 3), m) and the discrete step it refers to, ``target_estimate_step``; at
-every reading tick (``observation.target_step`` not None) whose step matches,
-this observer computes the localisation error e_g(t) = ||x_g(t) - x(t)||
-(m, over all targets stacked) against the frame's true target positions (at
-a reading tick the sim time is exactly the step time, so they are x(k)).
-
-It runs before the other observers and writes the latest e_g into the frame's
-``info['scalars']['e_g_m']``, so plots and the recording show it; it never
-touches the simulation. ``summary()`` gives eq. (13a): the mean and
-population standard deviation of e_g over the steps t = 1..t_end (step 0,
-the prior plus the first readings, is left out); empty when no strategy
-reported an estimate.
+targets reports its global estimate in ``commands.estimate``
+(:class:`sim.types.TargetEstimate`: the discrete step and the (M, 3) mean);
+at every reading tick whose step matches, the loop computes the localisation
+error e_g(t) = ||x_g(t) - x(t)|| against the true target positions
+(:func:`sim.observers.estimation_error`) and puts it in the frame
+(``frame.estimation``; ``frame.scalars['e_g_m']`` holds the latest for the
+plots, the recording and progress.json). This observer collects it:
+``summary()`` gives eq. (13a), the mean and population standard deviation of
+e_g over the steps t = 1..t_end (step 0, the prior plus the first readings,
+is left out); empty when no strategy reported an estimate.
 """
 
 from __future__ import annotations
@@ -29,27 +26,15 @@ class EstimationMetrics(Observer):
     def __init__(self):
         self.steps: list[int] = []
         self.errors: list[float] = []
-        self._last: float | None = None
 
-    def reads_info(self, time_s: float) -> bool:
-        # Only the metrics keys (target_estimate, target_estimate_step), which
-        # strategies always provide; it adds e_g to the scalars when they are there.
-        return False
+    def reads_decorations(self, time_s: float) -> bool:
+        return False  # only commands.estimate, which strategies always fill
 
     def on_tick(self, frame: Frame) -> None:
-        info = frame.commands.info
-        estimate = info.get("target_estimate")
-        step = frame.observation.target_step
-        if estimate is not None and step is not None and info.get("target_estimate_step") == step:
-            truth = np.asarray(frame.target_positions, dtype=float)
-            self._last = float(np.linalg.norm(np.asarray(estimate, dtype=float) - truth))
-            self.steps.append(int(step))
-            self.errors.append(self._last)
-        if self._last is not None:
-            scalars = info.get("scalars")
-            if isinstance(scalars, dict):
-                scalars["e_g_m"] = self._last
-
+        estimation = frame.estimation
+        if estimation is not None and estimation.fresh:
+            self.steps.append(estimation.step)
+            self.errors.append(estimation.e_g_m)
     def close(self, status: str) -> None:
         pass
 

@@ -26,12 +26,12 @@ import mujoco
 import numpy as np
 
 from sim.config import ConfigError
-from sim.observers import Frame, Observer
+from sim.observers import EstimationError, Frame, Observer, PhysicsState, estimation_error
 from sim.scenario import Scenario, StrategyConfig
 from sim.sensing import RaySensors
 from sim.strategy import Status, Strategy
 from sim.targets import TargetDriver, nominal_path_samples
-from sim.types import Commands, Observation, WorldInfo
+from sim.types import Commands, Links, Observation, WorldInfo, readonly
 from sim.validate import NON_FINITE, sanity_limits, tick_sanity, tick_violation
 from sim.world import World, build_world
 
@@ -133,6 +133,8 @@ class Simulation:
         self._warning_numbers = self.world.data.warning.number  # (mjNWARNING,) view, updated by mj_step
         # Views of MjData's arrays kept once (each attribute read builds a new array object).
         self._qpos, self._qvel, self._mocap_pos = self.world.data.qpos, self.world.data.qvel, self.world.data.mocap_pos
+        data = self.world.data
+        self._state_arrays = (data.qpos, data.qvel, data.act, data.mocap_pos, data.mocap_quat)  # PhysicsState's
         self._sanity_limits = sanity_limits(self.world)
         self._warnings = self._warning_count()
         # Index arrays for reading every robot's free-joint state in one fancy-index each.
@@ -144,6 +146,7 @@ class Simulation:
         self._velocity_index = qvel_adr + np.arange(3)
         self._angular_index = qvel_adr + np.arange(3, 6)
         self.timing = dict.fromkeys(TIMED_STAGES, 0.0)  # wall s per stage, summed over ticks
+        self._estimation: EstimationError | None = None  # the latest e_g (Frame.estimation)
         self.info = WorldInfo(
             robot_names=self.world.robot_names, robot_kinds=self.world.robot_kinds,
             obstacles=self.world.obstacles, bounds=self.world.bounds,
@@ -197,10 +200,11 @@ class Simulation:
             self._mocap_pos[self.world.target_mocap_ids] = positions
         return positions
 
-    def observe(self, read_targets: bool = True, info_wanted: bool = True) -> Observation:
+    def observe(self, read_targets: bool = True, decorations_wanted: bool = True) -> Observation:
         """Read the state and sense; target ranges only at reading instants
-        (every ``sensing.period_s``) and when ``read_targets``. ``info_wanted``
-        goes into the observation (see :class:`sim.types.Observation`)."""
+        (every ``sensing.period_s``) and when ``read_targets``.
+        ``decorations_wanted`` goes into the observation (see
+        :class:`sim.types.Observation`)."""
         world = self.world
         qpos, qvel = self._qpos, self._qvel
         position = qpos[self._position_index]
@@ -216,25 +220,26 @@ class Simulation:
         return Observation(
             time_s=self.time_s, tick=self.tick_count, position=position, velocity=velocity,
             quaternion=quaternion, angular_velocity=angular, sensor_position=sensors,
-            links=self.sensors.links(position), target_ranges=ranges, target_step=step, info_wanted=info_wanted,
+            links=self.sensors.links(position), target_ranges=ranges, target_step=step,
+            decorations_wanted=decorations_wanted,
         )
 
-    def tick(self, info_wanted: bool = True) -> tuple[Frame, bool]:
-        """One control period. Returns the frame (state before the step) and
-        whether the state after it is sane (``self.divergence`` says why not:
-        :meth:`_check`).
+    def tick(self, decorations_wanted: bool = True) -> tuple[Frame, bool]:
+        """One control period. Returns the frame (state before the step,
+        immutable) and whether the state after it is sane
+        (``self.divergence`` says why not: :meth:`_check`).
 
-        ``info_wanted``: whether an observer reads the strategy's figures and
-        decorations (``commands.info``) this tick (see :class:`sim.types.Observation`).
+        ``decorations_wanted``: whether an observer reads the strategy's
+        scalars and decorations this tick (see :class:`sim.types.Observation`).
         Each stage's wall time is added to ``self.timing``."""
         timing = self.timing
         start = time.perf_counter()
-        observation = self.observe(info_wanted=info_wanted)
+        observation = self.observe(decorations_wanted=decorations_wanted)
         sensed = time.perf_counter()
         commands = self.strategy.step(observation)
         planned = time.perf_counter()
         self.control.apply(observation, commands)
-        frame = Frame(observation, commands, self._mocap_pos[self.world.target_mocap_ids])  # a copy (index array)
+        frame = self._frame(observation, commands)
         controlled = time.perf_counter()
         model, data = self.world.model, self.world.data
         for _ in range(self.substeps):
@@ -249,6 +254,18 @@ class Simulation:
         timing["lowlevel"] += controlled - planned
         timing["physics"] += stepped - controlled
         return frame, not self.divergence
+
+    def _frame(self, observation: Observation, commands: Commands) -> Frame:
+        """The observers' frame of this tick, before the step: read-only views of
+        the observation, the physics state, and the derived figures (e_g)."""
+        truth = readonly(self._mocap_pos[self.world.target_mocap_ids])  # a copy (index array)
+        e_g = estimation_error(commands.estimate, observation.target_step, truth)
+        if e_g is not None:
+            self._estimation = EstimationError(e_g, int(observation.target_step), fresh=True)
+        elif self._estimation is not None and self._estimation.fresh:
+            self._estimation = dataclasses.replace(self._estimation, fresh=False)
+        return Frame(_readonly_observation(observation), commands, truth, PhysicsState.of(*self._state_arrays),
+                     self._estimation)
 
     def _check(self, commands) -> str:
         """Why the state after this tick is not sane ("" if it is): non-finite
@@ -267,6 +284,29 @@ class Simulation:
         if reason:
             return reason
         return self.strategy.violation(commands) or ""
+
+
+def _readonly_observation(observation: Observation) -> Observation:
+    """``observation`` with read-only views of its arrays (the strategy's own stay
+    writeable); the links' figures already computed are kept."""
+    links = observation.links
+    # Built through __dict__, every tick: a frozen dataclass's __init__ sets each field through object.__setattr__.
+    frame_links = object.__new__(Links)
+    frame_links.__dict__.update(links.__dict__)
+    frame_links.__dict__.update(distance=readonly(links.distance), line_of_sight=readonly(links.line_of_sight),
+                                adjacency=readonly(links.adjacency))  # (edges, computed or not, are read-only)
+    if "clearance" in links.__dict__:
+        frame_links.__dict__["clearance"] = readonly(links.clearance)
+    frame = object.__new__(Observation)
+    fields = frame.__dict__
+    fields.update(observation.__dict__)
+    fields.update(position=readonly(observation.position), velocity=readonly(observation.velocity),
+                  quaternion=readonly(observation.quaternion),
+                  angular_velocity=readonly(observation.angular_velocity),
+                  sensor_position=readonly(observation.sensor_position), links=frame_links)
+    if observation.target_ranges is not None:
+        fields["target_ranges"] = readonly(observation.target_ranges)
+    return frame
 
 
 def timing_summary(timing: dict[str, float], setup_s: float, closing_s: float) -> dict[str, float | None]:
@@ -344,7 +384,7 @@ def run_ticks(sim: Simulation, observers: Sequence[Observer], duration_s: float,
     status, message = Status.COMPLETED, ""
     mission_ended = False
     trajectory = [] if keep_trajectory else None
-    readers = [observer.reads_info for observer in observers]
+    readers = [observer.reads_decorations for observer in observers]
     timing = sim.timing
     closed = False
     try:
@@ -355,8 +395,8 @@ def run_ticks(sim: Simulation, observers: Sequence[Observer], duration_s: float,
                         status = Status.INTERRUPTED
                         message = f"interrupted ({interrupts.requested}) at t = {sim.time_s:.3f} s"
                         break
-                    info_wanted = any(reader(sim.time_s) for reader in readers)
-                    frame, healthy = sim.tick(info_wanted)
+                    decorations_wanted = any(reader(sim.time_s) for reader in readers)
+                    frame, healthy = sim.tick(decorations_wanted)
                     observed = time.perf_counter()
                     for observer in observers:
                         observer.on_tick(frame)

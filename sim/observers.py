@@ -2,26 +2,89 @@
 
 The loop hands each one a :class:`Frame`; metrics, the video and the Rerun
 recording are all observers, so a run with or without them follows the same
-trajectory.
+trajectory. A frame is immutable (its arrays are read-only), so no observer
+can change what another one reads, whatever their order; figures derived
+from the tick (the estimation error e_g) are computed by the loop and put in
+the frame before any observer sees it.
 """
 
 from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any
+from types import MappingProxyType
+from typing import Any, Mapping
 
 import numpy as np
 
 from sim.compiled import kernel
-from sim.types import Commands, Observation
+from sim.types import Commands, Observation, TargetEstimate
+
+
+@dataclass(frozen=True)
+class PhysicsState:
+    """MuJoCo's state at the start of a tick, enough to redraw it (mj_forward):
+    read-only copies of ``MjData``'s arrays."""
+
+    qpos: np.ndarray
+    qvel: np.ndarray
+    act: np.ndarray
+    mocap_pos: np.ndarray
+    mocap_quat: np.ndarray
+
+    @classmethod
+    def of(cls, qpos, qvel, act, mocap_pos, mocap_quat) -> "PhysicsState":
+        """Read-only copies of ``MjData``'s arrays (pass views kept once: each
+        attribute read of MjData builds a new array object)."""
+        arrays = [a.copy() for a in (qpos, qvel, act, mocap_pos, mocap_quat)]
+        for array in arrays:
+            array.flags.writeable = False
+        return cls(*arrays)
+
+    def load_into(self, data) -> None:
+        """Write this state into ``data`` (a renderer's own MjData); mj_forward follows."""
+        data.qpos[:], data.qvel[:], data.act[:] = self.qpos, self.qvel, self.act
+        data.mocap_pos[:], data.mocap_quat[:] = self.mocap_pos, self.mocap_quat
+
+
+@dataclass(frozen=True)
+class EstimationError:
+    """The loop's derived estimation figure (Khodayi-mehr et al. 2019, Sec. IV): e_g = ||x_g - x||
+    (m, over all targets stacked) at the latest reading tick whose step the
+    method's estimate matched, held until the next one."""
+
+    e_g_m: float
+    step: int  # the discrete target step it was computed at
+    fresh: bool  # computed at this tick (a reading tick whose step the estimate matched)
+
+
+def estimation_error(estimate: TargetEstimate | None, target_step: int | None,
+                     truth: np.ndarray) -> float | None:
+    """e_g of ``estimate`` against the true target positions ``truth`` ((M, 3),
+    m) at a reading tick (``target_step`` not None) whose step it refers to;
+    None on any other tick (at a reading tick the sim time is exactly the
+    step's time, so ``truth`` is x(k))."""
+    if estimate is None or target_step is None or estimate.step != target_step:
+        return None
+    return float(np.linalg.norm(np.asarray(estimate.mean, dtype=float) - np.asarray(truth, dtype=float)))
 
 
 @dataclass(frozen=True)
 class Frame:
-    observation: Observation
-    commands: Commands
+    """One control tick as the observers see it: the state before the step."""
+
+    observation: Observation  # read-only views of what the strategy sensed
+    commands: Commands  # the strategy's output (read-only arrays)
     target_positions: np.ndarray  # (M, 3) true positions, m
+    state: PhysicsState | None = None  # MuJoCo's state of the tick (the video redraws it)
+    estimation: EstimationError | None = None  # None until the method's first matched estimate
+
+    @functools.cached_property
+    def scalars(self) -> Mapping[str, float]:
+        """The method's scalars and the loop's derived figures (``e_g_m``), read-only."""
+        if self.estimation is None:
+            return self.commands.scalars
+        return MappingProxyType({**self.commands.scalars, "e_g_m": self.estimation.e_g_m})
 
 
 class Observer:
@@ -31,10 +94,11 @@ class Observer:
     have defaults.
     """
 
-    def reads_info(self, time_s: float) -> bool:
+    def reads_decorations(self, time_s: float) -> bool:
         """Whether it reads ``frame.commands.decorations`` or the strategy's
-        figures on the tick that starts at ``time_s``; the loop asks the
-        strategy to build them only when some observer does."""
+        scalars on the tick that starts at ``time_s``; the loop asks the
+        strategy to build them only when some observer does
+        (``Observation.decorations_wanted``)."""
         return True
 
     def on_tick(self, frame: Frame) -> None:
@@ -88,7 +152,7 @@ class TrackingMetrics(Observer):
         self._max = 0.0
         self.last_error = np.zeros(len(robot_kinds))
 
-    def reads_info(self, time_s: float) -> bool:
+    def reads_decorations(self, time_s: float) -> bool:
         return False
 
     def on_tick(self, frame: Frame) -> None:
@@ -114,7 +178,7 @@ class LinkMetrics(Observer):
         self.edges_sum = 0
         self.ticks = 0
 
-    def reads_info(self, time_s: float) -> bool:
+    def reads_decorations(self, time_s: float) -> bool:
         return False
 
     def on_tick(self, frame: Frame) -> None:

@@ -138,7 +138,7 @@ class ProgressFile(Observer):
     def on_tick(self, frame) -> None:
         obs = frame.observation
         self._latest = {"status": Status.RUNNING.value, "sim_time_s": obs.time_s, "tick": obs.tick,
-                        "links": int(len(obs.links.edges)), **frame.commands.info.get("scalars", {})}
+                        "links": int(len(obs.links.edges)), **frame.scalars}
         now = self._clock()
         if now >= self._next:
             self._next = now + self.period_s

@@ -71,7 +71,7 @@ class Strategy(abc.ABC):
         """References for every robot for the next control period.
 
         ``Commands.decorations`` may be left empty when
-        ``observation.info_wanted`` is False (no observer draws this tick);
+        ``observation.decorations_wanted`` is False (no observer draws this tick);
         ``Commands.estimate`` must always be filled by a method that estimates.
         """
 

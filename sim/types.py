@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from types import MappingProxyType
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -53,14 +54,16 @@ class Links:
     def clearance(self) -> np.ndarray:
         """Segment distance to the nearest obstacle, m, for pairs in comm range (inf elsewhere)."""
         if self.clearance_of is None:
-            return np.full(self.distance.shape, np.inf)
-        return self.clearance_of()
+            return readonly(np.full(self.distance.shape, np.inf))
+        return readonly(self.clearance_of())
 
     @functools.cached_property
     def edges(self) -> np.ndarray:
-        """(E, 2) index pairs i < j of communicating robots (built once, on first use)."""
+        """(E, 2) index pairs i < j of communicating robots (built once, on first use; read-only)."""
         i, j = np.nonzero(np.triu(self.adjacency, 1))
-        return np.stack([i, j], axis=1)
+        edges = np.stack([i, j], axis=1)
+        edges.flags.writeable = False
+        return edges
 
 
 @dataclass(frozen=True)
@@ -77,33 +80,155 @@ class Observation:
     links: Links
     target_ranges: np.ndarray | None = None  # (N, M) noisy range, m; NaN = not seen; None = no reading this tick
     target_step: int | None = None  # discrete target time step k of the readings
-    # Whether an observer reads the strategy's figures and decorations
-    # (``Commands.info``: scalars, colours, paths, overlay, events) this tick.
-    # When False a strategy may skip building them; ``info`` must still carry
-    # what metrics need (``target_estimate``, ``target_estimate_step``).
-    # The loop sets it from the observers' ``reads_info`` (sim.observers).
-    info_wanted: bool = True
+    # Whether an observer reads the strategy's figures and drawings
+    # (``Commands.scalars`` and ``Commands.decorations``) this tick. When
+    # False a strategy may leave them empty; ``Commands.estimate`` is still
+    # filled (the metrics read it every tick). The loop sets it from the
+    # observers' ``reads_decorations`` (sim.observers).
+    decorations_wanted: bool = True
 
 
-@dataclass
-class Commands:
+def readonly(array: Any) -> np.ndarray:
+    """``array`` as a read-only ndarray: itself when it already is one, else a
+    read-only view (the owner's array stays writeable)."""
+    if type(array) is not np.ndarray:
+        array = np.asarray(array)
+    if not array.flags.writeable:
+        return array
+    view = array.view()
+    view.flags.writeable = False
+    return view
+
+
+@dataclass(frozen=True)
+class TargetEstimate:
+    """A method's global estimate of the moving targets at discrete step ``step``
+    (what the estimation metrics compare with the truth and the viewers draw)."""
+
+    step: int
+    mean: np.ndarray  # (M, 3) estimated positions, m
+    covariance: np.ndarray  # (M, 3, 3) each target's position covariance block, m^2
+
+    def __post_init__(self):
+        object.__setattr__(self, "mean", readonly(self.mean))
+        object.__setattr__(self, "covariance", readonly(self.covariance))
+
+
+class _PicklableMappings:
+    """Pickling for a frozen dataclass with read-only mappings (a mappingproxy
+    does not pickle): plain dicts on the wire, wrapped again on loading."""
+
+    def __getstate__(self):
+        return {key: dict(value) if isinstance(value, MappingProxyType) else value
+                for key, value in self.__dict__.items()}
+
+    def __setstate__(self, state):
+        for key, value in state.items():
+            object.__setattr__(self, key, MappingProxyType(value) if isinstance(value, dict) else value)
+
+
+_EMPTY: Mapping = MappingProxyType({})
+Rgba = np.ndarray  # (4,) red, green, blue, alpha in 0..1
+
+
+@dataclass(frozen=True)
+class Decorations(_PicklableMappings):
+    """What a strategy draws in the video, the recording, the viewer, the
+    tuning page and the plots; every field optional (empty: nothing drawn).
+
+    A strategy that keeps a field's object between ticks (plans rebuilt only
+    when they change) lets the recording log it only when it changes: arrays
+    are stored read-only (their owner's copy stays writeable), sequences as
+    tuples, and an unchanged object keeps its identity.
+    """
+
+    # (N, 4) per robot (e.g. its team's or role's colour): the video halo,
+    # the quadrotors' top sphere, the recording's robot point.
+    robot_colors: np.ndarray | None = None
+    # Per-robot series {name: (N,) values} (NaN = undefined: a gap): plots, recording.
+    robot_scalars: Mapping[str, np.ndarray] = field(default_factory=lambda: _EMPTY)
+    # {name: {value: label}} for robot_scalars that are codes (roles): the plots label them.
+    robot_scalar_levels: Mapping[str, Mapping[float, str]] = field(default_factory=lambda: _EMPTY)
+    # (N, N) link weights in 0..1 (connectivity's W): link colours, red (0) to green (1).
+    link_weights: np.ndarray | None = None
+    # Polylines (points (K, 3) m, rgba): planned paths. None: no plans drawn
+    # (the recording keeps the last logged); () clears them.
+    paths: tuple[tuple[np.ndarray, Rgba], ...] | None = None
+    meeting_points: np.ndarray | None = None  # (P, 3) m
+    meeting_point_colors: np.ndarray | None = None  # (P, 4)
+    markers: np.ndarray | None = None  # (K, 3) m, points of interest (the connected method's targets)
+    marker_colors: np.ndarray | None = None  # (K, 4)
+    overlay: str = ""  # one line burned into the video after the time and link count
+    legend: tuple[tuple[str, Rgba], ...] = ()  # what the colours mean: video band, tuning page, recording
+    events: tuple[str, ...] = ()  # logged once each in the recording's event log, at this tick
+
+    def __post_init__(self):
+        for name in ("robot_colors", "link_weights", "meeting_points", "meeting_point_colors", "markers",
+                     "marker_colors"):
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, readonly(value))
+        if self.robot_scalars and not isinstance(self.robot_scalars, MappingProxyType):
+            object.__setattr__(self, "robot_scalars", MappingProxyType(
+                {key: readonly(values) for key, values in self.robot_scalars.items()}))
+        if not isinstance(self.robot_scalar_levels, MappingProxyType):
+            object.__setattr__(self, "robot_scalar_levels", MappingProxyType(dict(self.robot_scalar_levels)))
+        if self.paths is not None and not _frozen_pairs(self.paths):
+            object.__setattr__(self, "paths", tuple((readonly(points), readonly(rgba)) for points, rgba in self.paths))
+        if not _frozen_pairs(self.legend):
+            object.__setattr__(self, "legend", tuple((label, readonly(rgba)) for label, rgba in self.legend))
+        if not isinstance(self.events, tuple):
+            object.__setattr__(self, "events", tuple(self.events))
+
+
+def _frozen_pairs(pairs: Any) -> bool:
+    """Whether ``pairs`` (paths, legend) is already a tuple of tuples of read-only
+    arrays (and labels): kept as it is, so its identity says it did not change."""
+    return isinstance(pairs, tuple) and all(
+        isinstance(pair, tuple) and all(isinstance(a, str) or (isinstance(a, np.ndarray) and not a.flags.writeable)
+                                        for a in pair)
+        for pair in pairs)
+
+
+NO_DECORATIONS = Decorations()
+
+
+@dataclass(frozen=True)
+class Commands(_PicklableMappings):
     """A strategy's output: the reference ("virtual point") of every robot.
 
     Quadrotors track position/velocity/acceleration and yaw; ground robots
-    track the horizontal reference as a single integrator.
+    track the horizontal reference as a single integrator. The arrays are
+    read-only views (the strategy's own stay writeable), so the low-level
+    control and the observers cannot change what the others read.
     """
 
     position: np.ndarray  # (N, 3) m
     velocity: np.ndarray  # (N, 3) m/s
     acceleration: np.ndarray  # (N, 3) m/s^2
     yaw: np.ndarray  # (N,) rad
-    info: dict[str, Any] = field(default_factory=dict)  # strategy figures for observers
+    # The method's per-tick figures {name: value}, in the name's unit
+    # (documented per method in docs/): plots, recording, progress.json,
+    # tuning page; empty when ``Observation.decorations_wanted`` was False.
+    scalars: Mapping[str, float] = field(default_factory=lambda: _EMPTY)
+    # The method's target estimate, on every tick once it has one (None: it does not estimate).
+    estimate: TargetEstimate | None = None
+    # What it draws; may be empty when ``Observation.decorations_wanted`` was False.
+    decorations: Decorations = NO_DECORATIONS
 
     def __post_init__(self):
-        n = len(self.position)
-        for name in ("position", "velocity", "acceleration"):
-            assert getattr(self, name).shape == (n, 3), (name, getattr(self, name).shape)
-        assert self.yaw.shape == (n,), self.yaw.shape
+        # Every tick, so the fields are set through __dict__ (a frozen dataclass's setattr is slow).
+        fields = self.__dict__
+        position = fields["position"] = readonly(self.position)
+        velocity = fields["velocity"] = readonly(self.velocity)
+        acceleration = fields["acceleration"] = readonly(self.acceleration)
+        yaw = fields["yaw"] = readonly(self.yaw)
+        n = len(position)
+        assert position.shape == velocity.shape == acceleration.shape == (n, 3), (
+            position.shape, velocity.shape, acceleration.shape)
+        assert yaw.shape == (n,), yaw.shape
+        if type(self.scalars) is not MappingProxyType:
+            fields["scalars"] = MappingProxyType(self.scalars)
 
 
 @dataclass(frozen=True)

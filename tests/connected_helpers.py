@@ -43,7 +43,7 @@ class InvariantLog:
         lambda2 = connectivity_state(q, self.boxes, c).lambda2
         distance = np.linalg.norm(q[:, None] - q[None], axis=-1)[np.triu_indices(len(q), 1)].min()
         clearance = point_clearance(self.boxes, q).min()
-        primes = int(np.sum(frame.commands.info["robot_scalars"]["role"] == Role.PRIME_TRAVELER))
+        primes = int(np.sum(frame.commands.decorations.robot_scalars["role"] == Role.PRIME_TRAVELER))
         t = frame.observation.time_s
         assert lambda2 > c.lambda2_min + 1e-9, f"t = {t:.2f} s: lambda2 = {lambda2} <= {c.lambda2_min}"
         assert distance > c.min_robot_distance_m, f"t = {t:.2f} s: virtual points {distance:.3f} m apart"

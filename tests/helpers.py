@@ -92,7 +92,7 @@ def recorded_ticks(n_ticks: int, ticks_per_row: int) -> list[int]:
 
 
 class TickLog(Observer):
-    """An observer keeping, for every tick, a copy of ``info['scalars']`` and
+    """An observer keeping, for every tick, a copy of ``frame.scalars`` and
     the number of communication links (pass it to ``tether.runner.run`` as an
     extra observer)."""
 
@@ -104,10 +104,10 @@ class TickLog(Observer):
 
     def on_tick(self, frame) -> None:
         assert frame.observation.tick == len(self.scalars)
-        self.scalars.append(dict(frame.commands.info.get("scalars", {})))
+        self.scalars.append(dict(frame.scalars))
         self.links.append(len(frame.observation.links.edges))
         self.times.append(frame.observation.time_s)
-        self.robot_scalar_names |= set(frame.commands.info.get("robot_scalars", {}))
+        self.robot_scalar_names |= set(frame.commands.decorations.robot_scalars)
 
     def close(self, status: str) -> None:
         pass

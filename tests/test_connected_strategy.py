@@ -175,12 +175,12 @@ def test_estimator_mode_tracks_lambda2_and_reports_its_error():
         frame, healthy = sim.tick()
         assert healthy
         if tick == 49:
-            estimates = frame.commands.info["robot_scalars"]["lambda2_estimate"]
-            exact = frame.commands.info["scalars"]["lambda2"]
+            estimates = frame.commands.decorations.robot_scalars["lambda2_estimate"]
+            exact = frame.commands.scalars["lambda2"]
             assert np.abs(estimates - exact).max() < 0.05 * exact
-            assert np.all(np.isfinite(frame.commands.info["scalars"]["connectivity_force_max_n"]))
-    estimates = frame.commands.info["robot_scalars"]["lambda2_estimate"]
-    exact = frame.commands.info["scalars"]["lambda2"]
+            assert np.all(np.isfinite(frame.commands.scalars["connectivity_force_max_n"]))
+    estimates = frame.commands.decorations.robot_scalars["lambda2_estimate"]
+    exact = frame.commands.scalars["lambda2"]
     assert np.abs(estimates - exact).max() < 0.15 * exact
     summary = sim.strategy.summary()
     assert summary["lambda2_source"] == "estimator"

@@ -404,7 +404,7 @@ def test_strategy_estimates_the_graph_its_messages_travel_on(estimator_links):
     restricted = state.links.restricted_to(adjacency)
     expected = state.lambda2 if estimator_links == "sensing" else np.linalg.eigvalsh(
         weighted_laplacian(restricted.weights))[1]
-    estimates = commands.info["robot_scalars"]["lambda2_estimate"]
+    estimates = commands.decorations.robot_scalars["lambda2_estimate"]
     np.testing.assert_allclose(estimates, expected, rtol=0.05)
     # Its own gradient: with exact Ritz pairs of the estimated graph, ritz_connectivity_gradient equals the
     # smooth gradient computed on that graph's links.

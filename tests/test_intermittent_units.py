@@ -137,19 +137,22 @@ def test_params_validation_messages():
 
 def test_estimation_observer_measures_e_g_against_the_truth():
     from sim.estimation_observer import EstimationMetrics
+    from sim.observers import EstimationError, Frame, estimation_error
+    from sim.types import TargetEstimate
 
     observer = EstimationMetrics()
     truth = np.array([[1.0, 2.0, 1.0], [3.0, 4.0, 1.0]])
     for step, shift in ((0, 5.0), (1, 0.3), (2, 0.4)):
-        scalars = {}
-        frame = SimpleNamespace(
-            observation=SimpleNamespace(target_step=step),
-            commands=SimpleNamespace(info={"target_estimate": truth + [shift, 0, 0], "target_estimate_step": step,
-                                           "scalars": scalars}),
-            target_positions=truth,
-        )
+        estimate = TargetEstimate(step, truth + [shift, 0, 0], np.zeros((2, 3, 3)))
+        e_g = estimation_error(estimate, step, truth)
+        assert e_g == pytest.approx(shift * np.sqrt(2))
+        assert estimation_error(estimate, step + 1, truth) is None  # a reading of another step
+        assert estimation_error(estimate, None, truth) is None  # no reading this tick
+        frame = Frame(SimpleNamespace(target_step=step),
+                      SimpleNamespace(estimate=estimate, scalars={"lambda_max_m2": 1.0}), truth,
+                      estimation=EstimationError(e_g, step, fresh=True))
         observer.on_tick(frame)
-        assert scalars["e_g_m"] == pytest.approx(shift * np.sqrt(2))
+        assert frame.scalars == {"lambda_max_m2": 1.0, "e_g_m": e_g}
     summary = observer.summary()  # step 0 is left out (eq. 13a averages t = 1..t_end)
     assert summary["e_g_mean_m"] == pytest.approx(0.35 * np.sqrt(2))
     assert summary["e_g_std_m"] == pytest.approx(0.05 * np.sqrt(2))

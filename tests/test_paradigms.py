@@ -123,7 +123,7 @@ def test_connected_tracking_invariants_readings_and_targets(tmp_path):
             step = obs.target_step
             taken = {(step, r, int(a)) for r, a in zip(*np.nonzero(np.isfinite(obs.target_ranges)))}
             assert set(strategy.belief.keys_at(step)) == taken
-            assert frame.commands.info["target_estimate_step"] == step
+            assert frame.commands.estimate.step == step
             assert strategy.belief.computed_until >= step
             state["readings"] += len(taken)
         generator = strategy.generator

@@ -123,7 +123,7 @@ def test_robots_stay_visible_in_a_large_scene():
     assert view.at_least(0.12, 5.0) > 0.4  # 50 x 70 m in 480 px: 5 px are ~0.77 m
     scale = view.world.model.camera("top").fovy[0] / 480  # the town's orthographic top camera: m per px
     centre = view.world.model.camera("top").pos[:2]
-    colors = np.asarray(frame.commands.info["robot_colors"])[:, :3] * 255
+    colors = np.asarray(frame.commands.decorations.robot_colors)[:, :3] * 255
     for p, rgb in zip(frame.observation.position, colors):
         col = int(round(320 + (p[0] - centre[0]) / scale))
         row = int(round(240 - (p[1] - centre[1]) / scale))

@@ -605,7 +605,7 @@ def test_a_tuning_change_that_breaks_an_invariant_is_refused_before_it_applies()
     sim = build_simulation(load("connected-empty", ["strategy.target_counts=[1]"]))
     params = sim.scenario.strategy.params
     frame, healthy = sim.tick()
-    lambda2 = frame.commands.info["scalars"]["lambda2"]
+    lambda2 = frame.commands.scalars["lambda2"]
     assert healthy and sim.strategy.violation(frame.commands) is None
     assert params.lambda2_min < lambda2
     with pytest.raises(ConfigError) as refused:  # legal values (min < null, in bounds), but above lambda2 now

@@ -55,14 +55,14 @@ def test_timing_block_says_where_the_wall_time_went(hover_run):
     assert timing["stack_to_physics"] == pytest.approx(stack / timing["physics_s"])
 
 
-def test_strategy_info_is_built_only_for_observers_that_read_it():
+def test_strategy_figures_are_built_only_for_observers_that_read_them():
     from tether.runner import build_simulation
 
     simulation = build_simulation(load("hover", duration_s=1.0))
-    frame, _ = simulation.tick(info_wanted=False)
-    assert frame.commands.info == {}
+    frame, _ = simulation.tick(decorations_wanted=False)
+    assert dict(frame.commands.scalars) == {}
     frame, _ = simulation.tick()
-    assert "reference_speed_max_mps" in frame.commands.info["scalars"]
+    assert "reference_speed_max_mps" in frame.commands.scalars
 
 
 def test_plots_are_written_as_png(hover_run):

@@ -2,6 +2,7 @@
 `tether tune hover` driven in a real browser (Playwright on Debian's
 /usr/bin/chromium, never a downloaded browser)."""
 
+import dataclasses
 import json
 import os
 import re
@@ -22,6 +23,7 @@ from controllers.waypoints import WaypointParams
 from sim.config import ConfigError, build
 from tether.runner import build_simulation, run
 from sim.scenario import dumps_toml, from_table, load, to_scenario_table
+from sim.types import Decorations
 from viz.tuning import describe_params
 
 CHROMIUM = Path("/usr/bin/chromium")
@@ -116,7 +118,8 @@ def test_the_strategy_legend_reaches_the_page_status():
 
     session = TuningSession(load("hover"), build_simulation)
     frame, _ = session.sim.tick()
-    frame.commands.info["legend"] = [("anchor", (1.0, 0.6, 0.1, 1.0)), ("team 0", np.array([0.2, 0.4, 1.0, 1.0]))]
+    legend = Decorations(legend=[("anchor", (1.0, 0.6, 0.1, 1.0)), ("team 0", np.array([0.2, 0.4, 1.0, 1.0]))])
+    frame = dataclasses.replace(frame, commands=dataclasses.replace(frame.commands, decorations=legend))
     session._sample(frame)
     # The strategy's entries, then the true targets (hover has 8) in their model colour.
     assert session.status()["legend"] == [{"label": "anchor", "color": "#ff991a"},

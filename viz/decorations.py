@@ -1,28 +1,12 @@
-"""Optional strategy decorations for the video and the Rerun recording.
+"""Drawing a strategy's decorations in the video and the Rerun recording.
 
-A strategy may put these keys in ``commands.info`` (all optional; missing
-keys draw nothing, so strategies that do not use them are unaffected):
-
-- ``robot_colors``: (N, 4) RGBA in 0..1 per robot (e.g. its team's colour):
-  the colour of the robot's halo in the video and of its point in the
-  recording;
-- ``paths``: list of ``(points (K, 3) m, rgba (4,))`` polylines (planned paths);
-- ``meeting_points``: (P, 3) m and ``meeting_point_colors``: (P, 4) RGBA;
-- ``target_estimates``: (M, 3) m, estimated target positions;
-- ``target_covariances``: (M, 3, 3) m^2, their covariance blocks (drawn as
-  2-sigma ellipsoids in the recording);
-- ``events``: list of strings, logged once each in the recording's event log
-  at the tick they are reported (not subject to the recording period);
-- ``markers``: (K, 3) m and ``marker_colors``: (K, 4) RGBA, generic points of
-  interest (e.g. the connected strategy's current targets): spheres in the
-  video, ``world/markers`` in the recording;
-- ``legend``: list of ``(label, rgba)``: what the colours mean (roles,
-  teams, paths), drawn as a band at the bottom of the video and beside the
-  tuning page's view;
-- ``robot_scalar_levels``: {name: {value: label}} for ``robot_scalars`` that
-  are codes (e.g. the connected strategy's roles): the plots label them;
-- with ``robot_colors``, quadrotors also get a small marker sphere of their
-  colour on top (e.g. the prime traveler highlighted).
+What a strategy draws is :class:`sim.types.Decorations` (``commands.decorations``:
+robot colours, paths, meeting points, markers, legend, overlay, events;
+every field optional, empty draws nothing) and its target estimate
+``commands.estimate`` (:class:`sim.types.TargetEstimate`: spheres in the
+video, points and 2-sigma covariance ellipsoids in the recording). With
+``robot_colors``, quadrotors also get a small marker sphere of their colour
+on top (e.g. the prime traveler highlighted).
 
 Pure drawing helpers: they only read the frame.
 """
@@ -50,19 +34,18 @@ TARGET_RGBA = np.array([0.95, 0.75, 0.1, 1.0], dtype=np.float32)  # models/robot
 def frame_legend(frame) -> list[tuple[str, np.ndarray]]:
     """What the colours of ``frame``'s picture mean: the strategy's
     ``legend``, then the true targets and their estimates when shown."""
-    info = frame.commands.info
-    legend = list(info.get("legend", ()))
+    legend = list(frame.commands.decorations.legend)
     if len(frame.target_positions):
         legend.append(("target (true)", TARGET_RGBA))
-    estimates = info.get("target_estimates")
-    if estimates is not None and len(estimates):
+    estimate = frame.commands.estimate
+    if estimate is not None and len(estimate.mean):
         legend.append(("target estimate", ESTIMATE_RGBA))
     return legend
 
 
-def halo_color(info: dict, robot: int, default: np.ndarray) -> np.ndarray:
+def halo_color(decorations, robot: int, default: np.ndarray) -> np.ndarray:
     """The video halo colour of ``robot``: its ``robot_colors`` entry, translucent."""
-    colors = info.get("robot_colors")
+    colors = decorations.robot_colors
     if colors is None or robot >= len(colors):
         return default
     rgba = np.array(colors[robot], dtype=np.float32)
@@ -74,25 +57,25 @@ def draw_video_decorations(renderer, frame) -> None:
     """Planned paths, meeting points and target estimates into a
     :class:`viz.video.FrameRenderer`'s scene (its ``_add_capsule`` /
     ``_add_sphere``)."""
-    info = frame.commands.info
+    decorations = frame.commands.decorations
     width = renderer.at_least(PATH_WIDTH_M, PATH_MIN_PX)
-    for points, rgba in info.get("paths", ()):
+    for points, rgba in decorations.paths or ():
         rgba = np.asarray(rgba, dtype=np.float32)
         points = np.asarray(points, dtype=float)
         for a, b in zip(points[:-1], points[1:]):
             if np.linalg.norm(b - a) > 1e-6:
                 renderer._add_capsule(a, b, width, rgba)
-    _draw_spheres(renderer, info.get("meeting_points"), info.get("meeting_point_colors"),
+    _draw_spheres(renderer, decorations.meeting_points, decorations.meeting_point_colors,
                   renderer.at_least(MEETING_RADIUS_M, MARKER_MIN_PX),
                   np.array([1, 1, 1, 0.5], np.float32))
-    estimates = info.get("target_estimates")
-    if estimates is not None:
-        for p in np.asarray(estimates, dtype=float):
+    estimate = frame.commands.estimate
+    if estimate is not None:
+        for p in np.asarray(estimate.mean, dtype=float):
             renderer._add_sphere(p, renderer.at_least(ESTIMATE_RADIUS_M, MARKER_MIN_PX), ESTIMATE_RGBA)
-    _draw_spheres(renderer, info.get("markers"), info.get("marker_colors"),
+    _draw_spheres(renderer, decorations.markers, decorations.marker_colors,
                   renderer.at_least(MARKER_RADIUS_M, MARKER_MIN_PX),
                   np.array([1, 1, 1, 0.8], np.float32))
-    robot_colors = info.get("robot_colors")
+    robot_colors = decorations.robot_colors
     if robot_colors is not None:
         positions = frame.observation.position
         for i in renderer.world.kind_index["quadrotor"]:
@@ -131,10 +114,10 @@ def colour_name(rgb) -> str:
     return "red"
 
 
-def robot_colors_rgb8(info: dict, default: np.ndarray) -> np.ndarray:
+def robot_colors_rgb8(decorations, default: np.ndarray) -> np.ndarray:
     """(N, 3) uint8 recording colours of the robots: ``robot_colors`` when the
     strategy gives one per robot, else ``default``."""
-    colors = info.get("robot_colors")
+    colors = decorations.robot_colors
     if colors is None or len(colors) != len(default):
         return default
     return _rgb8(np.asarray(colors, dtype=float)[:, :3])
@@ -157,22 +140,22 @@ def log_recording_decorations(rec, frame, logged: dict) -> None:
     caller's record of what it last logged), so the recording stays small."""
     import rerun as rr
 
-    info = frame.commands.info
-    if "paths" in info and _changed(logged, "paths", info["paths"]):
-        paths = info["paths"]
+    decorations = frame.commands.decorations
+    paths = decorations.paths
+    if paths is not None and _changed(logged, "paths", paths):
         rec.log("world/plans", rr.LineStrips3D([np.asarray(p, dtype=float) for p, _ in paths],
                                                colors=[_rgb8(c) for _, c in paths], radii=0.01))
-    meeting = info.get("meeting_points")
+    meeting = decorations.meeting_points
     if meeting is not None and _changed(logged, "meeting_points", meeting):
-        point_colors = info.get("meeting_point_colors")
+        point_colors = decorations.meeting_point_colors
         rec.log("world/meetings", rr.Points3D(np.asarray(meeting, dtype=float).reshape(-1, 3),
                                               colors=None if point_colors is None else _rgb8(point_colors),
                                               radii=0.05))
-    estimates = info.get("target_estimates")
-    if estimates is not None and _changed(logged, "target_estimates", estimates):
-        estimates = np.asarray(estimates, dtype=float)
+    estimate = frame.commands.estimate
+    if estimate is not None and _changed(logged, "target_estimate", estimate):
+        estimates = np.asarray(estimate.mean, dtype=float)
         rec.log("world/targets/estimate", rr.Points3D(estimates, colors=_rgb8(ESTIMATE_RGBA), radii=0.05))
-        covariances = info.get("target_covariances")
+        covariances = estimate.covariance
         if covariances is not None:
             values, vectors = np.linalg.eigh(np.asarray(covariances, dtype=float))
             vectors = vectors * np.where(np.linalg.det(vectors) < 0, -1.0, 1.0)[:, None, None]
@@ -182,15 +165,15 @@ def log_recording_decorations(rec, frame, logged: dict) -> None:
             half = ELLIPSOID_SIGMAS * np.sqrt(np.maximum(values, 0.0))
             rec.log("world/targets/covariance", rr.Ellipsoids3D(centers=estimates, half_sizes=half,
                                                                 quaternions=quats, colors=_rgb8(ESTIMATE_RGBA)))
-    markers = info.get("markers")
+    markers = decorations.markers
     if markers is not None:
-        marker_colors = info.get("marker_colors")
+        marker_colors = decorations.marker_colors
         rec.log("world/markers", rr.Points3D(np.asarray(markers, dtype=float).reshape(-1, 3),
                                              colors=None if marker_colors is None else _rgb8(marker_colors),
                                              radii=0.08))
 
 
 def log_events(recorder, frame) -> None:
-    """Every string in ``info['events']`` as one event of the recording."""
-    for text in frame.commands.info.get("events", ()):
+    """Every string in the decorations' ``events`` as one event of the recording."""
+    for text in frame.commands.decorations.events:
         recorder.on_event(frame.observation.time_s, str(text), tick=frame.observation.tick)

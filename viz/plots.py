@@ -1,11 +1,12 @@
 """Time-series plots of a run (matplotlib PNGs in ``plots/``), an observer.
 
 Every run plots the foundation's series (tracking error, communication-graph
-edges); strategies add theirs through ``commands.info['scalars']`` (name ->
-value), each drawn in its own panel, and ``commands.info['robot_scalars']``
-(name -> (N,) values, NaN where undefined), drawn as one line per robot in
-one panel (e.g. the continuous-connectivity paper's Fig. 14d: each robot's role; codes named on the
-axis from ``commands.info['robot_scalar_levels']``), so a user can look
+edges); strategies add theirs through ``commands.scalars`` (name -> value;
+with the loop's ``e_g_m``: ``frame.scalars``), each drawn in its own panel,
+and ``commands.decorations.robot_scalars`` (name -> (N,) values, NaN where
+undefined), drawn as one line per robot in one panel (e.g. the continuous-connectivity paper's Fig.
+14d: each robot's role; codes named on the axis from
+``commands.decorations.robot_scalar_levels``), so a user can look
 instead of reading JSON. NaN (undefined, e.g. t*(t) before the first
 agreement) is a gap, never a value. Sampled every ``period_s`` of sim time; pages of
 ``PANELS_PER_FIGURE`` panels: ``timeseries.png``, ``timeseries_2.png``, ...
@@ -43,7 +44,7 @@ class PlotRecorder(Observer):
         self._planned: tuple[int, int, int] = (0, 0, 0)  # series, per-robot series, levels: when planned
         self._closing = False
 
-    def reads_info(self, time_s: float) -> bool:
+    def reads_decorations(self, time_s: float) -> bool:
         """The strategy's scalars are read only on sampled ticks."""
         return time_s + 1e-9 >= self._next_time
 
@@ -55,11 +56,12 @@ class PlotRecorder(Observer):
         error = tracking_errors(self.kinds, frame.observation.position, frame.commands.position)
         self.series["tracking error, mean over robots (m)"].append((t, float(error.mean())))
         self.series["communication links"].append((t, float(len(frame.observation.links.edges))))
-        for name, value in frame.commands.info.get("scalars", {}).items():
+        for name, value in frame.scalars.items():
             self.series[name].append((t, float(value)))
-        for name, values in frame.commands.info.get("robot_scalars", {}).items():
+        decorations = frame.commands.decorations
+        for name, values in decorations.robot_scalars.items():
             self.robot_series[name].append((t, np.array(values, dtype=float)))
-        for name, levels in frame.commands.info.get("robot_scalar_levels", {}).items():
+        for name, levels in decorations.robot_scalar_levels.items():
             self.levels[name] = levels
         if (len(self.series), len(self.robot_series), len(self.levels)) != self._planned:
             # Series only ever appear: a new count is a new layout for the painters to build.

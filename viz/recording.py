@@ -212,7 +212,7 @@ class _Tee:
 
 class RerunRecorder(Observer):
     """Logs a frame every ``period_s`` of sim time, and the run's last frame
-    when it closes; events (``info['events']``) at the tick they happen.
+    when it closes; events (``Decorations.events``) at the tick they happen.
 
     ``live_stream`` (e.g. :attr:`LiveViewer.stream`) gets everything the file
     gets; the recorder flushes it at the end but leaves it open.
@@ -315,7 +315,7 @@ class RerunRecorder(Observer):
     def on_tick(self, frame: Frame) -> None:
         if time.monotonic() >= self._rotate_at:
             self._rotate()
-        log_events(self, frame)  # a strategy's info['events'], every tick
+        log_events(self, frame)  # a strategy's decorations' events, every tick
         if frame.observation.time_s + 1e-9 < self._next_time:
             self._unlogged = frame
             return
@@ -325,15 +325,15 @@ class RerunRecorder(Observer):
 
     def log_frame(self, frame: Frame) -> None:
         obs = frame.observation
-        info = frame.commands.info
+        decorations = frame.commands.decorations
         self._set_time(obs.time_s, obs.tick)
-        self.rec.log("world/robots", rr.Points3D(obs.position, colors=robot_colors_rgb8(info, self._kind_colors)))
+        self.rec.log("world/robots", rr.Points3D(obs.position, colors=robot_colors_rgb8(decorations, self._kind_colors)))
         self.rec.log("world/references", rr.Points3D(frame.commands.position, colors=REFERENCE_COLOR, radii=0.03))
         if len(frame.target_positions):
             self.rec.log("world/targets/true", rr.Points3D(frame.target_positions, colors=TARGET_COLOR, radii=0.06))
         edges = obs.links.edges
         strips = obs.position[edges] if len(edges) else np.zeros((0, 2, 3))
-        weights = info.get("link_weights")  # optional (N, N): green (1) to red (0)
+        weights = decorations.link_weights  # optional (N, N): green (1) to red (0)
         colors = LINK_COLOR if weights is None or not len(edges) else [
             tuple(int(round(255 * c)) for c in link_color(weights[i, j])[:3]) for i, j in edges]
         self.rec.log("world/links", rr.LineStrips3D(strips, colors=colors, radii=0.01))
@@ -341,11 +341,11 @@ class RerunRecorder(Observer):
         foundation = {"edges": float(len(edges)), "tracking_error_mean_m": float(error.mean())}
         # A strategy's series of the same name replaces the foundation's (as its summary does in
         # metrics.json): one value per entity and tick.
-        for key, value in {**foundation, **info.get("scalars", {})}.items():
+        for key, value in {**foundation, **frame.scalars}.items():
             self.rec.log(f"metrics/{key}", rr.Scalars(float(value)))
-        # Optional per-robot series, info['robot_scalars'] = {name: (N,) values}: robots/NAME, one
+        # Optional per-robot series, decorations.robot_scalars = {name: (N,) values}: robots/NAME, one
         # series per robot named after it (NaN = not defined for that robot at this tick: a gap).
-        for key, values in info.get("robot_scalars", {}).items():
+        for key, values in decorations.robot_scalars.items():
             if key not in self._robot_series:
                 self._robot_series.add(key)
                 self.rec.log(f"robots/{key}", rr.SeriesLines(names=list(self.world.robot_names)), static=True)
@@ -361,10 +361,10 @@ class RerunRecorder(Observer):
         """What the colours of ``frame`` mean, as Markdown: the strategy's legend (roles, teams,
         paths), the robots' kind colours when the strategy colours none, and the recorder's own."""
         entries = [(label, tuple(int(round(255 * c)) for c in rgba[:3])) for label, rgba in frame_legend(frame)]
-        if frame.commands.info.get("robot_colors") is None:
+        if frame.commands.decorations.robot_colors is None:
             entries += [(f"{kind} robot", KIND_COLORS[kind]) for kind in dict.fromkeys(self.world.robot_kinds)]
         entries.append(("reference (the point a robot is steered to)", REFERENCE_COLOR))
-        if frame.commands.info.get("link_weights") is None:
+        if frame.commands.decorations.link_weights is None:
             entries.append(("communication link", LINK_COLOR))
         else:
             entries += [("link of full weight (1)", LINK_FULL_RGB), ("link of weight near 0", LINK_EMPTY_RGB)]

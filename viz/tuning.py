@@ -21,7 +21,7 @@ outside) and a small JSON API:
   GET  /scenario.toml     the same TOML as a download
 
 Plots: the foundation's tracking error and link count plus every
-``commands.info['scalars']`` entry the strategy reports, sampled every
+``frame.scalars`` entry the strategy reports (and the loop's ``e_g_m``), sampled every
 ``SAMPLE_PERIOD_S`` of sim time. Requests from another origin (or with a
 foreign Host header) are refused, so other web pages cannot drive the server.
 """
@@ -199,7 +199,7 @@ class TuningSession:
         self._seq = 0
         self._next_sample = 0.0
         self.figures: dict[str, float] = {}
-        self.legend: list[dict[str, str]] = []  # the strategy's info['legend']: what the view's colours mean
+        self.legend: list[dict[str, str]] = []  # the strategy's decorations' legend: what the view's colours mean
         self.real_time_factor: float | None = None
         self._jpeg: bytes | None = None
         self.frame_seq = 0
@@ -342,7 +342,7 @@ class TuningSession:
         obs, commands = frame.observation, frame.commands
         error = tracking_errors(self.sim.world.robot_kinds, obs.position, commands.position)
         values = {"tracking_error_mean_m": float(error.mean()), "links": float(len(obs.links.edges))}
-        for name, value in commands.info.get("scalars", {}).items():
+        for name, value in frame.scalars.items():
             values[str(name)] = float(value)
         from viz.decorations import frame_legend
 

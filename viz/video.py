@@ -1,11 +1,11 @@
 """Offscreen video through MuJoCo's renderer (EGL), streamed to ffmpeg.
 
-An observer: it reads ``MjData`` and the tick's frame, never writes to the
-simulation. Frames are taken at the video fps in sim time; a renderer
-process draws them and writes them one by one to the encoder (an ffmpeg
-process fed through a pipe), so the simulation does not wait for rendering
-or encoding (beyond a bounded queue's back-pressure) and memory does not
-grow with the video's length.
+An observer: it draws the tick's frame (its MuJoCo state ``frame.state``
+and its decorations), never writes to the simulation. Frames are taken at
+the video fps in sim time; a renderer process draws them and writes them
+one by one to the encoder (an ffmpeg process fed through a pipe), so the
+simulation does not wait for rendering or encoding (beyond a bounded
+queue's back-pressure) and memory does not grow with the video's length.
 Communication links are drawn as capsules between robots; robot references
 (virtual points) as small spheres. :class:`FrameRenderer` draws one frame
 (scene, decorations, overlay band); the video recorder and the tuning page
@@ -20,7 +20,7 @@ camera the scene names; ``free``; ``auto`` is ``top``.
 Markers, links and paths have a minimum size in pixels of a view of the
 whole floor (:meth:`FrameRenderer.at_least`), so robots stay visible in a
 70 m scene. The overlay's glyphs scale with the frame height; the legend
-band at the bottom says what the colours mean (``info['legend']``).
+band at the bottom says what the colours mean (``Decorations.legend``).
 """
 
 from __future__ import annotations
@@ -35,7 +35,8 @@ import mujoco
 import numpy as np
 
 from sim.config import ConfigError
-from sim.observers import Frame, Observer
+from sim.observers import Frame, Observer, PhysicsState
+from sim.types import Decorations, TargetEstimate
 from sim.scenario import VideoConfig
 from sim.world import World
 from viz.decorations import draw_video_decorations, frame_legend, halo_color
@@ -94,9 +95,9 @@ def resolve_camera(model: mujoco.MjModel, name: str) -> str:
 
 
 def overlay_text(frame: Frame) -> str:
-    """Sim time, link count and the strategy's own line (``info['overlay']``)."""
+    """Sim time, link count and the strategy's own line (``Decorations.overlay``)."""
     parts = [f"t = {frame.observation.time_s:6.1f} s", f"links {len(frame.observation.links.edges)}"]
-    extra = frame.commands.info.get("overlay")
+    extra = frame.commands.decorations.overlay
     if extra:
         parts.append(str(extra))
     return "   ".join(parts)
@@ -194,7 +195,7 @@ def draw_decorations(canvas, frame: Frame) -> None:
     anything with its ``world``, ``metres_per_px``, ``at_least``,
     ``_add_capsule`` and ``_add_sphere`` (MuJoCo's viewer, viz.viewer)."""
     positions = frame.observation.position
-    weights = frame.commands.info.get("link_weights")
+    weights = frame.commands.decorations.link_weights
     link_width = canvas.at_least(LINK_WIDTH_M, LINK_MIN_PX)
     for i, j in frame.observation.links.edges:
         rgba = LINK_RGBA if weights is None else link_color(weights[i, j])
@@ -206,11 +207,11 @@ def draw_decorations(canvas, frame: Frame) -> None:
     world = canvas.world
     halo = canvas.at_least(GROUND_HALO_RADIUS_M, ROBOT_MIN_PX)
     for i in world.kind_index["ground"]:
-        canvas._add_sphere(positions[i], halo, halo_color(frame.commands.info, i, GROUND_HALO_RGBA))
+        canvas._add_sphere(positions[i], halo, halo_color(frame.commands.decorations, i, GROUND_HALO_RGBA))
     if QUAD_HALO_FROM_PX * canvas.metres_per_px > QUADROTOR_SPAN_M:
         for i in world.kind_index["quadrotor"]:
-            canvas._add_sphere(positions[i], halo, halo_color(frame.commands.info, i, GROUND_HALO_RGBA))
-    draw_video_decorations(canvas, frame)  # optional info keys: paths, meeting points, target estimates
+            canvas._add_sphere(positions[i], halo, halo_color(frame.commands.decorations, i, GROUND_HALO_RGBA))
+    draw_video_decorations(canvas, frame)  # paths, meeting points, target estimates, markers
 
 
 class FrameRenderer:
@@ -243,6 +244,7 @@ class FrameRenderer:
         # Metres per pixel of a view of the whole floor: the scale of the minimum marker sizes.
         self.metres_per_px = TOP_MARGIN * max((hi[0] - lo[0]) / config.width, (hi[1] - lo[1]) / config.height)
         self._ortho_height_m: float | None = None
+        self._data: mujoco.MjData | None = None  # frame.state's, drawn (made on first use)
         self.set_camera(config.camera)
 
     def set_camera(self, name: str) -> None:
@@ -256,17 +258,29 @@ class FrameRenderer:
         stay visible in a 70 m scene as in a 10 m one."""
         return max(size_m, pixels * self.metres_per_px)
 
-    def _update_scene(self) -> None:
+    def _update_scene(self, data: mujoco.MjData) -> None:
         vis = self.world.model.vis.global_
         if self._ortho_height_m is None:
-            self.renderer.update_scene(self.world.data, self.camera, self.options)
+            self.renderer.update_scene(data, self.camera, self.options)
             return
         # An orthographic free camera reads its view height (m) from the model's free-camera fovy.
         fovy, vis.fovy = vis.fovy, self._ortho_height_m
         try:
-            self.renderer.update_scene(self.world.data, self.camera, self.options)
+            self.renderer.update_scene(data, self.camera, self.options)
         finally:
             vis.fovy = fovy
+
+    def _data_of(self, frame: Frame) -> mujoco.MjData:
+        """The MuJoCo state to draw: ``frame.state`` in the renderer's own MjData
+        (the live one may be a tick ahead), else ``world.data``."""
+        state = getattr(frame, "state", None)
+        if state is None:
+            return self.world.data
+        if self._data is None:
+            self._data = mujoco.MjData(self.world.model)
+        state.load_into(self._data)
+        mujoco.mj_forward(self.world.model, self._data)
+        return self._data
 
     def _camera(self, name: str):
         model = self.world.model
@@ -310,8 +324,9 @@ class FrameRenderer:
         add_sphere(self.renderer.scene, p, radius, rgba)
 
     def render(self, frame: Frame) -> np.ndarray:
-        """The current state of ``world.data`` with ``frame``'s decorations."""
-        self._update_scene()
+        """``frame``'s MuJoCo state (``frame.state``; ``world.data`` for a frame
+        without one) with its decorations."""
+        self._update_scene(self._data_of(frame))
         draw_decorations(self, frame)
         image = self.renderer.render()
         return burn_overlay(image, overlay_text(frame), frame_legend(frame))
@@ -335,7 +350,8 @@ class _ObservationView:
 @dataclass(frozen=True)
 class _CommandsView:
     position: np.ndarray  # (N, 3) references (virtual points), m
-    info: dict  # the strategy's decorations (paths, meeting points, overlay, ...)
+    decorations: Decorations  # the strategy's paths, meeting points, overlay, ...
+    estimate: TargetEstimate | None
 
 
 @dataclass(frozen=True)
@@ -345,14 +361,16 @@ class FrameView:
     observation: _ObservationView
     commands: _CommandsView
     target_positions: np.ndarray  # (M, 3) true target positions, m (the legend names them when present)
+    state: PhysicsState  # MuJoCo's state of the tick, drawn
 
     @staticmethod
     def of(frame: Frame) -> "FrameView":
         obs, cmd = frame.observation, frame.commands
         return FrameView(
             _ObservationView(np.array(obs.position), float(obs.time_s), _LinksView(list(obs.links.edges))),
-            _CommandsView(np.array(cmd.position), dict(cmd.info)),
+            _CommandsView(np.array(cmd.position), cmd.decorations, cmd.estimate),
             np.array(frame.target_positions),
+            frame.state,
         )
 
 
@@ -370,8 +388,9 @@ class VideoRecorder(Observer):
     Rendering (software EGL, ~30 ms a 640x480 frame) and encoding run in a
     renderer process of their own (start method 'spawn': a fresh process
     owns its GL context). The simulation only copies the state of a tick
-    whose frame is due (qpos, qvel, act, mocap poses) and what the frame's
-    decorations read (:class:`FrameView`) into a bounded queue of
+    whose frame is due (``frame.state``: qpos, qvel, act, mocap poses, the
+    state the frame's observation was read from) and what its decorations
+    read (:class:`FrameView`) into a bounded queue of
     ``VIDEO_QUEUE_FRAMES`` states; the renderer recomputes the kinematics
     (``mj_forward``) and draws. Every frame is written: when rendering is
     slower than the simulation, the queue fills and the simulation waits for
@@ -406,10 +425,8 @@ class VideoRecorder(Observer):
         while (self.frames_written + repeats) / self.config.fps < until:
             repeats += 1
         if repeats:
-            data = self.world.data
-            state = (data.qpos, data.qvel, data.act, data.mocap_pos, data.mocap_quat)
             # Pickled now, not by the queue's feeder thread later: the strategy may reuse its arrays.
-            self._put(pickle.dumps((state, FrameView.of(frame), repeats), protocol=pickle.HIGHEST_PROTOCOL))
+            self._put(pickle.dumps((FrameView.of(frame), repeats), protocol=pickle.HIGHEST_PROTOCOL))
             self.frames_written += repeats
 
     def _put(self, item) -> None:
@@ -464,7 +481,6 @@ def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, 
         import imageio.v2 as imageio
 
         world = pickle.loads(world_pickle)
-        model, data = world.model, world.data
         view = FrameRenderer(world, config)
         writer = imageio.get_writer(
             path, fps=config.fps, codec="libx264", quality=7, macro_block_size=1,
@@ -473,11 +489,8 @@ def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, 
         parent = multiprocessing.parent_process()
         try:
             while (item := _next_state(states, parent)) is not None:
-                (qpos, qvel, act, mocap_pos, mocap_quat), frame, repeats = pickle.loads(item)
-                data.qpos[:], data.qvel[:], data.act[:] = qpos, qvel, act
-                data.mocap_pos[:], data.mocap_quat[:] = mocap_pos, mocap_quat
-                mujoco.mj_forward(model, data)
-                image = view.render(frame)
+                frame, repeats = pickle.loads(item)
+                image = view.render(frame)  # its own state (frame.state)
                 for _ in range(repeats):
                     writer.append_data(image)
                     written += 1

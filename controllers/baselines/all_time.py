@@ -26,6 +26,7 @@ geodesic path towards the most uncertain target and plans again there.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
@@ -53,7 +54,7 @@ from controllers.intermittent.strategy import team_connected
 from controllers.task import neutral_prior
 from estimation.beliefs import Belief
 from sim.config import ConfigError
-from sim.types import Commands, Observation, SceneChange, WorldInfo
+from sim.types import Commands, Decorations, Observation, SceneChange, WorldInfo, readonly
 from sim.strategy import Strategy
 
 HOLD_STEPS = 5  # steps to stay put when neither the planner nor the fallback finds a path
@@ -143,8 +144,9 @@ class AllTimeStrategy(Strategy):
             self.events.append("formation planner found no path; driving towards the most uncertain target")
         self.plan_times.append(wall)
         self.cost_times.append(cost)
-        self._paths_visual = [(lifted(path.positions), team_color(0))]
-        self._goal_visual = lifted(path.positions[-1])[None]
+        # Read-only once, so the decorations keep these objects until the next plan.
+        self._paths_visual = ((readonly(lifted(path.positions)), readonly(team_color(0))),)
+        self._goal_visual = readonly(lifted(path.positions[-1])[None])
         return TimedPath(path, self.step_s, now_s - start_step * self.step_s)
 
     def _fallback(self, start: np.ndarray, start_step: int, estimate) -> RobotPath:
@@ -193,21 +195,20 @@ class AllTimeStrategy(Strategy):
                                           np.broadcast_to(velocity, self.offsets.shape))
         commands = commands_from_plane(observation, references,
                                        np.broadcast_to(velocity, self.offsets.shape).copy())
-        info = {
-            "scalars": self._scalars,
-            "overlay": f"all_time: formation of {len(self.offsets)}, {len(self.plan_times)} paths planned",
-            "robot_colors": np.broadcast_to(team_color(0), (len(self.offsets), 4)).copy(),
-            "legend": [("formation", team_color(0))],
-            "paths": self._paths_visual,
-            "meeting_points": self._goal_visual,  # the end of the formation's current path
-            "meeting_point_colors": (team_color(0) * (1, 1, 1, 0.5))[None],
-            **self.series.info(),
-        }
-        if self.events:
-            info["events"] = self.events
-            self.events = []
-        commands.info = info
-        return commands
+        if not observation.decorations_wanted:  # (sim.types.Observation) events wait for a tick that draws
+            return dataclasses.replace(commands, estimate=self.series.estimate)
+        events, self.events = tuple(self.events), []
+        decorations = Decorations(
+            overlay=f"all_time: formation of {len(self.offsets)}, {len(self.plan_times)} paths planned",
+            robot_colors=np.broadcast_to(team_color(0), (len(self.offsets), 4)).copy(),
+            legend=(("formation", team_color(0)),),
+            paths=self._paths_visual,
+            meeting_points=self._goal_visual,  # the end of the formation's current path
+            meeting_point_colors=(team_color(0) * (1, 1, 1, 0.5))[None],
+            events=events,
+        )
+        return dataclasses.replace(commands, scalars=self._scalars, estimate=self.series.estimate,
+                                   decorations=decorations)
 
     def summary(self) -> dict:
         return {

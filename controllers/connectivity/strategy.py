@@ -47,15 +47,16 @@ lists, Sec. 2.1); a caller may pass ``targets``, a function
 ``self.queues`` during the run (online targets, e.g. the EKF's viewpoints of
 ``connected_tracking``).
 
-``commands.info``: ``scalars`` (lambda2, edges, roles, Lambda_p and its
-estimates, Theta, rho, distances: plots and the recording), ``robot_scalars``
-(per robot: role, hat-Lambda_p^i, Lambda_i, Theta_i, rho_i: the recording),
-``link_weights`` (W: link colours in the video), ``robot_colors`` (prime
-traveler highlighted), ``paths`` (planned paths gamma_i), ``markers`` and
+``commands.scalars``: lambda2, edges, roles, Lambda_p and its estimates,
+Theta, rho, distances (plots and the recording); ``commands.decorations``
+(sim.types.Decorations): ``robot_scalars`` (per robot: role,
+hat-Lambda_p^i, Lambda_i, Theta_i, rho_i: the recording), ``link_weights``
+(W: link colours in the video), ``robot_colors`` (prime traveler
+highlighted), ``paths`` (planned paths gamma_i), ``markers`` and
 ``marker_colors`` (current targets), ``events`` (role changes and visits),
 ``overlay`` (one line burned into the video). Built only on ticks whose
-observation has ``info_wanted`` (an observer reads them); role changes and
-visits wait in ``events`` until then.
+observation has ``decorations_wanted`` (an observer reads them); role
+changes and visits wait in ``events`` until then.
 
 Deviations from the paper
 -------------------------
@@ -116,7 +117,7 @@ from controllers.connectivity.roles import ANCHOR_CODE, CONNECTOR_CODE, PRIME_CO
 from controllers.connectivity.smooth_spectrum import smooth_lambda2_gradient
 from sim.config import ConfigError
 from sim.geometry import boxes_reaching, point_clearance
-from sim.types import Commands, Observation, WorldInfo
+from sim.types import NO_DECORATIONS, Commands, Decorations, Observation, WorldInfo
 from sim.strategy import Strategy
 
 # Colours (RGBA) of the robots by role in the video (the paper's Fig. 6:
@@ -132,9 +133,10 @@ ROLE_NAMES = {Role.PRIME_TRAVELER: "prime traveler", Role.SECONDARY_TRAVELER: "s
 PRIME_PATH_RGBA = np.array([0.0, 0.85, 0.75, 0.9])
 SECONDARY_PATH_RGBA = np.array([0.2, 0.2, 0.25, 0.6])
 TARGET_RGBA = np.array([0.95, 0.2, 0.6, 0.8])
-# What the colours mean (``info['legend']``: video, tuning page) and the role codes' names (plots).
-LEGEND = [*((ROLE_NAMES[r], ROLE_COLORS[r]) for r in Role), ("prime's path", PRIME_PATH_RGBA),
-          ("secondary's path", SECONDARY_PATH_RGBA), ("target", TARGET_RGBA)]
+# What the colours mean (``Decorations.legend``: video, tuning page) and the role codes' names (plots).
+LEGEND = Decorations(legend=(*((ROLE_NAMES[r], ROLE_COLORS[r]) for r in Role), ("prime's path", PRIME_PATH_RGBA),
+                             ("secondary's path", SECONDARY_PATH_RGBA),
+                             ("target", TARGET_RGBA))).legend  # read-only once, not every tick
 ROLE_LEVELS = {float(r): ROLE_NAMES[r] for r in Role}
 # Spacing of the points that draw a planned path, as a fraction of R_grid.
 _PATH_DRAW_SPACING = 2.0
@@ -265,7 +267,7 @@ class ConnectedStrategy(Strategy):
         """The invariant the tick of ``commands`` broke, or None: Nestmeyer et al. 2017
         keeps lambda2 > lambda2_min and no two virtual points within R_c."""
         p = self.params
-        scalars = commands.info.get("scalars", {})
+        scalars = commands.scalars
         lambda2 = scalars.get("lambda2", np.inf)
         if not lambda2 > p.lambda2_min + LAMBDA2_TOLERANCE:
             return f"lambda2 = {lambda2:.3g} fell to lambda2_min = {p.lambda2_min:g} (connectivity lost)"
@@ -332,10 +334,12 @@ class ConnectedStrategy(Strategy):
             if not out.skipped and len(out.visits) == self.targets_total:
                 self.completion_time = max((visit.completion_time for visit in out.visits), default=t)
         self.last = out
-        info = {}
-        if observation.info_wanted:  # figures and decorations only for observers that read them
-            info = self._info(out, state, estimate, f_lambda, tick, robot_distance, obstacle_distance)
-        commands = Commands(q.copy(), v.copy(), acceleration, np.zeros(len(q)), info)
+        # The invariant's figures every tick (violation() reads them); the rest only for observers.
+        scalars, decorations = {"lambda2": tick["lambda2"], "min_robot_distance_m": robot_distance}, NO_DECORATIONS
+        if observation.decorations_wanted:  # figures and decorations only for observers that read them
+            scalars, decorations = self._outputs(out, state, estimate, f_lambda, tick, robot_distance,
+                                                 obstacle_distance)
+        commands = Commands(q.copy(), v.copy(), acceleration, np.zeros(len(q)), scalars, decorations=decorations)
         self.q, self.v = q_next, v_next
         return commands
 
@@ -368,7 +372,8 @@ class ConnectedStrategy(Strategy):
         cached[2] = start
         return np.vstack([position[None], points[start + 1:]]) if start + 1 < len(points) else points[-2:]
 
-    def _info(self, out: ExplorationStep, state, estimate, f_lambda, tick, robot_distance, obstacle_distance) -> dict:
+    def _outputs(self, out: ExplorationStep, state, estimate, f_lambda, tick, robot_distance,
+                 obstacle_distance) -> tuple[dict[str, float], Decorations]:
         roles = out.roles
         secondary = roles == SECONDARY_CODE
         others = roles != PRIME_CODE
@@ -407,22 +412,20 @@ class ConnectedStrategy(Strategy):
         self._drawn_paths = {key: value for key, value in self._drawn_paths.items() if key in current}
         has_target = ~np.isnan(out.targets[:, 0])
         prime = self.names[out.prime] if out.prime >= 0 else "none"
-        info = {
-            "scalars": scalars,
-            "robot_scalars": robot_scalars,
-            "robot_scalar_levels": {"role": ROLE_LEVELS},
-            "legend": LEGEND,
-            "link_weights": state.weights,
-            "robot_colors": colors,
-            "paths": paths,
-            "markers": out.targets[has_target],
-            "marker_colors": np.broadcast_to(TARGET_RGBA, (int(has_target.sum()), 4)).copy(),
-            "overlay": f"lambda2 {state.lambda2:.3f}  prime {prime}  targets {len(out.visits)}/{self.targets_total}",
-        }
-        if self._events:
-            info["events"] = self._events
-            self._events = []
-        return info
+        events, self._events = tuple(self._events), []
+        decorations = Decorations(
+            robot_scalars=robot_scalars,
+            robot_scalar_levels={"role": ROLE_LEVELS},
+            legend=LEGEND,
+            link_weights=state.weights,
+            robot_colors=colors,
+            paths=paths,
+            markers=out.targets[has_target],
+            marker_colors=np.broadcast_to(TARGET_RGBA, (int(has_target.sum()), 4)).copy(),
+            overlay=f"lambda2 {state.lambda2:.3f}  prime {prime}  targets {len(out.visits)}/{self.targets_total}",
+            events=events,
+        )
+        return scalars, decorations
 
     def progress(self) -> str:
         """How far the mission got, for the run's status message."""

@@ -13,8 +13,8 @@ this module holds what they share:
   tracks (|v| <= u_max per step).
 - (in :mod:`controllers.task`, shared with ``connected_tracking``) the
   readings as records, the prior, the time base, :class:`EstimateSeries`.
-- colours and the visual ``info`` keys (``robot_colors``, ``paths``,
-  ``meeting_points``, ``target_estimates``, ``target_covariances``).
+- the team colours of the decorations (:class:`sim.types.Decorations`:
+  ``robot_colors``, ``paths``, ``meeting_points``).
 
 Units: m, s; plane positions (x, y) in the world frame; discrete steps are
 ``sensing.period_s`` seconds (``step_s``).

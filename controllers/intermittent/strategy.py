@@ -83,7 +83,7 @@ from estimation.ekf import FilterState
 from estimation.metrics import delay_report
 from sim.config import ConfigError
 from sim.geometry import pairwise_min_distance
-from sim.types import Commands, Observation, SceneChange, WorldInfo
+from sim.types import Commands, Decorations, Observation, SceneChange, WorldInfo
 from sim.strategy import Strategy
 
 RING_RADIUS_M = 0.06  # members of a geodesic meeting stop on a ring this wide around its point, m
@@ -251,7 +251,7 @@ class MeetingStrategy(Strategy):
         self.events: list[str] = []
         self._scalars: dict[str, float] = {}
         self._visual_dirty = True
-        self._visual: dict = {}
+        self._visual = Decorations()
         self._time_s = 0.0
         self.held_ticks = 0  # robot-ticks a path clock waited for its lagging body
         self.closest_m = math.inf  # closest approach of two robot bodies over the run, m
@@ -442,11 +442,11 @@ class MeetingStrategy(Strategy):
         positions = separated_references(positions, xy, self.planning, velocities, closest)
         self.closest_m = min(self.closest_m, closest)
         commands = commands_from_plane(observation, positions, velocities)
-        if observation.info_wanted:
-            commands.info = self._info(t)
-        else:  # no observer reads the figures and decorations: only the metrics keys (sim.types.Observation)
-            commands.info = dict(self.series.info())
-        return commands
+        if observation.decorations_wanted:
+            return dataclasses.replace(commands, scalars=self._scalars, estimate=self.series.estimate,
+                                       decorations=self._decorations(t))
+        # No observer reads the figures and decorations: only the estimate (sim.types.Observation).
+        return dataclasses.replace(commands, estimate=self.series.estimate)
 
     def _ready(self, meeting: Meeting, t: float) -> bool:
         """Every member's current segment leads to ``meeting`` and has reached its end."""
@@ -473,30 +473,25 @@ class MeetingStrategy(Strategy):
             for p in meeting.points:
                 points.append(lifted(p))
                 point_colors.append(rgba)
-        self._visual = {
-            "legend": [*((f"team {k}", team_color(k)) for k in range(len(self.teams.members))),
-                       ("no meeting planned", IDLE_COLOR)],
-            "robot_colors": np.array(colors),
-            "paths": paths,
-            "meeting_points": np.array(points).reshape(-1, 3),
-            "meeting_point_colors": np.array(point_colors).reshape(-1, 4),
-        }
+        self._visual = Decorations(
+            legend=(*((f"team {k}", team_color(k)) for k in range(len(self.teams.members))),
+                    ("no meeting planned", IDLE_COLOR)),
+            robot_colors=np.array(colors),
+            paths=paths,
+            meeting_points=np.array(points).reshape(-1, 3),
+            meeting_point_colors=np.array(point_colors).reshape(-1, 4),
+        )
         self._visual_dirty = False
 
-    def _info(self, t: float) -> dict:
+    def _decorations(self, t: float) -> Decorations:
         if self._visual_dirty:
             self._refresh_visual()
         held = int(self._scalars.get("meetings_held", 0))
-        info = {
-            "scalars": self._scalars,
-            "overlay": f"{self.kind}: {held} meetings held, {int(self._scalars['robots_waiting'])} robots at their meeting point",
-            **self._visual,
-            **self.series.info(),
-        }
-        if self.events:
-            info["events"] = self.events
-            self.events = []
-        return info
+        waiting = int(self._scalars["robots_waiting"])
+        events, self.events = tuple(self.events), []
+        # The plans' objects stay those of _visual until they change (the recording logs them then).
+        return dataclasses.replace(self._visual, events=events,
+                                   overlay=f"{self.kind}: {held} meetings held, {waiting} robots at their meeting point")
 
     def progress(self) -> str:
         """Meetings held so far against those scheduled, for the run's status message."""

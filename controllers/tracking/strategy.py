@@ -29,6 +29,8 @@ as is a range the ground preset cannot use (R_s <= R_c).
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from controllers.connectivity.connected_params import ConnectedParams
@@ -124,12 +126,8 @@ class ConnectedTrackingStrategy(WrappingStrategy):
         core = self.core
         self.generator.update(estimate, core.q, core.explorer, core.queues, fresh)
         commands = core.step(observation)
-        info = commands.info
-        scalars = info.get("scalars")
-        if isinstance(scalars, dict):
-            scalars.update(self._scalars)
-        info.update(self.series.info())
-        return commands
+        scalars = {**commands.scalars, **self._scalars} if observation.decorations_wanted else commands.scalars
+        return dataclasses.replace(commands, scalars=scalars, estimate=self.series.estimate)
 
     def summary(self) -> dict:
         core = self.core.summary()
