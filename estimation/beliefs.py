@@ -84,7 +84,7 @@ class RangeMeasurement:
         position = tuple(float(c) for c in self.sensor_position)
         if len(position) != 3:
             raise ValueError(f"sensor_position: need 3 coordinates, got {len(position)}")
-        if not all(math.isfinite(c) for c in position):  # math's test: numpy's costs ~5 us a record
+        if not all(math.isfinite(c) for c in position):  # math's test: numpy's costs more than the record
             raise ValueError(f"sensor_position: must be finite, got {position}")
         if int(self.step) < 0:
             raise ValueError(f"step: must be >= 0, got {self.step}")

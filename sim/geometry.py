@@ -102,7 +102,7 @@ def clearance_at(x, y, z, centers, half_sizes, rotations, aligned):
         excess0 = max(abs(local0) - half_sizes[k, 0], 0.0)
         excess1 = max(abs(local1) - half_sizes[k, 1], 0.0)
         excess2 = max(abs(local2) - half_sizes[k, 2], 0.0)
-        # Summed in the order numpy's einsum used before (x^2 + z^2) + y^2: same figures to the bit.
+        # Summed (x^2 + z^2) + y^2, numpy einsum's order: the trajectories' round-off depends on it.
         squared = (excess0 * excess0 + excess2 * excess2) + excess1 * excess1
         smallest = min(smallest, squared)
     return np.sqrt(smallest)

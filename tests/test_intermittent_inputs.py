@@ -1,5 +1,5 @@
 """Bad input for the intermittent-task strategies: one line naming the field, exit 2,
-nothing written (issue 4: a robot in one or three teams, a disconnected team
+nothing written (a robot in one or three teams, a disconnected team
 graph, delta <= 0, n_sample < 1, and the other checks of the strategies)."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Algorithm 5 on MuJoCo ground robots: a short real run, checked independently.
 
-Acceptance of issue 4: every held meeting has its team connected, and the
+The intermittent method's promises: every held meeting has its team connected, and the
 observed information delay never exceeds the bound of Proposition III.2.
 The fast test runs the paper's 4-team ring in a small room (many short
 epochs); the slow one runs the built-in ``intermittent-8`` scenario.

@@ -1,4 +1,4 @@
-"""Both paradigms on one task (issue 12): the continuous-connectivity paper's controller on the intermittent paper's ground
+"""Both paradigms on one task: the continuous-connectivity paper's controller on the intermittent paper's ground
 robots and task (``connected_tracking``), on the small test room (4 e-pucks, 2
 moving targets, R = 0.2 m), short runs with real MuJoCo, planner and EKF."""
 

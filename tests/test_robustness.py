@@ -1,4 +1,4 @@
-"""Nothing crashes, nothing is lost (issue 13): the bad-input catalogue.
+"""Nothing crashes, nothing is lost: the bad-input catalogue.
 
 Each case runs ``tether run`` in-process against an output folder that holds
 an earlier run's files, and asserts: exit code 2, one line on stderr naming

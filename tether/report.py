@@ -11,7 +11,7 @@ trials, and every cell states its n:
 - the intermittent paper's Sec. IV-A team graphs (``intermittent`` trials of two or more
   scenarios with the same targets): e_g, lambda-bar, delay against its
   bound and the t*(t) lag, the paper's figures beside;
-- both paradigms against the communication range (issue 12, sweep
+- both paradigms against the communication range (sweep
   ``paradigms``: ``e_g_mean_m`` of two or more strategy kinds with a swept
   ``sensing.comm_range_m``): e_g and lambda-bar per method and range, mean
   and spread over seeds, a table and a plot (``paradigms.png``);
@@ -57,7 +57,7 @@ PAPER_TABLE_I = {
 METHOD_ORDER = ("all_time", "random_meeting", "intermittent")  # Table I's column order
 METHOD_LABELS = {"all_time": "all-time", "random_meeting": "heuristic", "intermittent": "intermittent",
                  "connected_tracking": "connected (Nestmeyer et al. 2017)"}
-# Both paradigms on one task (issue 12): the methods in plotting order, and the swept range column.
+# Both paradigms on one task: the methods in plotting order, and the swept range column.
 PARADIGM_METHODS = ("all_time", "random_meeting", "intermittent", "connected_tracking")
 PARADIGM_COLORS = {"all_time": "#8c8c8c", "random_meeting": "#d98c3a", "intermittent": "#3a78d9",
                    "connected_tracking": "#2ca05a"}

@@ -223,7 +223,7 @@ class RerunRecorder(Observer):
         self.world = world
         self.period_s = period_s
         # The file needs no low latency: batching rows for a few seconds of wall time gives fewer,
-        # larger chunks (a 200 s connected-office run: about 5x smaller than with the default 200 ms).
+        # larger chunks, so a smaller file than with the SDK's default batching.
         self.path = Path(path)
         self.segments = self.path.with_name(self.path.name + SEGMENTS_SUFFIX)
         self.segments.mkdir(parents=True, exist_ok=True)

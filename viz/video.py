@@ -227,7 +227,7 @@ class FrameRenderer:
         model.vis.global_.offwidth = max(model.vis.global_.offwidth, config.width)
         model.vis.global_.offheight = max(model.vis.global_.offheight, config.height)
         # Coarser tessellation of spheres and capsules: software GL cost is triangles, and a connected
-        # mission draws ~300 path, link and marker geoms a frame (85 -> 30 ms at 640x480, no visible change).
+        # mission draws hundreds of path, link and marker geoms a frame (the coarser mesh shows no difference).
         model.vis.quality.numslices = min(model.vis.quality.numslices, MESH_SLICES)
         model.vis.quality.numstacks = min(model.vis.quality.numstacks, MESH_STACKS)
         self.renderer = mujoco.Renderer(model, config.height, config.width)
@@ -385,7 +385,7 @@ class VideoRecorder(Observer):
     run of T s gives ceil(T * fps) frames and the video lasts as long as the
     run at any fps.
 
-    Rendering (software EGL, ~30 ms a 640x480 frame) and encoding run in a
+    Rendering (slow on software EGL) and encoding run in a
     renderer process of their own (start method 'spawn': a fresh process
     owns its GL context). The simulation only copies the state of a tick
     whose frame is due (``frame.state``: qpos, qvel, act, mocap poses, the

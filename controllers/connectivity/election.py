@@ -117,7 +117,7 @@ class FloodingNetwork:
         links = np.asarray(adjacency)
         if links.dtype != np.bool_:
             links = links > 0
-        known_at = self._known_at.copy()  # (a new array, as before: callers may hold the old one)
+        known_at = self._known_at.copy()  # (a new array: callers may hold the previous one)
         _flood(known_at, links, int(tick), int(tick + self.latency_ticks))
         self._known_at = known_at
 

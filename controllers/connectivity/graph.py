@@ -394,7 +394,7 @@ def weighted_laplacian(weights: np.ndarray) -> np.ndarray:
 
 def _symmetric_eigh(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """np.linalg.eigh of a real symmetric (N, N) float matrix (its lower triangle), through the same
-    LAPACK gufunc without the wrapper's checks and casts (~10 us a call at N = 10); LinAlgError
+    LAPACK gufunc without the wrapper's checks and casts; LinAlgError
     when it does not converge (NaN eigenvalues), as np.linalg.eigh raises."""
     if _eigh_lo is None:
         return np.linalg.eigh(matrix)

@@ -86,7 +86,7 @@ class PathBatch:
                               self.table_start, self.table_size, self.u_table, self.s_table, self.p_padded,
                               _paths._NEWTON_STEPS, _paths._GL_X, arc_base, arc_span, node_speed,
                               closest, tangent, curvature, distance)
-        # Gauss-Legendre sum with numpy's matmul, as SplinePath.arc_length: the same figures to the bit.
+        # Gauss-Legendre sum with numpy's matmul, the summation of SplinePath.arc_length, so both give equal lengths.
         arc = arc_base + arc_span * (node_speed @ _paths._GL_W)
         return arc, closest, tangent, curvature, distance
 

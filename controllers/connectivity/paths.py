@@ -305,7 +305,7 @@ class SplinePath:
 
 def _fit_setup(waypoints: np.ndarray, knot_spacing: float) -> tuple:
     """The parts of ``_penalised_fit`` that do not depend on the weight: knots, the design matrix and
-    the normal equations' data terms (computed as the fit did, so each fit is the same to the bit)."""
+    the normal equations' data terms (computed as the fit does, so a refit reproduces it exactly)."""
     chord = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(waypoints, axis=0), axis=1))])
     total = chord[-1]
     spans = max(1, int(np.ceil(total / knot_spacing)))

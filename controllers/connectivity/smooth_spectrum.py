@@ -116,7 +116,7 @@ def smooth_lambda2_gradient(links: LinkWeights, eigenvalues: np.ndarray, eigenve
     slope = np.empty(len(values))
     s = float(_smooth_lambda2_kernel(values, float(kappa), slope))
     gradient = np.zeros((links.num_robots, 3))
-    # One batched eq. (17) for the modes that weigh (each bit-identical to the single-vector one), summed in
+    # One batched eq. (17) for the modes that weigh (each equal to the single-vector one), summed in
     # mode order: one compiled call.
     _weighted_mode_gradient(slope, _MIN_WEIGHT, eigenvectors, links.pairs, links.collision_factor,
                             links.link_factor, links.link_factor_grad_first, links.link_factor_grad_second,

@@ -176,7 +176,7 @@ class TimedPath:
         velocity = ((x1 - x0) / dt, (y1 - y0) / dt)
         if tau == times[k]:
             return (x0, y0), velocity
-        # The arithmetic of np.interp (RobotPath.position_at), so positions are bit-identical.
+        # The arithmetic of np.interp (RobotPath.position_at), so positions equal RobotPath.position_at's exactly.
         span = times[k + 1] - times[k]
         offset = tau - times[k]
         return ((x1 - x0) / span * offset + x0, (y1 - y0) / span * offset + y0), velocity

@@ -311,7 +311,7 @@ def _geometric_control_kernel(position, velocity, quaternion, omega, ref_positio
         for i in range(3):
             for k in range(3):
                 rt_rd[i, k] = rot[0, i] * rot_d[0, k] + rot[1, i] * rot_d[1, k] + rot[2, i] * rot_d[2, k]
-        for i in range(3):  # summed in the order of numpy's einsum, (0 + 2) + 1: the same figures to the bit
+        for i in range(3):  # summed (0 + 2) + 1, numpy einsum's order: equal to the numpy law's round-off
             omega_ref[i] = (rt_rd[i, 0] * omega_d[0] + rt_rd[i, 2] * omega_d[2]) + rt_rd[i, 1] * omega_d[1]
         # e_R = 0.5 vee(R_d^T R - R^T R_d), e_W = Omega - R^T R_d Omega_d.
         e_r0 = 0.5 * (rt_rd[1, 2] - rt_rd[2, 1])
