@@ -1,0 +1,236 @@
+"""Delivery that must succeed, above the message bus: a reliable link and a token handed hand to hand.
+
+``ReliableLink`` is one robot's endpoint. Each message it sends carries a
+transfer number (the link's own sequence numbers, one per endpoint; the
+bus's ``sequence`` changes with each retransmission). The receiver answers
+every copy with a small ack (``<kind>_ack``, ``ACK_BYTES``), which travels
+through the bus and can be lost like anything else, and passes a transfer to
+the application only the first time it arrives (duplicate suppression by
+sender and transfer number). The sender retransmits after ``timeout_s``
+without an ack, at most ``max_attempts`` times in all, then gives up. An
+ack is only ever sent for a copy that arrived, so a transfer the sender sees
+acknowledged was delivered; a transfer it gave up on may still have been
+delivered (every ack lost), which the caller must allow for.
+
+``TokenHandover`` passes one token (the intermittent method's handover
+token, a leader's role) with a three-way exchange, so that two robots never
+act as holder at once, whatever is lost:
+
+1. the holder sends an *offer* reliably and stops acting (``handing_over``);
+2. the receiver takes it as ``pending`` (it does not act) and acks it;
+3. on the ack, the old holder becomes ``idle`` and sends a *confirm*
+   reliably; the receiver acts as holder once the confirm for its pending
+   offer arrives.
+
+If the offer is given up (no ack after every attempt) the old holder takes
+the token back: it never sent, and never will send, that offer's confirm, so
+the receiver stays pending and never acts on it. A lost ack therefore only
+delays: the receiver waits pending, the sender retransmits, the receiver acks
+the duplicate. The price of safety is liveness in one case: if the confirm is
+given up, nobody holds the token (``token_maybe_lost`` at the old holder);
+the application must then recover, e.g. by a new election.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from sim.radio.bus import INT32_BYTES, Delivery, Message
+
+RELIABLE_HEADER_BYTES = INT32_BYTES  # the transfer number
+ACK_BYTES = INT32_BYTES  # an ack carries the transfer number it answers
+TOKEN_BYTES = INT32_BYTES  # an offer or a confirm: the offer's transfer number
+
+
+class Transport(Protocol):
+    """Where messages go: ``MessageBus`` or a test's scripted channel."""
+
+    def send(self, message: Message, time_s: float) -> Message: ...
+
+
+@dataclass(frozen=True)
+class ReliableData:
+    """The payload of a reliable message on the bus."""
+
+    transfer: int
+    data: Any
+
+
+@dataclass(frozen=True)
+class Ack:
+    transfer: int
+
+
+@dataclass(frozen=True)
+class Received:
+    """A transfer handed to the application, once."""
+
+    sender: int
+    kind: str
+    transfer: int
+    data: Any
+    arrival_s: float
+
+
+@dataclass(frozen=True)
+class LinkEvents:
+    """What one ``poll`` found: first arrivals, and the endpoint's own transfers acknowledged or given up."""
+
+    received: tuple[Received, ...] = ()
+    acknowledged: tuple[int, ...] = ()
+    gave_up: tuple[int, ...] = ()
+
+
+@dataclass
+class _Outgoing:
+    kind: str
+    receiver: int
+    data: Any
+    size_bytes: int
+    attempts: int
+    last_sent_s: float
+
+
+class ReliableLink:
+    """One robot's endpoint: sequence numbers, acks, retransmission, give-up, duplicate suppression."""
+
+    def __init__(self, transport: Transport, robot: int, *, timeout_s: float, max_attempts: int) -> None:
+        if timeout_s <= 0 or max_attempts < 1:
+            raise ValueError("timeout_s must be > 0 and max_attempts >= 1")
+        self.transport = transport
+        self.robot = robot
+        self.timeout_s = float(timeout_s)
+        self.max_attempts = int(max_attempts)
+        self._next_transfer = 0
+        self._outgoing: dict[int, _Outgoing] = {}
+        self._seen: set[tuple[int, int]] = set()
+        self.delivered: set[int] = set()  # transfers whose ack came back
+        self.given_up: set[int] = set()
+
+    def send(self, kind: str, receiver: int, data: Any, size_bytes: int, time_s: float) -> int:
+        """Send ``data`` (``size_bytes`` of application payload) to ``receiver``; returns the transfer number."""
+        transfer = self._next_transfer
+        self._next_transfer += 1
+        self._outgoing[transfer] = _Outgoing(kind, receiver, data, int(size_bytes), 1, float(time_s))
+        self._put(transfer, self._outgoing[transfer], time_s)
+        return transfer
+
+    def _put(self, transfer: int, out: _Outgoing, time_s: float) -> None:
+        self.transport.send(Message(out.kind, self.robot, (out.receiver,), ReliableData(transfer, out.data),
+                                    out.size_bytes + RELIABLE_HEADER_BYTES), time_s)
+
+    def status(self, transfer: int) -> str:
+        """'pending', 'delivered' (acknowledged) or 'gave_up'."""
+        if transfer in self.delivered:
+            return "delivered"
+        if transfer in self.given_up:
+            return "gave_up"
+        if transfer in self._outgoing:
+            return "pending"
+        raise KeyError(f"robot {self.robot} has no transfer {transfer}")
+
+    @property
+    def pending(self) -> int:
+        return len(self._outgoing)
+
+    def poll(self, time_s: float, deliveries: list[Delivery]) -> LinkEvents:
+        """Read this robot's deliveries of the tick, ack data, then retransmit or give up what timed out.
+
+        Deliveries that are not reliable data or acks are ignored.
+        """
+        received: list[Received] = []
+        acknowledged: list[int] = []
+        for delivery in deliveries:
+            message = delivery.message
+            if delivery.receiver != self.robot:
+                continue
+            if isinstance(message.payload, ReliableData):
+                transfer = message.payload.transfer
+                self.transport.send(Message(f"{message.kind}_ack", self.robot, (message.sender,), Ack(transfer),
+                                            ACK_BYTES), time_s)
+                if (message.sender, transfer) not in self._seen:
+                    self._seen.add((message.sender, transfer))
+                    received.append(Received(message.sender, message.kind, transfer, message.payload.data,
+                                             delivery.arrival_s))
+            elif isinstance(message.payload, Ack):
+                out = self._outgoing.get(message.payload.transfer)
+                if out is not None and out.receiver == message.sender:
+                    del self._outgoing[message.payload.transfer]
+                    self.delivered.add(message.payload.transfer)
+                    acknowledged.append(message.payload.transfer)
+        gave_up: list[int] = []
+        for transfer, out in list(self._outgoing.items()):
+            if time_s - out.last_sent_s < self.timeout_s - 1e-12:
+                continue
+            if out.attempts >= self.max_attempts:
+                del self._outgoing[transfer]
+                self.given_up.add(transfer)
+                gave_up.append(transfer)
+            else:
+                out.attempts += 1
+                out.last_sent_s = float(time_s)
+                self._put(transfer, out, time_s)
+        return LinkEvents(tuple(received), tuple(acknowledged), tuple(gave_up))
+
+
+@dataclass(frozen=True)
+class TokenOffer:
+    pass
+
+
+@dataclass(frozen=True)
+class TokenConfirm:
+    offer: int  # the offer's transfer number at the old holder
+
+
+@dataclass
+class TokenHandover:
+    """One robot's side of the token. ``acts_as_holder`` is the only state that may use the token."""
+
+    link: ReliableLink
+    state: str = "idle"  # 'holder', 'handing_over', 'pending', 'idle'
+    token_maybe_lost: bool = False  # a confirm this robot sent was given up
+    _offer: tuple[int, int] | None = field(default=None, repr=False)  # (transfer, receiver) while handing over
+    _confirm: int | None = field(default=None, repr=False)  # transfer of the confirm in flight
+    _pending: tuple[int, int] | None = field(default=None, repr=False)  # (sender, offer transfer)
+
+    OFFER_KIND = "handover"
+    CONFIRM_KIND = "handover_confirm"
+
+    @property
+    def acts_as_holder(self) -> bool:
+        return self.state == "holder"
+
+    def hand_over(self, receiver: int, time_s: float) -> None:
+        """Offer the token to ``receiver``; from now on this robot does not act as holder."""
+        if self.state != "holder":
+            raise RuntimeError(f"robot {self.link.robot} does not hold the token (state {self.state!r})")
+        transfer = self.link.send(self.OFFER_KIND, receiver, TokenOffer(), TOKEN_BYTES, time_s)
+        self._offer = (transfer, receiver)
+        self.state = "handing_over"
+
+    def handle(self, events: LinkEvents, time_s: float) -> None:
+        """Advance on this robot's link events of the tick."""
+        for transfer in events.acknowledged:
+            if self.state == "handing_over" and self._offer is not None and transfer == self._offer[0]:
+                offer, receiver = self._offer
+                self._confirm = self.link.send(self.CONFIRM_KIND, receiver, TokenConfirm(offer), TOKEN_BYTES,
+                                               time_s)
+                self._offer = None
+                self.state = "idle"
+        for transfer in events.gave_up:
+            if self.state == "handing_over" and self._offer is not None and transfer == self._offer[0]:
+                # No ack, so no confirm was sent or ever will be: the receiver cannot act on this offer.
+                self._offer = None
+                self.state = "holder"
+            elif transfer == self._confirm:
+                self.token_maybe_lost = True
+        for got in events.received:
+            if got.kind == self.OFFER_KIND and isinstance(got.data, TokenOffer) and self.state in ("idle", "pending"):
+                self._pending = (got.sender, got.transfer)
+                self.state = "pending"
+            elif (got.kind == self.CONFIRM_KIND and isinstance(got.data, TokenConfirm) and self.state == "pending"
+                  and self._pending == (got.sender, got.data.offer)):
+                self._pending = None
+                self.state = "holder"
