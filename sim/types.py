@@ -67,6 +67,75 @@ class Links:
 
 
 @dataclass(frozen=True)
+class RadioState:
+    """The radio channel of every robot pair at one tick, all (N, N), symmetric, read-only.
+
+    Figures are computed on first read (``sim.radio.link``). Under the
+    ``ideal`` preset ``delivery`` is the link adjacency (1 in comm range with
+    line of sight, 0 elsewhere) and the power figures are NaN. The diagonal is
+    NaN for powers, 0 for delivery and walls.
+    """
+
+    preset: str  # the scenario's radio.preset
+    delivery_threshold: float  # a pair is in the communication graph at this delivery probability
+    comm_range_m: float  # the scenario's sensing.comm_range_m (the ideal radio's disk)
+    distance: np.ndarray  # centre distance, m (the links')
+    # Compute the channel's figures (a dict of (N, N) arrays) and the walls, on first read.
+    channel_of: Callable[[], dict[str, np.ndarray]] = field(repr=False, compare=False)
+    walls_of: Callable[[], dict[str, np.ndarray]] = field(repr=False, compare=False)
+
+    @functools.cached_property
+    def _channel(self) -> dict[str, np.ndarray]:
+        return {key: readonly(value) for key, value in self.channel_of().items()}
+
+    @functools.cached_property
+    def _walls(self) -> dict[str, np.ndarray]:
+        return {key: readonly(value) for key, value in self.walls_of().items()}
+
+    @property
+    def rx_power_dbm(self) -> np.ndarray:
+        """Mean received power (path loss, walls, shadowing; no fading), dBm."""
+        return self._channel["rx_power_dbm"]
+
+    @property
+    def snr_db(self) -> np.ndarray:
+        """Mean SNR over the noise floor, dB (per-packet fading comes on top, in the message bus)."""
+        return self._channel["snr_db"]
+
+    @property
+    def shadowing_db(self) -> np.ndarray:
+        """This tick's log-normal shadowing loss, dB."""
+        return self._channel["shadowing_db"]
+
+    @property
+    def delivery(self) -> np.ndarray:
+        """Probability that the reference packet arrives at the mean SNR, 0..1."""
+        return self._channel["delivery"]
+
+    @property
+    def walls(self) -> np.ndarray:
+        """Obstacle boxes the segment between the pair crosses, int."""
+        return self._walls["count"]
+
+    @property
+    def wall_loss_db(self) -> np.ndarray:
+        """Their summed loss, dB."""
+        return self._walls["loss_db"]
+
+    @functools.cached_property
+    def comm_adjacency(self) -> np.ndarray:
+        """bool: the communication graph, delivery >= delivery_threshold, no self-loops."""
+        return readonly(self.delivery >= self.delivery_threshold)
+
+    @functools.cached_property
+    def in_range(self) -> np.ndarray:
+        """bool: pairs within comm_range_m, no self-loops."""
+        near = self.distance <= self.comm_range_m
+        np.fill_diagonal(near, False)
+        return readonly(near)
+
+
+@dataclass(frozen=True)
 class Observation:
     """What the robots sense at one control tick."""
 
@@ -86,6 +155,8 @@ class Observation:
     # filled (the metrics read it every tick). The loop sets it from the
     # observers' ``reads_decorations`` (sim.observers).
     decorations_wanted: bool = True
+    # The radio channel of every pair (sim.radio.link), computed on first read; None outside a Simulation.
+    radio: RadioState | None = None
 
 
 def readonly(array: Any) -> np.ndarray:
