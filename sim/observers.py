@@ -213,8 +213,9 @@ def link_figures(observation: Observation) -> LinkFigures:
     if radio is None:
         return LinkFigures(edges, sensing, sensing, 1.0 if edges else float("nan"))
     comm = graph_lambda2(radio.comm_adjacency)
-    near = np.triu(radio.in_range, 1)
-    delivery = float(radio.delivery[near].mean()) if near.any() else float("nan")
+    first, second = radio.pairs
+    near = radio.distance[first, second] <= radio.comm_range_m
+    delivery = float(radio.channel_pairs["delivery"][near].mean()) if near.any() else float("nan")
     return LinkFigures(edges, sensing, comm, delivery)
 
 

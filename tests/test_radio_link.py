@@ -154,6 +154,15 @@ def test_under_ideal_the_delivery_is_the_adjacency_on_a_run():
         assert np.all(np.isnan(radio.rx_power_dbm)) and not radio.delivery.flags.writeable
 
 
+def test_under_ideal_nothing_is_drawn():
+    simulation = build_simulation(load("connected-office", ["robots.0.count=6"], duration_s=1.0))
+    before = simulation.radio.rng.bit_generator.state
+    for _ in range(5):
+        frame, _ = simulation.tick()
+        frame.observation.radio.delivery
+    assert simulation.radio.rng.bit_generator.state == before
+
+
 def _indoor_channel(**keys) -> RadioChannel:
     scenario = load("intermittent-4", [f"radio.{key}={value!r}" if isinstance(value, str) else f"radio.{key}={value}"
                                        for key, value in {"preset": "ieee802154", **keys}.items()])
@@ -185,6 +194,24 @@ def test_under_ieee802154_delivery_falls_with_distance_and_with_walls():
     assert state.rx_power_dbm[0, 1] == pytest.approx(state.rx_power_dbm[2, 3] - state.wall_loss_db[0, 1])
     assert state.delivery[0, 1] < state.delivery[2, 3]
     np.testing.assert_array_equal(state.delivery, state.delivery.T)
+
+
+def test_the_channel_is_the_formulas_chain_exactly():
+    """Pairs whose delivery is certain (exactly 0 or 1) skip the BER; the shadowing's AR(1) keeps its
+    coefficients: both give channel.py's numbers to the bit."""
+    from sim.radio import channel as formulas
+
+    channel = _indoor_channel(tx_power_dbm=-45.0)
+    positions = np.random.default_rng(1).uniform([0.3, 0.3, 0.5], [9.7, 9.7, 2.0], (30, 3))
+    previous = channel.state(0.0, positions, _links(positions)).shadowing_db.copy()
+    state = channel.state(0.01, positions, _links(positions))
+    off = ~np.eye(30, dtype=bool)
+    assert 0.0 < state.delivery[off].mean() < 1.0
+    np.testing.assert_array_equal(state.delivery[off], channel.delivery_at_snr(state.snr_db[off]))
+    replay = np.random.default_rng(0)
+    replay.standard_normal(435)  # the first tick's stationary draw
+    expected = formulas.shadowing_step_db(previous[np.triu_indices(30, 1)], 0.01, 4.0, 2.0, rng=replay)
+    np.testing.assert_array_equal(state.shadowing_db[np.triu_indices(30, 1)], expected)
 
 
 def _radio_run(preset: str, seed: int, ticks: int = 40):

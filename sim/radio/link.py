@@ -22,7 +22,7 @@ import numpy as np
 from sim.geometry import Boxes
 from sim.radio import channel
 from sim.radio.config import RadioConfig
-from sim.radio.walls import walls_crossed
+from sim.radio.walls import SceneWalls
 from sim.types import Links, RadioState
 
 
@@ -34,11 +34,40 @@ class RadioChannel:
         scene = np.full(len(obstacles), np.nan) if wall_loss_db is None else np.asarray(wall_loss_db, dtype=float)
         # The scene's figure where it gives one, the scenario's elsewhere.
         self.loss_per_box_db = np.where(np.isnan(scene), config.wall_loss_db, scene)
+        self.walls = SceneWalls(obstacles, self.loss_per_box_db)
         self.comm_range_m = comm_range_m
         self.rng = rng
         self._pairs_n = -1
         self._shadowing: np.ndarray | None = None  # (P,) dB, the AR(1) state
         self._shadowing_time = -np.inf
+        self._step: tuple[float, float, float] = (np.nan, 0.0, 0.0)  # dt, rho, innovation std of the last step
+        if not config.is_ideal:
+            self._certain = self._certain_snr_db()
+
+    def delivery_at_snr(self, snr_db: np.ndarray) -> np.ndarray:
+        """Delivery probability of the reference packet at ``snr_db`` (dB): 1 - PER(BER(SNR))."""
+        config = self.config
+        ber = channel.bit_error_rate(config.radio.modulation, snr_db, config.radio.bandwidth_hz, config.bitrate_bps)
+        return 1.0 - channel.packet_error_rate(ber, config.reference_length_bits)
+
+    def _certain_snr_db(self) -> tuple[float, float]:
+        """(below, above): SNRs (dB) at or below which the delivery is exactly 0.0 and at or above which
+        it is exactly 1.0 in floating point; found by bisection on the curve itself, which never
+        falls as the SNR rises, so pairs outside them are filled without evaluating it."""
+        def edge(value: float, low: float, high: float) -> float:
+            # invariant: delivery(inside) != value, delivery(outside) == value
+            inside, outside = (low, high) if value == 1.0 else (high, low)
+            if self.delivery_at_snr(np.array(outside)) != value:
+                return np.inf if value == 1.0 else -np.inf
+            for _ in range(80):
+                middle = 0.5 * (inside + outside)
+                if self.delivery_at_snr(np.array(middle)) == value:
+                    outside = middle
+                else:
+                    inside = middle
+            return outside
+
+        return edge(0.0, -200.0, 200.0), edge(1.0, -200.0, 200.0)
 
     def _pairs(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         if self._pairs_n != n:
@@ -48,14 +77,21 @@ class RadioChannel:
         return self._upper
 
     def _advance_shadowing(self, time_s: float, pairs: int) -> np.ndarray:
-        """The shadowing at ``time_s``: drawn stationary at the first tick, one AR(1) step per later tick."""
+        """The shadowing at ``time_s``: drawn stationary at the first tick, one AR(1) step per later tick
+        (``channel.shadowing_step_db``, its coefficients kept while the step length stays)."""
         config = self.config
         if self._shadowing is None:
             self._shadowing = channel.shadowing_initial_db(config.shadowing_sigma_db, pairs, rng=self.rng)
         elif time_s > self._shadowing_time:
-            self._shadowing = channel.shadowing_step_db(
-                self._shadowing, time_s - self._shadowing_time, config.shadowing_sigma_db,
-                config.shadowing_correlation_s, rng=self.rng)
+            dt = time_s - self._shadowing_time
+            # Tick times are multiples of the control period: their differences vary in the last bits only.
+            if not abs(dt - self._step[0]) <= 1e-9 * dt:
+                rho = float(channel.shadowing_correlation(dt, config.shadowing_correlation_s))
+                innovation = float(channel.shadowing_step_db(0.0, dt, config.shadowing_sigma_db,
+                                                             config.shadowing_correlation_s, standard_normal=1.0))
+                self._step = (dt, rho, innovation)
+            _, rho, innovation = self._step
+            self._shadowing = rho * self._shadowing + innovation * self.rng.standard_normal(pairs)
         self._shadowing_time = time_s
         return self._shadowing
 
@@ -67,46 +103,36 @@ class RadioChannel:
         config = self.config
 
         def walls() -> dict[str, np.ndarray]:
-            crossed = walls_crossed(positions[first], positions[second], self.obstacles, self.loss_per_box_db)
-            return {"count": _symmetric(n, first, second, crossed.count, 0),
-                    "loss_db": _symmetric(n, first, second, crossed.loss_db, 0.0)}
+            crossed = self.walls.crossed(positions[first], positions[second])
+            return {"count": crossed.count, "loss_db": crossed.loss_db}
 
         if config.is_ideal:
             adjacency = links.adjacency
 
             def ideal() -> dict[str, np.ndarray]:
-                nan = np.full((n, n), np.nan)
+                nan = np.full(len(first), np.nan)
                 return {"rx_power_dbm": nan, "snr_db": nan, "shadowing_db": nan,
-                        "delivery": adjacency.astype(float)}
+                        "delivery": adjacency[first, second].astype(float)}
 
             return RadioState(config.preset, config.delivery_threshold, self.comm_range_m, links.distance,
-                              ideal, walls)
+                              ideal, walls, (first, second))
         shadowing = self._advance_shadowing(time_s, len(first))
         distance = links.distance
         state: RadioState
 
         def figures() -> dict[str, np.ndarray]:
-            radio = config.radio
             path_loss = channel.log_distance_path_loss_db(
                 distance[first, second], config.path_loss_exponent, config.reference_loss_db,
-                total_wall_loss_db=state._walls["loss_db"][first, second])
+                total_wall_loss_db=state.wall_pairs["loss_db"])
             rx = channel.received_power_dbm(config.tx_power_dbm, path_loss, shadowing)
             snr = channel.snr_db(rx, config.noise_floor_dbm)
-            ber = channel.bit_error_rate(radio.modulation, snr, radio.bandwidth_hz, config.bitrate_bps)
-            delivery = 1.0 - channel.packet_error_rate(ber, config.reference_length_bits)
-            return {"rx_power_dbm": _symmetric(n, first, second, rx, np.nan),
-                    "snr_db": _symmetric(n, first, second, snr, np.nan),
-                    "shadowing_db": _symmetric(n, first, second, shadowing, np.nan),
-                    "delivery": _symmetric(n, first, second, delivery, 0.0)}
+            below, above = self._certain
+            delivery = np.where(snr >= above, 1.0, 0.0)
+            uncertain = (snr > below) & (snr < above)
+            if uncertain.any():
+                delivery[uncertain] = self.delivery_at_snr(snr[uncertain])
+            return {"rx_power_dbm": rx, "snr_db": snr, "shadowing_db": shadowing, "delivery": delivery}
 
-        state = RadioState(config.preset, config.delivery_threshold, self.comm_range_m, distance, figures, walls)
+        state = RadioState(config.preset, config.delivery_threshold, self.comm_range_m, distance, figures, walls,
+                           (first, second))
         return state
-
-
-def _symmetric(n: int, first: np.ndarray, second: np.ndarray, values: np.ndarray, diagonal) -> np.ndarray:
-    """(N, N) from the pairs' values (i < j), mirrored; ``diagonal`` on the diagonal."""
-    out = np.empty((n, n), dtype=np.asarray(values).dtype)
-    out[first, second] = values
-    out[second, first] = values
-    np.fill_diagonal(out, diagonal)
-    return out
