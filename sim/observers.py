@@ -205,13 +205,14 @@ class LinkFigures:
 
 
 def link_figures(observation: Observation) -> LinkFigures:
-    """The graph figures of ``observation`` (the communication graph is the sensing one without a radio)."""
+    """The graph figures of ``observation`` (without a radio, as in a hand-built observation: the
+    communication graph is the sensing one and the delivery is not known)."""
     adjacency = observation.links.adjacency
     edges = int(np.count_nonzero(adjacency)) // 2
     sensing = graph_lambda2(adjacency)
     radio = observation.radio
     if radio is None:
-        return LinkFigures(edges, sensing, sensing, 1.0 if edges else float("nan"))
+        return LinkFigures(edges, sensing, sensing, float("nan"))
     comm = graph_lambda2(radio.comm_adjacency)
     first, second = radio.pairs
     near = radio.distance[first, second] <= radio.comm_range_m

@@ -244,3 +244,17 @@ def test_metrics_report_both_graphs_lambda2_and_the_delivery():
         assert metrics[key] is not None and metrics[key] >= 0, key
     assert metrics["comm_lambda2_min"] <= metrics["comm_lambda2_mean"]
     assert 0.0 <= metrics["radio_delivery_mean"] <= 1.0
+
+
+def test_graph_lambda2_of_known_graphs():
+    from sim.observers import graph_lambda2
+
+    path = np.zeros((3, 3), bool)
+    path[0, 1] = path[1, 0] = path[1, 2] = path[2, 1] = True
+    assert graph_lambda2(path) == pytest.approx(1.0)
+    complete = ~np.eye(5, dtype=bool)
+    assert graph_lambda2(complete) == pytest.approx(5.0)
+    split = np.zeros((4, 4), bool)
+    split[0, 1] = split[1, 0] = split[2, 3] = split[3, 2] = True
+    assert graph_lambda2(split) == pytest.approx(0.0, abs=1e-12)
+    assert graph_lambda2(np.zeros((1, 1), bool)) == 0.0

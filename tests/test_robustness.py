@@ -177,6 +177,10 @@ CASES = [
     ("radio-unknown-fading", lambda f, o: [str(tiny(f)), "--set", "radio.fading=nakagami"], "radio.fading"),
     ("radio-wall-loss-inf", lambda f, o: [str(tiny(f, extra="[radio]\nwall_loss_db = inf\n"))],
      "radio.wall_loss_db"),
+    ("scene-wall-loss-negative",
+     lambda f, o: [str(write_scene(f, WALL_SCENE.replace("<custom>", '<custom><numeric name="tether_wall_loss_db" '
+                                                         'data="-3"/>'), "lossy.xml")
+                       and tiny(f, ('scene = "scene.xml"', 'scene = "lossy.xml"')))], "tether_wall_loss_db"),
     ("radio-wall-loss-nan", lambda f, o: [str(tiny(f)), "--set", "radio.wall_loss_db=nan"], "radio.wall_loss_db"),
     ("unknown-strategy-key", lambda f, o: [str(tiny(f)), "--set", "strategy.dwell_time_s=1"],
      "strategy.dwell_time_s"),
