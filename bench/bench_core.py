@@ -19,6 +19,9 @@ imports and start-up, set-up (world, strategy, a-priori plans), the ticks and
 the closing (the end-of-run plots and files), in wall seconds.
 
     make bench            # or: .venv/bin/python bench/bench_core.py [--seconds S] [--quick]
+
+``--radio ieee802154`` measures each row again with that radio preset and prints
+the per-tick CPU time of each preset over the ideal radio's.
 """
 
 from __future__ import annotations
@@ -157,6 +160,8 @@ def main() -> None:
     parser.add_argument("--warmup", type=float, default=0.5, help="simulated seconds run before measuring")
     parser.add_argument("--plans", type=int, default=8, help="intermittent plans per team size")
     parser.add_argument("--rows", nargs="*", help="only rows whose label contains one of these")
+    parser.add_argument("--radio", nargs="*", default=[], metavar="PRESET",
+                        help="also measure each chosen row with radio.preset=PRESET (e.g. ieee802154)")
     parser.add_argument("--quick", action="store_true", help="core rows only: no planner, no video, no fixed costs")
     parser.add_argument("--fixed-duration", type=float, default=20.0, help="simulated seconds of the fixed-cost runs")
     args = parser.parse_args()
@@ -169,13 +174,26 @@ def main() -> None:
     stages = " | ".join(TIMED_STAGES)
     print(f"| row | bare steps/s | real-time factor | ratio | {stages} |")
     print("| --- | --- | --- | --- | " + " | ".join("---" for _ in TIMED_STAGES) + " |")
+    radio_ratios = []
     for label, name, overrides in ROWS:
         if args.rows and not any(key in label for key in args.rows):
             continue
-        row = measure(name, overrides, args.seconds, args.warmup)
-        shares = " | ".join(f"{row['shares'][stage]:.0%}" for stage in TIMED_STAGES)
-        print(f"| {label} | {row['bare_steps_per_s']:.0f} | {row['real_time_factor']:.2f} | "
-              f"{row['ratio']:.2f} | {shares} |", flush=True)
+        ideal = None
+        for preset in [None, *args.radio]:
+            extra = [] if preset is None else [f'radio.preset="{preset}"']
+            row = measure(name, overrides + extra, args.seconds, args.warmup)
+            shares = " | ".join(f"{row['shares'][stage]:.0%}" for stage in TIMED_STAGES)
+            shown = label if preset is None else f"{label} radio {preset}"
+            print(f"| {shown} | {row['bare_steps_per_s']:.0f} | {row['real_time_factor']:.2f} | "
+                  f"{row['ratio']:.2f} | {shares} |", flush=True)
+            if preset is None:
+                ideal = row
+            else:  # both rows step the same world bare, so their ratios compare the full ticks' CPU time
+                per_tick = row["ratio"] / ideal["ratio"]
+                radio_ratios.append(f"{label}: {preset} / ideal per tick {per_tick:.3f}")
+    if radio_ratios:
+        print()
+        print("\n".join(radio_ratios))
     if args.quick:
         return
     print()

@@ -27,6 +27,7 @@ import numpy as np
 
 from sim.config import ConfigError
 from sim.observers import EstimationError, Frame, Observer, PhysicsState, estimation_error
+from sim.radio.link import RadioChannel
 from sim.scenario import Scenario, StrategyConfig
 from sim.sensing import RaySensors
 from sim.strategy import Status, Strategy
@@ -122,6 +123,9 @@ class Simulation:
         self.world: World = build_world(scenario, starts, samples)
         self.sensors = RaySensors(self.world, scenario.sensing.comm_range_m, scenario.sensing.target_range_m,
                                   scenario.sensing.range_noise)
+        # Spawned, not drawn from: the run's own stream (targets, ranges, strategy) is unchanged by the radio.
+        self.radio = RadioChannel(scenario.radio, self.world.obstacles, self.world.wall_loss_db,
+                                  scenario.sensing.comm_range_m, self.rng.spawn(1)[0])
         self.control = lowlevel_factory(self.world)
         self.substeps = scenario.physics.substeps
         self.world.model.opt.timestep = scenario.physics.timestep_s
@@ -217,11 +221,12 @@ class Simulation:
             ranges = self.sensors.target_ranges(sensors, self._mocap_pos[world.target_mocap_ids], self.rng)
             step = int(round(self.time_s / self.scenario.target_motion.step_s))
             self._next_reading_s += self.scenario.sensing.period_s
+        links = self.sensors.links(position)
         return Observation(
             time_s=self.time_s, tick=self.tick_count, position=position, velocity=velocity,
             quaternion=quaternion, angular_velocity=angular, sensor_position=sensors,
-            links=self.sensors.links(position), target_ranges=ranges, target_step=step,
-            decorations_wanted=decorations_wanted,
+            links=links, target_ranges=ranges, target_step=step,
+            decorations_wanted=decorations_wanted, radio=self.radio.state(self.time_s, position, links),
         )
 
     def tick(self, decorations_wanted: bool = True) -> tuple[Frame, bool]:

@@ -170,25 +170,92 @@ class TrackingMetrics(Observer):
         return {"tracking_error_mean_m": mean, "tracking_error_max_m": self._max if self._count else None}
 
 
+def graph_lambda2(adjacency: np.ndarray) -> float:
+    """Algebraic connectivity lambda2 of the unweighted Laplacian of ``adjacency`` ((N, N) bool,
+    symmetric); 0 for fewer than two robots. The last few graphs' values are kept: a team's graph
+    changes only now and then, and the sensing and communication graphs are often the same."""
+    key = (adjacency.shape[0], np.packbits(adjacency).tobytes())
+    value = _LAMBDA2_SEEN.get(key)
+    if value is None:
+        n = adjacency.shape[0]
+        if n < 2:
+            value = 0.0
+        else:
+            weights = adjacency.astype(float)
+            np.fill_diagonal(weights, 0.0)
+            laplacian = np.diag(weights.sum(axis=1)) - weights
+            value = max(float(np.linalg.eigvalsh(laplacian)[1]), 0.0)
+        if len(_LAMBDA2_SEEN) >= 8:
+            _LAMBDA2_SEEN.pop(next(iter(_LAMBDA2_SEEN)))
+        _LAMBDA2_SEEN[key] = value
+    return value
+
+
+_LAMBDA2_SEEN: dict[tuple[int, bytes], float] = {}
+
+
+@dataclass(frozen=True)
+class LinkFigures:
+    """One tick's graph figures (the metrics' per-tick values, the plots' and the recording's series)."""
+
+    edges: int  # links of the sensing graph (comm range and line of sight)
+    sensing_lambda2: float  # lambda2 of the sensing graph
+    comm_lambda2: float  # lambda2 of the radio's communication graph (delivery >= threshold)
+    radio_delivery_mean: float  # mean delivery probability over the pairs in comm range; NaN: none
+
+
+def link_figures(observation: Observation) -> LinkFigures:
+    """The graph figures of ``observation`` (without a radio, as in a hand-built observation: the
+    communication graph is the sensing one and the delivery is not known)."""
+    adjacency = observation.links.adjacency
+    edges = int(np.count_nonzero(adjacency)) // 2
+    sensing = graph_lambda2(adjacency)
+    radio = observation.radio
+    if radio is None:
+        return LinkFigures(edges, sensing, sensing, float("nan"))
+    comm = graph_lambda2(radio.comm_adjacency)
+    first, second = radio.pairs
+    near = radio.distance[first, second] <= radio.comm_range_m
+    delivery = float(radio.channel_pairs["delivery"][near].mean()) if near.any() else float("nan")
+    return LinkFigures(edges, sensing, comm, delivery)
+
+
 class LinkMetrics(Observer):
-    """Communication-graph figures over the run."""
+    """Sensing- and communication-graph figures over the run."""
 
     def __init__(self):
         self.edges_min: int | None = None
         self.edges_sum = 0
         self.ticks = 0
+        self._lambda2 = {"sensing": [0.0, np.inf], "comm": [0.0, np.inf]}  # sum, min
+        self._delivery = [0.0, 0]  # sum, ticks with pairs in comm range
 
     def reads_decorations(self, time_s: float) -> bool:
         return False
 
     def on_tick(self, frame: Frame) -> None:
-        edges = int(np.count_nonzero(frame.observation.links.adjacency)) // 2
+        figures = link_figures(frame.observation)
+        edges = figures.edges
         self.edges_min = edges if self.edges_min is None else min(self.edges_min, edges)
         self.edges_sum += edges
         self.ticks += 1
+        for name, value in (("sensing", figures.sensing_lambda2), ("comm", figures.comm_lambda2)):
+            kept = self._lambda2[name]
+            kept[0] += value
+            kept[1] = min(kept[1], value)
+        if not np.isnan(figures.radio_delivery_mean):
+            self._delivery[0] += figures.radio_delivery_mean
+            self._delivery[1] += 1
 
     def close(self, status: str) -> None:
         pass
 
     def summary(self) -> dict[str, Any]:
-        return {"edges_min": self.edges_min, "edges_mean": self.edges_sum / self.ticks if self.ticks else None}
+        out: dict[str, Any] = {"edges_min": self.edges_min,
+                               "edges_mean": self.edges_sum / self.ticks if self.ticks else None}
+        for name, (total, smallest) in self._lambda2.items():
+            out[f"{name}_lambda2_mean"] = total / self.ticks if self.ticks else None
+            out[f"{name}_lambda2_min"] = smallest if self.ticks else None
+        total, ticks = self._delivery
+        out["radio_delivery_mean"] = total / ticks if ticks else None
+        return out

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from sim.radio.config import RadioConfig
 from sim.config import ConfigError, build, builtin_descriptions, builtin_or_file, require, to_table
 from sim.strategy import strategy_kinds, strategy_params_class
 from models import MODELS_DIR
@@ -187,6 +188,7 @@ class ScenarioBody:
     targets: tuple[TargetConfig, ...] = ()  # moving targets, seen by the range sensors
     target_motion: TargetMotionConfig = field(default_factory=TargetMotionConfig)
     video: VideoConfig = field(default_factory=VideoConfig)
+    radio: RadioConfig = field(default_factory=RadioConfig)  # the radio channel between robots (docs/radio.md)
 
     def __post_init__(self):
         require(self.duration_s > 0, "duration_s", f"must be positive, got {self.duration_s}")

@@ -66,6 +66,105 @@ class Links:
         return edges
 
 
+class _lazy:
+    """``functools.cached_property`` without its lock: computed on first read, then an instance attribute
+    (several of a radio state's figures are read every tick)."""
+
+    def __init__(self, function):
+        self.function = function
+        self.name = function.__name__
+        self.__doc__ = function.__doc__
+
+    def __get__(self, instance, owner=None):
+        if instance is None:
+            return self
+        value = instance.__dict__[self.name] = self.function(instance)
+        return value
+
+
+@dataclass(frozen=True)
+class RadioState:
+    """The radio channel of every robot pair at one tick, all (N, N), symmetric, read-only.
+
+    Figures are computed on first read (``sim.radio.link``) from per-pair
+    values (pairs i < j, row-major). Under the ``ideal`` preset ``delivery``
+    is the link adjacency (1 in comm range with line of sight, 0 elsewhere)
+    and the power figures are NaN. The diagonal is NaN for powers, 0 for
+    delivery and walls.
+    """
+
+    preset: str  # the scenario's radio.preset
+    delivery_threshold: float  # a pair is in the communication graph at this delivery probability
+    comm_range_m: float  # the scenario's sensing.comm_range_m (the ideal radio's disk)
+    distance: np.ndarray  # centre distance, m (the links')
+    # Per-pair values on first read: the channel's (rx_power_dbm, snr_db, shadowing_db, delivery) and the walls'
+    # (count, loss_db), each (P,) over the pairs (first[p], second[p]).
+    channel_of: Callable[[], dict[str, np.ndarray]] = field(repr=False, compare=False)
+    walls_of: Callable[[], dict[str, np.ndarray]] = field(repr=False, compare=False)
+    pairs: tuple[np.ndarray, np.ndarray] = field(repr=False, compare=False, default=None)
+
+    @_lazy
+    def channel_pairs(self) -> dict[str, np.ndarray]:
+        """The channel's per-pair values (P,), computed once."""
+        return self.channel_of()
+
+    @_lazy
+    def wall_pairs(self) -> dict[str, np.ndarray]:
+        """The walls' per-pair values (P,), computed once."""
+        return self.walls_of()
+
+    def _matrix(self, values: np.ndarray, diagonal) -> np.ndarray:
+        n = self.distance.shape[0]
+        first, second = self.pairs
+        out = np.empty((n, n), dtype=values.dtype)
+        out[first, second] = values
+        out[second, first] = values
+        np.fill_diagonal(out, diagonal)
+        return readonly(out)
+
+    @_lazy
+    def rx_power_dbm(self) -> np.ndarray:
+        """Mean received power (path loss, walls, shadowing; no fading), dBm."""
+        return self._matrix(self.channel_pairs["rx_power_dbm"], np.nan)
+
+    @_lazy
+    def snr_db(self) -> np.ndarray:
+        """Mean SNR over the noise floor, dB (per-packet fading comes on top, in the message bus)."""
+        return self._matrix(self.channel_pairs["snr_db"], np.nan)
+
+    @_lazy
+    def shadowing_db(self) -> np.ndarray:
+        """This tick's log-normal shadowing loss, dB."""
+        return self._matrix(self.channel_pairs["shadowing_db"], np.nan)
+
+    @_lazy
+    def delivery(self) -> np.ndarray:
+        """Probability that the reference packet arrives at the mean SNR, 0..1."""
+        return self._matrix(self.channel_pairs["delivery"], 0.0)
+
+    @_lazy
+    def walls(self) -> np.ndarray:
+        """Obstacle boxes the segment between the pair crosses, int."""
+        return self._matrix(self.wall_pairs["count"], 0)
+
+    @_lazy
+    def wall_loss_db(self) -> np.ndarray:
+        """Their summed loss, dB."""
+        return self._matrix(self.wall_pairs["loss_db"], 0.0)
+
+    @_lazy
+    def comm_adjacency(self) -> np.ndarray:
+        """bool: the communication graph, delivery >= delivery_threshold, no self-loops."""
+        return readonly(self.delivery >= self.delivery_threshold)
+
+    @_lazy
+    def in_range(self) -> np.ndarray:
+        """bool: pairs within comm_range_m, no self-loops."""
+        near = self.distance <= self.comm_range_m
+        np.fill_diagonal(near, False)
+        return readonly(near)
+
+
 @dataclass(frozen=True)
 class Observation:
     """What the robots sense at one control tick."""
@@ -86,6 +185,8 @@ class Observation:
     # filled (the metrics read it every tick). The loop sets it from the
     # observers' ``reads_decorations`` (sim.observers).
     decorations_wanted: bool = True
+    # The radio channel of every pair (sim.radio.link), computed on first read; None outside a Simulation.
+    radio: RadioState | None = None
 
 
 def readonly(array: Any) -> np.ndarray:

@@ -57,6 +57,8 @@ class World:
     target_mocap_ids: np.ndarray  # (M,)
     obstacles: Boxes
     bounds: np.ndarray  # (2, 3)
+    # (K,) radio loss per obstacle box, dB; NaN: the scene gives none (obstacle_wall_losses)
+    wall_loss_db: np.ndarray | None = None
 
     @property
     def n_robots(self) -> int:
@@ -88,11 +90,7 @@ def extract_obstacles(model: mujoco.MjModel, data: mujoco.MjData) -> Boxes:
     shapes are replaced by their oriented bounding box (conservative).
     """
     centers, halves, rotations = [], [], []
-    for g in range(model.ngeom):
-        if model.geom_bodyid[g] != 0 or model.geom_group[g] != OBSTACLE_GROUP:
-            continue
-        if model.geom_contype[g] == 0 and model.geom_conaffinity[g] == 0:
-            continue
+    for g in obstacle_geom_ids(model):
         rot = data.geom_xmat[g].reshape(3, 3)
         center = data.geom_xpos[g].copy()
         gtype = model.geom_type[g]
@@ -112,6 +110,43 @@ def extract_obstacles(model: mujoco.MjModel, data: mujoco.MjData) -> Boxes:
     if not centers:
         return Boxes(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)))
     return Boxes(np.array(centers), np.array(halves), np.array(rotations))
+
+
+def obstacle_geom_ids(model: mujoco.MjModel) -> list[int]:
+    """The static obstacle geoms (world body, obstacle group, colliding), in :func:`extract_obstacles`' order."""
+    return [g for g in range(model.ngeom)
+            if model.geom_bodyid[g] == 0 and model.geom_group[g] == OBSTACLE_GROUP
+            and not (model.geom_contype[g] == 0 and model.geom_conaffinity[g] == 0)]
+
+
+WALL_LOSS_NUMERIC = "tether_wall_loss_db"  # the scene's default; "tether_wall_loss_db/GEOM" for one geom
+
+
+def obstacle_wall_losses(model: mujoco.MjModel) -> np.ndarray:
+    """(K,) radio loss of each obstacle box, dB, in :func:`extract_obstacles`' order; NaN where the
+    scene says nothing (the scenario's ``radio.wall_loss_db`` applies). A geom's own
+    ``tether_wall_loss_db/NAME`` numeric wins over the scene's ``tether_wall_loss_db``."""
+    ids = obstacle_geom_ids(model)
+    names = {model.geom(g).name: k for k, g in enumerate(ids) if model.geom(g).name}
+    default, own = np.nan, {}
+    for n in range(model.nnumeric):
+        name = model.numeric(n).name
+        if name != WALL_LOSS_NUMERIC and not name.startswith(WALL_LOSS_NUMERIC + "/"):
+            continue
+        data = np.asarray(model.numeric(n).data, dtype=float)
+        if data.shape != (1,) or not np.isfinite(data[0]) or data[0] < 0:
+            raise ConfigError("scene", f"numeric {name!r} must be one finite loss >= 0 dB, got {data.tolist()}")
+        if name == WALL_LOSS_NUMERIC:
+            default = float(data[0])
+            continue
+        geom = name[len(WALL_LOSS_NUMERIC) + 1:]
+        if geom not in names:
+            raise ConfigError("scene", f"numeric {name!r} names no static obstacle geom of group {OBSTACLE_GROUP}")
+        own[names[geom]] = float(data[0])
+    losses = np.full(len(ids), default)
+    for k, value in own.items():
+        losses[k] = value
+    return losses
 
 
 def scene_bounds(model: mujoco.MjModel, obstacles: Boxes) -> np.ndarray:
@@ -174,6 +209,7 @@ def build_world(scenario: Scenario, target_starts: np.ndarray, target_path_sampl
     scene_data = mujoco.MjData(scene_model)
     mujoco.mj_forward(scene_model, scene_data)
     obstacles = extract_obstacles(scene_model, scene_data)
+    wall_losses = obstacle_wall_losses(scene_model)
     bounds = scene_bounds(scene_model, obstacles)
     validate_placements(scenario, obstacles, bounds, target_path_samples)
 
@@ -207,7 +243,7 @@ def build_world(scenario: Scenario, target_starts: np.ndarray, target_path_sampl
         model=model, data=data, scene_path=scene_path, robot_names=tuple(names), robot_kinds=tuple(kinds),
         body_ids=body_ids, qpos_adr=qpos_adr, qvel_adr=qvel_adr, sensor_site_ids=sensor_sites,
         actuator_ids=actuator_ids, kind_index=kind_index, target_mocap_ids=mocap_ids,
-        obstacles=obstacles, bounds=bounds,
+        obstacles=obstacles, bounds=bounds, wall_loss_db=wall_losses,
     )
     place_robots(world, [np.array(s, dtype=float) for _, s in scenario.robot_starts()])
     return world

@@ -371,7 +371,8 @@ def test_plots_draw_every_series_with_the_fig_14_panels(small_mission):
               "alignment_mean", "gain_mean", "secondary_travelers", "anchors"}
     assert fig_14 <= set(log.scalars[-1])
     assert {"role", "prime_efficiency_estimate", "alignment", "gain"} <= log.robot_scalar_names
-    panels = 2 + len(log.scalars[-1]) + len(log.robot_scalar_names)  # + tracking error and links
+    # + tracking error, links, the communication graph's lambda2 and the radio's delivery
+    panels = 4 + len(log.scalars[-1]) + len(log.robot_scalar_names)
     pngs = sorted((out / "plots").glob("timeseries*.png"))
     assert len(pngs) == math.ceil(panels / PANELS_PER_FIGURE)
     assert all(png_is_a_drawn_figure(p) for p in pngs)

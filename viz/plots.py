@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.observers import Frame, Observer, tracking_errors
+from sim.observers import Frame, Observer, link_figures, tracking_errors
 from viz.painter import Painters, page_layout
 
 PANELS_PER_FIGURE = 6
@@ -55,7 +55,10 @@ class PlotRecorder(Observer):
         self._next_time += self.period_s
         error = tracking_errors(self.kinds, frame.observation.position, frame.commands.position)
         self.series["tracking error, mean over robots (m)"].append((t, float(error.mean())))
-        self.series["communication links"].append((t, float(len(frame.observation.links.edges))))
+        figures = link_figures(frame.observation)
+        self.series["communication links"].append((t, float(figures.edges)))
+        self.series["communication graph lambda2"].append((t, figures.comm_lambda2))
+        self.series["radio delivery mean, pairs in comm range"].append((t, figures.radio_delivery_mean))
         for name, value in frame.scalars.items():
             self.series[name].append((t, float(value)))
         decorations = frame.commands.decorations

@@ -49,7 +49,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
-from sim.observers import Frame, Observer, tracking_errors
+from sim.observers import Frame, Observer, link_figures, tracking_errors
 from sim.strategy import Status
 from sim.world import INFINITE_PLANE_HALF_SIZE, World
 from viz.decorations import colour_name, frame_legend, log_events, log_recording_decorations, robot_colors_rgb8
@@ -338,7 +338,9 @@ class RerunRecorder(Observer):
             tuple(int(round(255 * c)) for c in link_color(weights[i, j])[:3]) for i, j in edges]
         self.rec.log("world/links", rr.LineStrips3D(strips, colors=colors, radii=0.01))
         error = tracking_errors(self.world.robot_kinds, obs.position, frame.commands.position)
-        foundation = {"edges": float(len(edges)), "tracking_error_mean_m": float(error.mean())}
+        figures = link_figures(obs)
+        foundation = {"edges": float(len(edges)), "tracking_error_mean_m": float(error.mean()),
+                      "comm_lambda2": figures.comm_lambda2, "radio_delivery_mean": figures.radio_delivery_mean}
         # A strategy's series of the same name replaces the foundation's (as its summary does in
         # metrics.json): one value per entity and tick.
         for key, value in {**foundation, **frame.scalars}.items():

@@ -1,0 +1,138 @@
+"""The radio channel of every robot pair, evaluated each tick: ``RadioChannel`` -> ``RadioState``.
+
+Per pair i < j (batched over the N (N - 1) / 2 pairs): log-distance path loss
+from the reference loss, the walls the segment crosses (``sim.radio.walls``,
+each box's loss from the scene or ``radio.wall_loss_db``), log-normal
+shadowing as a per-pair AR(1) in time (correlation exp(-dt / tau)), the mean
+SNR over the noise floor and the delivery probability of the reference
+packet (PER from the modulation's BER, ``sim.radio.channel``). Per-packet
+fading is left to the message bus.
+
+The shadowing advances once per distinct tick time, whoever reads the state,
+so the draws depend only on the seed and the ticks; the rest is computed on
+first read. Its generator is the caller's own (spawned from the run's, so it
+never shifts the other streams). Under ``ideal`` nothing is drawn and the
+delivery is the links' adjacency. Pure numpy: no MuJoCo.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim.geometry import Boxes
+from sim.radio import channel
+from sim.radio.config import RadioConfig
+from sim.radio.walls import SceneWalls
+from sim.types import Links, RadioState
+
+
+class RadioChannel:
+    def __init__(self, config: RadioConfig, obstacles: Boxes, wall_loss_db: np.ndarray | None,
+                 comm_range_m: float, rng: np.random.Generator):
+        self.config = config
+        self.obstacles = obstacles
+        scene = np.full(len(obstacles), np.nan) if wall_loss_db is None else np.asarray(wall_loss_db, dtype=float)
+        # The scene's figure where it gives one, the scenario's elsewhere.
+        self.loss_per_box_db = np.where(np.isnan(scene), config.wall_loss_db, scene)
+        self.walls = SceneWalls(obstacles, self.loss_per_box_db)
+        self.comm_range_m = comm_range_m
+        self.rng = rng
+        self._pairs_n = -1
+        self._shadowing: np.ndarray | None = None  # (P,) dB, the AR(1) state
+        self._shadowing_time = -np.inf
+        self._step: tuple[float, float, float] = (np.nan, 0.0, 0.0)  # dt, rho, innovation std of the last step
+        if not config.is_ideal:
+            self._certain = self._certain_snr_db()
+
+    def delivery_at_snr(self, snr_db: np.ndarray) -> np.ndarray:
+        """Delivery probability of the reference packet at ``snr_db`` (dB): 1 - PER(BER(SNR))."""
+        config = self.config
+        ber = channel.bit_error_rate(config.radio.modulation, snr_db, config.radio.bandwidth_hz, config.bitrate_bps)
+        return 1.0 - channel.packet_error_rate(ber, config.reference_length_bits)
+
+    def _certain_snr_db(self) -> tuple[float, float]:
+        """(below, above): SNRs (dB) at or below which the delivery is exactly 0.0 and at or above which
+        it is exactly 1.0 in floating point; found by bisection on the curve itself, which never
+        falls as the SNR rises, so pairs outside them are filled without evaluating it."""
+        def edge(value: float, low: float, high: float) -> float:
+            # invariant: delivery(inside) != value, delivery(outside) == value
+            inside, outside = (low, high) if value == 1.0 else (high, low)
+            if self.delivery_at_snr(np.array(outside)) != value:
+                return np.inf if value == 1.0 else -np.inf
+            for _ in range(80):
+                middle = 0.5 * (inside + outside)
+                if self.delivery_at_snr(np.array(middle)) == value:
+                    outside = middle
+                else:
+                    inside = middle
+            return outside
+
+        return edge(0.0, -200.0, 200.0), edge(1.0, -200.0, 200.0)
+
+    def _pairs(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        if self._pairs_n != n:
+            self._upper = np.triu_indices(n, 1)
+            self._pairs_n = n
+            self._shadowing = None
+        return self._upper
+
+    def _advance_shadowing(self, time_s: float, pairs: int) -> np.ndarray:
+        """The shadowing at ``time_s``: drawn stationary at the first tick, one AR(1) step per later tick
+        (``channel.shadowing_step_db``, its coefficients kept while the step length stays)."""
+        config = self.config
+        if self._shadowing is None:
+            self._shadowing = channel.shadowing_initial_db(config.shadowing_sigma_db, pairs, rng=self.rng)
+        elif time_s > self._shadowing_time:
+            dt = time_s - self._shadowing_time
+            # Tick times are multiples of the control period: their differences vary in the last bits only.
+            if not abs(dt - self._step[0]) <= 1e-9 * dt:
+                rho = float(channel.shadowing_correlation(dt, config.shadowing_correlation_s))
+                innovation = float(channel.shadowing_step_db(0.0, dt, config.shadowing_sigma_db,
+                                                             config.shadowing_correlation_s, standard_normal=1.0))
+                self._step = (dt, rho, innovation)
+            _, rho, innovation = self._step
+            self._shadowing = rho * self._shadowing + innovation * self.rng.standard_normal(pairs)
+        self._shadowing_time = time_s
+        return self._shadowing
+
+    def state(self, time_s: float, positions: np.ndarray, links: Links) -> RadioState:
+        """The channel of every pair of robots at ``positions`` ((N, 3), m) at ``time_s`` (s)."""
+        n = len(positions)
+        first, second = self._pairs(n)
+        positions = np.array(positions, dtype=float)  # the closures keep this tick's
+        config = self.config
+
+        def walls() -> dict[str, np.ndarray]:
+            crossed = self.walls.crossed(positions[first], positions[second])
+            return {"count": crossed.count, "loss_db": crossed.loss_db}
+
+        if config.is_ideal:
+            adjacency = links.adjacency
+
+            def ideal() -> dict[str, np.ndarray]:
+                nan = np.full(len(first), np.nan)
+                return {"rx_power_dbm": nan, "snr_db": nan, "shadowing_db": nan,
+                        "delivery": adjacency[first, second].astype(float)}
+
+            return RadioState(config.preset, config.delivery_threshold, self.comm_range_m, links.distance,
+                              ideal, walls, (first, second))
+        shadowing = self._advance_shadowing(time_s, len(first))
+        distance = links.distance
+        state: RadioState
+
+        def figures() -> dict[str, np.ndarray]:
+            path_loss = channel.log_distance_path_loss_db(
+                distance[first, second], config.path_loss_exponent, config.reference_loss_db,
+                total_wall_loss_db=state.wall_pairs["loss_db"])
+            rx = channel.received_power_dbm(config.tx_power_dbm, path_loss, shadowing)
+            snr = channel.snr_db(rx, config.noise_floor_dbm)
+            below, above = self._certain
+            delivery = np.where(snr >= above, 1.0, 0.0)
+            uncertain = (snr > below) & (snr < above)
+            if uncertain.any():
+                delivery[uncertain] = self.delivery_at_snr(snr[uncertain])
+            return {"rx_power_dbm": rx, "snr_db": snr, "shadowing_db": shadowing, "delivery": delivery}
+
+        state = RadioState(config.preset, config.delivery_threshold, self.comm_range_m, distance, figures, walls,
+                           (first, second))
+        return state

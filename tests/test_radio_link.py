@@ -1,0 +1,260 @@
+"""The radio channel in the simulation: the [radio] table, walls from the scene, the per-tick link state."""
+
+from __future__ import annotations
+
+import math
+import textwrap
+
+import mujoco
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from sim.config import ConfigError, build
+from sim.geometry import Boxes
+from sim.radio.config import RadioConfig
+from sim.radio.link import RadioChannel
+from sim.radio.presets import IEEE802154
+from sim.radio.walls import walls_crossed
+from sim.scenario import load, to_scenario_table, from_table
+from sim.types import Links
+from sim.world import extract_obstacles, obstacle_wall_losses
+from tether.runner import build_simulation, run
+
+# Three parallel walls (the last one turned 30 degrees about z) and a pillar; the pillar has its own loss.
+WALLS_SCENE = """
+<mujoco model="three_walls">
+  <custom>
+    <numeric name="tether_bounds" data="0 0 0 10 10 5"/>
+    <numeric name="tether_wall_loss_db" data="5"/>
+    <numeric name="tether_wall_loss_db/pillar" data="12"/>
+  </custom>
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 0.05" pos="5 5 0" group="0"/>
+    <geom name="wall_a" type="box" size="0.05 4 2" pos="2 5 2" group="0"/>
+    <geom name="wall_b" type="box" size="0.1 4 2" pos="4 5 2" group="0"/>
+    <geom name="wall_c" type="box" size="0.05 4 2" pos="6 5 2" euler="0 0 30" group="0"/>
+    <geom name="pillar" type="box" size="0.3 0.3 2" pos="8.5 8.5 2" group="0"/>
+    <geom name="decor" type="box" size="0.3 0.3 0.3" pos="8.5 1.5 1" group="1"/>
+  </worldbody>
+</mujoco>
+"""
+
+
+def _scene(xml: str = WALLS_SCENE):
+    model = mujoco.MjModel.from_xml_string(textwrap.dedent(xml))
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    return extract_obstacles(model, data), obstacle_wall_losses(model)
+
+
+def _sampled_count(boxes: Boxes, start, end, samples: int = 20001) -> int:
+    """Boxes that some of ``samples`` points along the segment lie inside."""
+    points = start + np.linspace(0.0, 1.0, samples)[:, None] * (end - start)
+    local = boxes.to_local(points)  # (P, K, 3)
+    inside = np.all(np.abs(local) <= boxes.half_sizes[None], axis=-1)
+    return int(np.count_nonzero(inside.any(axis=0)))
+
+
+def test_walls_crossed_match_a_dense_sampling_of_the_segment():
+    boxes, losses = _scene()
+    # the floor (a slab below z = 0) has no figure of its own: the scene's default applies
+    assert losses.tolist() == [5.0, 5.0, 5.0, 5.0, 12.0]
+    cases = [((0.5, 5.0, 1.0), (1.5, 7.0, 1.0), 0, 0.0),  # before the first wall
+             ((1.0, 5.0, 1.0), (3.0, 4.0, 1.5), 1, 5.0),  # through wall_a
+             ((1.0, 5.0, 1.0), (7.5, 5.5, 1.0), 3, 15.0),  # through a, b and the turned c
+             ((7.5, 7.5, 1.0), (9.5, 9.5, 1.0), 1, 12.0),  # through the pillar
+             ((4.0, 5.0, 1.0), (4.5, 5.0, 1.0), 1, 5.0)]  # starts inside wall_b: it counts
+    starts = np.array([c[0] for c in cases], dtype=float)
+    ends = np.array([c[1] for c in cases], dtype=float)
+    crossed = walls_crossed(starts, ends, boxes, losses)
+    for (start, end, count, loss), got, got_loss in zip(cases, crossed.count, crossed.loss_db):
+        assert got == count == _sampled_count(boxes, np.array(start), np.array(end)), (start, end)
+        assert got_loss == pytest.approx(loss)
+
+
+def test_wall_loss_numerics_are_checked():
+    bad_value = WALLS_SCENE.replace('name="tether_wall_loss_db" data="5"', 'name="tether_wall_loss_db" data="-1"')
+    with pytest.raises(ConfigError, match="tether_wall_loss_db"):
+        _scene(bad_value)
+    no_geom = WALLS_SCENE.replace("tether_wall_loss_db/pillar", "tether_wall_loss_db/decor")
+    with pytest.raises(ConfigError, match="names no static obstacle geom"):
+        _scene(no_geom)
+
+
+_coordinate = st.floats(-3.0, 3.0, allow_nan=False)
+_point = st.tuples(_coordinate, _coordinate, _coordinate)
+
+
+@st.composite
+def _boxes(draw):
+    k = draw(st.integers(1, 5))
+    centers = np.array([draw(_point) for _ in range(k)])
+    halves = np.array([draw(st.tuples(*[st.floats(0.05, 1.0)] * 3)) for _ in range(k)])
+    rotations = []
+    for _ in range(k):
+        a, b = draw(st.floats(-math.pi, math.pi)), draw(st.floats(-math.pi, math.pi))
+        rz = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+        rx = np.array([[1, 0, 0], [0, math.cos(b), -math.sin(b)], [0, math.sin(b), math.cos(b)]])
+        rotations.append(rz @ rx)
+    return Boxes(centers, halves, np.array(rotations))
+
+
+@settings(max_examples=60, deadline=None)
+@given(_boxes(), _point, _point, st.floats(1.0, 3.0))
+def test_walls_are_symmetric_and_never_fewer_on_a_longer_segment(boxes, start, end, stretch):
+    start, end = np.array(start), np.array(end)
+    losses = np.arange(1.0, len(boxes) + 1)
+    forward = walls_crossed(start[None], end[None], boxes, losses)
+    backward = walls_crossed(end[None], start[None], boxes, losses)
+    assert forward.count[0] == backward.count[0]
+    assert forward.loss_db[0] == pytest.approx(backward.loss_db[0])
+    longer = walls_crossed(start[None], (start + stretch * (end - start))[None], boxes, losses)
+    assert longer.count[0] >= forward.count[0]
+    assert longer.loss_db[0] >= forward.loss_db[0] - 1e-12
+
+
+def test_the_preset_fills_the_keys_and_every_key_overrides():
+    ideal = RadioConfig()
+    assert ideal.is_ideal and ideal.delivery_threshold == 0.5
+    radio = build(RadioConfig, {"preset": "ieee802154", "wall_loss_db": 6.9, "fading": "rician", "rician_k_db": 6.0})
+    assert radio.tx_power_dbm == IEEE802154.tx_power_dbm
+    assert radio.noise_floor_dbm == pytest.approx(IEEE802154.noise_floor_dbm)
+    assert (radio.wall_loss_db, radio.fading, radio.rician_k_db) == (6.9, "rician", 6.0)
+    scenario = load("connected-office", ['radio.preset="nrf24"', "radio.shadowing_correlation_s=inf"])
+    again = from_table(to_scenario_table(scenario), scenario.source)  # a saved scenario reads back the same
+    assert again.radio == scenario.radio and again.radio.bitrate_bps == 2e6
+    with pytest.raises(ConfigError, match="radio.reference_payload_bytes"):
+        load("connected-office", ['radio.preset="nrf24"', "radio.reference_payload_bytes=100"])
+
+
+def test_spawning_the_radio_stream_leaves_the_parent_draws_unchanged():
+    parent, untouched = np.random.default_rng(7), np.random.default_rng(7)
+    child = parent.spawn(1)[0]
+    child.standard_normal(100)
+    assert np.array_equal(parent.random(20), untouched.random(20))
+
+
+def _ticks(scenario, ticks: int):
+    simulation = build_simulation(scenario)
+    frames = []
+    for _ in range(ticks):
+        frame, healthy = simulation.tick(decorations_wanted=False)
+        assert healthy
+        frames.append(frame)
+    return frames
+
+
+def test_under_ideal_the_delivery_is_the_adjacency_on_a_run():
+    frames = _ticks(load("connected-office", ["robots.0.count=10"], duration_s=1.0), 60)
+    for frame in frames[::5]:
+        radio, links = frame.observation.radio, frame.observation.links
+        assert np.array_equal(radio.delivery, links.adjacency.astype(float))
+        assert np.array_equal(radio.comm_adjacency, links.adjacency)
+        assert np.all(np.isnan(radio.rx_power_dbm)) and not radio.delivery.flags.writeable
+
+
+def test_under_ideal_nothing_is_drawn():
+    simulation = build_simulation(load("connected-office", ["robots.0.count=6"], duration_s=1.0))
+    before = simulation.radio.rng.bit_generator.state
+    for _ in range(5):
+        frame, _ = simulation.tick()
+        frame.observation.radio.delivery
+    assert simulation.radio.rng.bit_generator.state == before
+
+
+def _indoor_channel(**keys) -> RadioChannel:
+    scenario = load("intermittent-4", [f"radio.{key}={value!r}" if isinstance(value, str) else f"radio.{key}={value}"
+                                       for key, value in {"preset": "ieee802154", **keys}.items()])
+    simulation = build_simulation(scenario)
+    world = simulation.world
+    return RadioChannel(scenario.radio, world.obstacles, world.wall_loss_db, 2.5, np.random.default_rng(0))
+
+
+def _links(positions: np.ndarray) -> Links:
+    distance = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
+    n = len(positions)
+    return Links(distance, np.ones((n, n), bool), np.zeros((n, n), bool))
+
+
+def test_under_ieee802154_delivery_falls_with_distance_and_with_walls():
+    # Weak transmitter and no shadowing: the indoor scene's 10 m span the whole PER curve.
+    channel = _indoor_channel(tx_power_dbm=-45.0, shadowing_sigma_db=0.0)
+    # In the south-east room's open south half (y < 5), along x: robot 0 at x = 0.5, the others further.
+    along = np.array([[0.5, 4.0, 1.0]] + [[0.5 + d, 4.0, 1.0] for d in (1.0, 2.0, 2.5, 3.0, 3.5)])
+    state = channel.state(0.0, along, _links(along))
+    delivery = state.delivery[0, 1:]
+    assert np.all(np.diff(delivery) <= 0) and delivery[0] > 0.99 and delivery[-1] < 0.01
+    assert np.all(np.diff(state.rx_power_dbm[0, 1:]) < 0)
+    # The same 3 m with the wall at y = 5 between them, against 3 m in the open.
+    pairs = np.array([[1.0, 3.5, 1.0], [1.0, 6.5, 1.0], [0.5, 4.0, 1.0], [3.5, 4.0, 1.0]])
+    state = channel.state(0.0, pairs, _links(pairs))
+    assert state.walls[0, 1] == 1 and state.walls[2, 3] == 0
+    assert state.wall_loss_db[0, 1] == pytest.approx(IEEE802154.path_loss.loss_per_wall_db)
+    assert state.rx_power_dbm[0, 1] == pytest.approx(state.rx_power_dbm[2, 3] - state.wall_loss_db[0, 1])
+    assert state.delivery[0, 1] < state.delivery[2, 3]
+    np.testing.assert_array_equal(state.delivery, state.delivery.T)
+
+
+def test_the_channel_is_the_formulas_chain_exactly():
+    """Pairs whose delivery is certain (exactly 0 or 1) skip the BER; the shadowing's AR(1) keeps its
+    coefficients: both give channel.py's numbers to the bit."""
+    from sim.radio import channel as formulas
+
+    channel = _indoor_channel(tx_power_dbm=-45.0)
+    positions = np.random.default_rng(1).uniform([0.3, 0.3, 0.5], [9.7, 9.7, 2.0], (30, 3))
+    previous = channel.state(0.0, positions, _links(positions)).shadowing_db.copy()
+    state = channel.state(0.01, positions, _links(positions))
+    off = ~np.eye(30, dtype=bool)
+    assert 0.0 < state.delivery[off].mean() < 1.0
+    np.testing.assert_array_equal(state.delivery[off], channel.delivery_at_snr(state.snr_db[off]))
+    replay = np.random.default_rng(0)
+    replay.standard_normal(435)  # the first tick's stationary draw
+    expected = formulas.shadowing_step_db(previous[np.triu_indices(30, 1)], 0.01, 4.0, 2.0, rng=replay)
+    np.testing.assert_array_equal(state.shadowing_db[np.triu_indices(30, 1)], expected)
+
+
+def _radio_run(preset: str, seed: int, ticks: int = 40):
+    scenario = load("connected-office", ["robots.0.count=6", f'radio.preset="{preset}"'], seed=seed, duration_s=1.0)
+    return _ticks(scenario, ticks)
+
+
+def test_same_seed_same_delivery_and_the_radio_never_moves_the_robots():
+    first, second = _radio_run("ieee802154", 3), _radio_run("ieee802154", 3)
+    other_seed, ideal = _radio_run("ieee802154", 4), _radio_run("ideal", 3)
+    for a, b in zip(first, second):
+        np.testing.assert_array_equal(a.observation.radio.delivery, b.observation.radio.delivery)
+        np.testing.assert_array_equal(a.observation.radio.shadowing_db, b.observation.radio.shadowing_db)
+    assert not np.array_equal(first[-1].observation.radio.shadowing_db, other_seed[-1].observation.radio.shadowing_db)
+    # Nothing uses the radio yet: with its stream spawned, the run moves exactly as under ideal.
+    for a, b in zip(first, ideal):
+        np.testing.assert_array_equal(a.observation.position, b.observation.position)
+        np.testing.assert_array_equal(a.commands.position, b.commands.position)
+    # Shadowing is an AR(1) with correlation exp(-dt / tau): successive ticks stay close.
+    steps = np.diff([f.observation.radio.shadowing_db[0, 1] for f in first])
+    assert np.all(np.abs(steps) < 4.0 * 4.0 * math.sqrt(1 - math.exp(-2 * 0.01 / 2.0)))
+
+
+def test_metrics_report_both_graphs_lambda2_and_the_delivery():
+    scenario = load("connected-office", ["robots.0.count=6", 'radio.preset="ieee802154"',
+                                         "radio.tx_power_dbm=-40"], duration_s=0.3)
+    metrics = run(scenario).metrics
+    for key in ("sensing_lambda2_mean", "sensing_lambda2_min", "comm_lambda2_mean", "comm_lambda2_min",
+                "radio_delivery_mean"):
+        assert metrics[key] is not None and metrics[key] >= 0, key
+    assert metrics["comm_lambda2_min"] <= metrics["comm_lambda2_mean"]
+    assert 0.0 <= metrics["radio_delivery_mean"] <= 1.0
+
+
+def test_graph_lambda2_of_known_graphs():
+    from sim.observers import graph_lambda2
+
+    path = np.zeros((3, 3), bool)
+    path[0, 1] = path[1, 0] = path[1, 2] = path[2, 1] = True
+    assert graph_lambda2(path) == pytest.approx(1.0)
+    complete = ~np.eye(5, dtype=bool)
+    assert graph_lambda2(complete) == pytest.approx(5.0)
+    split = np.zeros((4, 4), bool)
+    split[0, 1] = split[1, 0] = split[2, 3] = split[3, 2] = True
+    assert graph_lambda2(split) == pytest.approx(0.0, abs=1e-12)
+    assert graph_lambda2(np.zeros((1, 1), bool)) == 0.0
