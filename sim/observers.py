@@ -213,6 +213,10 @@ def link_figures(observation: Observation) -> LinkFigures:
     radio = observation.radio
     if radio is None:
         return LinkFigures(edges, sensing, sensing, float("nan"))
+    if radio.preset == "ideal":  # the disk: the communication graph is the sensing one, delivered surely
+        n = adjacency.shape[0]
+        near_pairs = (int(np.count_nonzero(radio.distance <= radio.comm_range_m)) - n) // 2
+        return LinkFigures(edges, sensing, sensing, edges / near_pairs if near_pairs else float("nan"))
     comm = graph_lambda2(radio.comm_adjacency)
     first, second = radio.pairs
     near = radio.distance[first, second] <= radio.comm_range_m
