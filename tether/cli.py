@@ -401,6 +401,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             return 0
         if args.out is None:
             raise ConfigError("--out", "is required: the folder the results go to")
+        from sim.outputs import check_out_path
+
+        check_out_path(args.out)  # not "", /, the home folder, nor a name too long
         if args.ray is not None and args.workers is not None:
             raise ConfigError("--workers", "sizes the local pool; with --ray the cluster decides")
         workers = int(_number(args.workers, "--workers", int, minimum=1)) if args.workers else os.cpu_count() or 1
