@@ -287,8 +287,8 @@ class Staging:
             os.rename(self.path, self.out)
             return
         if not written_by_tether(self.out, "run") and any(self.out.iterdir()):
-            raise ConfigError("--out", f"{self.out} now holds files tether did not write: the run's files are "
-                                       f"left in {self.path}")
+            raise ConfigError("--out", f"{self.out} now holds files tether did not write: nothing was moved "
+                                       "into it; choose a new or empty folder")
         for name in sorted(previous_files(self.out) - staged - {MANIFEST}):
             old = self.out / name
             if old.is_file() or old.is_symlink():
@@ -301,11 +301,11 @@ class Staging:
             source, target = self.path / name, self.out / name
             if target.parent != self.out:
                 if target.parent.is_symlink() or (target.parent.exists() and not target.parent.is_dir()):
-                    raise ConfigError("--out", f"{target.parent} is not a folder: the run's files are left in "
-                                               f"{self.path}")
+                    raise ConfigError("--out", f"{target.parent} is not a folder: choose a new or empty "
+                                               "folder")
                 target.parent.mkdir(parents=True, exist_ok=True)
             if target.is_dir() and not target.is_symlink():
-                raise ConfigError("--out", f"{target} is a folder: the run's files are left in {self.path}")
+                raise ConfigError("--out", f"{target} is a folder, not a run's file: choose a new or empty folder")
             os.replace(source, target)
         os.replace(self.path / MANIFEST, self.out / MANIFEST)  # last: until here the old one holds
         shutil.rmtree(self.path, ignore_errors=True)
