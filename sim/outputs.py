@@ -1,4 +1,16 @@
-"""A run's output folder: written beside ``--out``, moved into place at the end.
+"""Where tether writes: one output policy, and a run's staging folder.
+
+**The policy** (:func:`check_out_folder`, :func:`check_out_file`): tether
+never deletes or replaces a file it did not write. An output folder is
+accepted when it does not exist, is empty, or is one tether wrote for the
+same purpose: a run's folder holds ``.tether-files.json`` (the manifest of
+the files the run wrote) or, from before the manifest, a ``metrics.json``
+with ``scenario`` and ``status`` keys; a report's folder holds the manifest
+(kind ``report``) or a sweep's results. Anything else is refused (ConfigError
+naming the flag; nothing written). ``/``, the home folder and an empty path
+are refused; so is a name longer than the file system allows. A single
+output file (the tuning page's TOML) may replace only a file tether wrote
+(its first line is tether's header).
 
 A run writes into a staging folder next to its output folder
 (``OUT.partial-PID``) and, when it ends (completed, diverged or
@@ -20,17 +32,193 @@ import json
 import math
 import os
 import shutil
+import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from sim.config import ConfigError
 from sim.observers import Observer
 from sim.strategy import Status
 
 # The files and folders a run writes; a reused output folder loses those of an earlier run.
 RUN_FILES = ("metrics.json", "progress.json", "video.mp4", "run.rrd", "plots", "run.rrd.segments")
 PARTIAL_SUFFIX = ".partial-"
+MANIFEST = ".tether-files.json"  # what tether wrote into a folder: {"format", "kind", "files"}
+MANIFEST_FORMAT = "tether-files/1"
+LEGACY_PLOT_PREFIX = "timeseries"  # plots/ files of a run from before the manifest
+SAVED_TOML_MARKERS = ("# tether scenario",)  # first line of a TOML tether wrote
+SWEEP_MARKERS = ("sweep.json", "results.parquet", "trials")
+DEFAULT_NAME_MAX = 255
+
+
+# ---------------------------------------------------------------- the policy
+
+def name_max(folder: Path) -> int:
+    """The longest file name the file system under ``folder`` (nearest existing) allows."""
+    try:
+        return int(os.pathconf(_nearest_existing(folder), "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return DEFAULT_NAME_MAX
+
+
+def _nearest_existing(path: Path) -> Path:
+    path = Path(path).absolute()
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def check_out_path(out: str | Path | None, flag: str = "--out") -> Path:
+    """ConfigError for a path no output may go to: empty, ``/``, the home
+    folder itself, or a name longer than the file system allows. Returns
+    the path."""
+    if out is None or str(out).strip() == "":
+        raise ConfigError(flag, "is empty: name a new or empty folder")
+    path = Path(out)
+    resolved = path.absolute()
+    try:
+        resolved = path.resolve()
+    except (OSError, RuntimeError):
+        pass
+    if resolved == Path(resolved.anchor):
+        raise ConfigError(flag, f"{out} is the root folder: name a new or empty folder under it")
+    home = Path(os.path.expanduser("~"))
+    if home != Path(home.anchor) and resolved == home.resolve():
+        raise ConfigError(flag, f"{out} is the home folder: name a new or empty folder under it")
+    limit = name_max(resolved.parent)
+    for part in resolved.parts:
+        if len(os.fsencode(part)) > limit:
+            raise ConfigError(flag, f"a name in {flag} is {len(os.fsencode(part))} bytes long; this file system "
+                                    f"allows {limit}: choose a shorter name")
+    if len(os.fsencode(str(resolved))) >= 4000:
+        raise ConfigError(flag, "the path is too long: choose a shorter one")
+    return path
+
+
+def read_manifest(folder: Path) -> dict | None:
+    """The folder's manifest (a dict with ``kind`` and ``files``), None if absent or not tether's."""
+    try:
+        manifest = json.loads((Path(folder) / MANIFEST).read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+    if not isinstance(manifest, dict) or manifest.get("format") != MANIFEST_FORMAT:
+        return None
+    files = manifest.get("files")
+    if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
+        return None
+    return manifest
+
+
+def _legacy_run(folder: Path) -> bool:
+    """A run's folder from before the manifest: metrics.json with scenario and status."""
+    try:
+        metrics = json.loads((folder / "metrics.json").read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(metrics, dict) and "scenario" in metrics and "status" in metrics
+
+
+def written_by_tether(folder: str | Path, kind: str) -> bool:
+    """Whether ``folder`` is one tether wrote for ``kind`` ("run" or "report")."""
+    folder = Path(folder)
+    manifest = read_manifest(folder)
+    if manifest is not None:
+        return manifest.get("kind") == kind or (kind == "report" and _holds_sweep(folder))
+    if kind == "run":
+        return _legacy_run(folder)
+    return _holds_sweep(folder)
+
+
+def _holds_sweep(folder: Path) -> bool:
+    return any((folder / name).exists() for name in SWEEP_MARKERS)
+
+
+def previous_files(folder: Path, kind: str = "run") -> set[str]:
+    """The files (relative, POSIX) an earlier ``kind`` output wrote into ``folder``."""
+    manifest = read_manifest(folder)
+    if manifest is not None and manifest.get("kind") == kind:
+        return set(manifest["files"])
+    if kind == "run" and _legacy_run(folder):
+        names = {n for n in RUN_FILES if n != "plots" and (folder / n).is_file()}
+        plots = folder / "plots"
+        if plots.is_dir():
+            names |= {f"plots/{p.name}" for p in plots.iterdir()
+                      if p.is_file() and p.name.startswith(LEGACY_PLOT_PREFIX) and p.suffix == ".png"}
+        return names
+    return set()
+
+
+def check_out_folder(out: str | Path | None, kind: str = "run", flag: str = "--out") -> Path:
+    """ConfigError unless ``out`` may receive a ``kind`` output: it does not
+    exist, is empty, or is a folder tether wrote for ``kind`` (see the module
+    docstring); and it can be written. Leaves nothing behind (one empty probe
+    folder is created and removed)."""
+    out = check_out_path(out, flag)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(flag, f"{out} exists and is not a folder")
+    if out.is_dir():
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise ConfigError(flag, f"{out} is not writable")
+        try:
+            entries = sorted(p.name for p in out.iterdir())
+        except OSError as err:
+            raise ConfigError(flag, f"cannot read {out}: {err.strerror or err}") from None
+        if entries and not written_by_tether(out, kind):
+            what = "a tether run" if kind == "run" else "a tether report or sweep"
+            raise ConfigError(flag, f"{out} holds files tether did not write ({', '.join(entries[:3])}"
+                                    f"{', ...' if len(entries) > 3 else ''}) and is not {what}'s folder: "
+                                    "choose a new or empty folder")
+    existing = out.absolute().parent
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ConfigError(flag, f"{out} lies under {existing}, which is a file, not a folder")
+    try:  # os.access says yes to root everywhere; only trying tells (read-only mounts, /proc)
+        os.rmdir(tempfile.mkdtemp(prefix=".tp-", dir=existing))
+    except OSError as err:
+        raise ConfigError(flag, f"cannot write {out}: {existing}: {err.strerror or err}") from None
+    return out
+
+
+def check_out_file(path: str | Path | None, flag: str) -> Path:
+    """ConfigError unless file ``path`` may be written: new, or a file tether
+    wrote (its first line is one of ``SAVED_TOML_MARKERS``)."""
+    path = check_out_path(path, flag)
+    if path.is_dir():
+        raise ConfigError(flag, f"{path} is a folder, not a file")
+    if path.exists() or path.is_symlink():
+        try:
+            with open(path, "rb") as f:
+                first = f.readline(200).decode("utf-8", "replace")
+        except OSError as err:
+            raise ConfigError(flag, f"cannot read {path}: {err.strerror or err}") from None
+        if not path.is_file() or not first.startswith(SAVED_TOML_MARKERS):
+            raise ConfigError(flag, f"{path} exists and tether did not write it: choose a new file name")
+    existing = _nearest_existing(path.absolute().parent)
+    if not existing.is_dir():
+        raise ConfigError(flag, f"{path} lies under {existing}, which is a file, not a folder")
+    return path
+
+
+def write_manifest(folder: Path, kind: str, files: set[str] | list[str]) -> None:
+    write_json(Path(folder) / MANIFEST, {"format": MANIFEST_FORMAT, "kind": kind, "files": sorted(set(files) | {MANIFEST})})
+
+
+def _tree(folder: Path) -> set[str]:
+    """Files under ``folder``, relative POSIX paths."""
+    return {p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file() or p.is_symlink()}
+
+
+def staging_name(out: Path, pid: int | None = None) -> str:
+    """``OUT.partial-PID``, its ``OUT`` part shortened to fit the file system's name limit."""
+    suffix = f"{PARTIAL_SUFFIX}{os.getpid() if pid is None else pid}"
+    name = out.name
+    limit = name_max(out.parent) - len(os.fsencode(suffix))
+    while len(os.fsencode(name)) > limit:
+        name = name[:-1]
+    return f"{name}{suffix}"
 
 
 def json_safe(obj: Any) -> Any:
@@ -80,7 +268,7 @@ class Staging:
         self.shown = Path(out)  # as the user wrote it, for the paths a run reports
         self.out = self.shown.resolve()  # "." and ".." have no name to put a suffix on
         self.out.parent.mkdir(parents=True, exist_ok=True)
-        self.path = self.out.parent / f"{self.out.name}{PARTIAL_SUFFIX}{os.getpid()}"
+        self.path = self.out.parent / staging_name(self.out)
         if self.path.exists():  # left by an earlier process of the same id
             shutil.rmtree(self.path)
         self.path.mkdir()
@@ -90,35 +278,40 @@ class Staging:
         return str(self.shown / name)
 
     def commit(self) -> None:
-        """Move the staged files into ``out``, replacing an earlier run's."""
+        """Move the staged files into ``out``: each replaces the one of the
+        same name, and the files the earlier run wrote (its manifest) that
+        this run did not are removed; any other file stays."""
+        staged = _tree(self.path) - {MANIFEST}
+        write_manifest(self.path, "run", staged | {MANIFEST})  # before anything moves (a full disk stops here)
         if not self.out.exists():
             os.rename(self.path, self.out)
             return
-        staged = {p.name for p in self.path.iterdir()}
-        for name in RUN_FILES:
+        if not written_by_tether(self.out, "run") and any(self.out.iterdir()):
+            raise ConfigError("--out", f"{self.out} now holds files tether did not write: nothing was moved "
+                                       "into it; choose a new or empty folder")
+        for name in sorted(previous_files(self.out) - staged - {MANIFEST}):
             old = self.out / name
-            if name not in staged and (old.exists() or old.is_symlink()):
-                _remove(old)
+            if old.is_file() or old.is_symlink():
+                old.unlink()
+        for name in ("plots", "run.rrd.segments"):  # folders the run made, if now empty
+            folder = self.out / name
+            if folder.is_dir() and not folder.is_symlink() and not any(folder.iterdir()):
+                folder.rmdir()
         for name in sorted(staged):
             source, target = self.path / name, self.out / name
-            if source.is_dir() and target.exists():
-                trash = self.out / f".{name}.old-{os.getpid()}"
-                os.rename(target, trash)
-                os.rename(source, target)
-                _remove(trash)
-            else:
-                os.replace(source, target)
-        self.path.rmdir()
+            if target.parent != self.out:
+                if target.parent.is_symlink() or (target.parent.exists() and not target.parent.is_dir()):
+                    raise ConfigError("--out", f"{target.parent} is not a folder: choose a new or empty "
+                                               "folder")
+                target.parent.mkdir(parents=True, exist_ok=True)
+            if target.is_dir() and not target.is_symlink():
+                raise ConfigError("--out", f"{target} is a folder, not a run's file: choose a new or empty folder")
+            os.replace(source, target)
+        os.replace(self.path / MANIFEST, self.out / MANIFEST)  # last: until here the old one holds
+        shutil.rmtree(self.path, ignore_errors=True)
 
     def discard(self) -> None:
         shutil.rmtree(self.path, ignore_errors=True)
-
-
-def _remove(path: Path) -> None:
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path)
-    else:
-        path.unlink()
 
 
 class ProgressFile(Observer):

@@ -18,7 +18,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import tempfile
 from pathlib import Path
 
 import mujoco
@@ -119,24 +118,14 @@ def check_scenario(scenario: Scenario) -> None:
 
 
 def check_output_folder(out: str | Path, flag: str = "--out") -> None:
-    """ConfigError unless ``out`` can hold a run's files: a folder (or a path
-    that can become one) whose parent this process may write (the run's
-    files are written beside it first, then moved in). Leaves nothing
-    behind (it creates and removes one empty probe folder)."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ConfigError(flag, f"{out} exists and is not a folder")
-    if out.is_dir() and not os.access(out, os.W_OK | os.X_OK):
-        raise ConfigError(flag, f"{out} is not writable")
-    existing = out.absolute().parent
-    while not existing.exists():
-        existing = existing.parent
-    if not existing.is_dir():
-        raise ConfigError(flag, f"{out} lies under {existing}, which is a file, not a folder")
-    try:  # os.access says yes to root everywhere; only trying tells (read-only mounts, /proc)
-        os.rmdir(tempfile.mkdtemp(prefix=".tether-probe-", dir=existing))
-    except OSError as err:
-        raise ConfigError(flag, f"cannot write {out}: {existing}: {err.strerror or err}") from None
+    """ConfigError unless ``out`` may hold a run's files under tether's
+    output policy (:func:`sim.outputs.check_out_folder`): new, empty, or a
+    folder a tether run wrote; not ``/``, the home folder or an empty path;
+    writable (the run's files are written beside it first, then moved in).
+    Leaves nothing behind."""
+    from sim.outputs import check_out_folder
+
+    check_out_folder(out, "run", flag)
 
 
 NON_FINITE = 1  # _tick_sanity's codes (0: sane)

@@ -86,7 +86,7 @@ def tiny(folder: Path, replace: tuple[str, str] | None = None, extra: str = "", 
 def earlier_results(out: Path) -> dict[str, bytes]:
     """An output folder as an earlier run left it; returns its snapshot."""
     (out / "plots").mkdir(parents=True)
-    (out / "metrics.json").write_text('{"status": "completed", "earlier": true}\n')
+    (out / "metrics.json").write_text('{"scenario": "tiny", "status": "completed", "earlier": true}\n')
     (out / "video.mp4").write_bytes(b"earlier video")
     (out / "run.rrd").write_bytes(b"earlier recording")
     (out / "plots" / "timeseries.png").write_bytes(b"earlier plot")
@@ -266,7 +266,7 @@ def test_a_reused_folder_holds_one_runs_files(tmp_path, capsys):
     code, err, _ = run_cli(["run", str(tiny(tmp_path)), "--out", str(out), "--quiet"], capsys)
     assert code == 0, err
     names = {str(p.relative_to(out)) for p in out.rglob("*")}
-    assert names == {"metrics.json", "progress.json", "plots", "plots/timeseries.png", "notes.txt"}
+    assert names == {"metrics.json", "progress.json", "plots", "plots/timeseries.png", "notes.txt", ".tether-files.json"}
     assert json.loads((out / "metrics.json").read_text())["status"] == "completed"
     assert not list(tmp_path.glob("out.partial-*"))
 

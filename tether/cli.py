@@ -9,7 +9,9 @@ status "interrupted").
 from __future__ import annotations
 
 import argparse
+import errno
 import json
+import os
 import math
 import socket
 import sys
@@ -200,14 +202,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     from sim.validate import check_output_folder
 
     try:
-        if args.out:
-            check_output_folder(args.out)  # first: a folder that cannot be written refuses the run at once
+        if args.out is not None:  # first: a folder that may not or cannot be written refuses the run at once
+            check_output_folder(args.out)
         if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
             raise ConfigError("--duration", f"must be a positive, finite number of seconds, got {args.duration}")
         video_overrides = _video_overrides(args)
         overrides = [*args.overrides, *video_overrides]
         scenario, placement_notes = _load(args, overrides, args.duration)
-        out = Path(args.out) if args.out else Path("runs") / scenario.name
+        out = Path(args.out) if args.out is not None else Path("runs") / scenario.name
         check_output_folder(out)
         if args.rerun_live:
             grpc_port = _port(args.rerun_port, "--rerun-port", host=args.host)
@@ -245,6 +247,12 @@ def cmd_run(args: argparse.Namespace) -> int:
             live.close()
         print("\ntether: interrupted before the run started; nothing written", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except OSError:  # a full disk, a vanished folder...: main's barrier says it in one line
+        if progress:
+            progress.close()
+        if live:
+            live.close()
+        raise
     if progress:
         progress.close(result.metrics)
     m = result.metrics
@@ -272,9 +280,13 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
+    from sim.outputs import check_out_file
+
     try:
         overrides = [*args.overrides, *_video_overrides(args)]
         scenario, placement_notes = _load(args, overrides)
+        save = args.save if args.save is not None else Path("runs") / "tune" / f"{scenario.name}_tuned.toml"
+        check_out_file(save, "--save")  # the page's "save as scenario TOML" may replace only a file tether wrote
         view_fps = _number(args.view_fps, "--view-fps", minimum=0.1)
         speed = _number(args.speed, "--speed")
         port = int(_number(args.port, "--port", int))
@@ -389,6 +401,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             return 0
         if args.out is None:
             raise ConfigError("--out", "is required: the folder the results go to")
+        from sim.outputs import check_out_path
+
+        check_out_path(args.out)  # not "", /, the home folder, nor a name too long
         if args.ray is not None and args.workers is not None:
             raise ConfigError("--workers", "sizes the local pool; with --ray the cluster decides")
         workers = int(_number(args.workers, "--workers", int, minimum=1)) if args.workers else os.cpu_count() or 1
@@ -449,10 +464,46 @@ def main(argv: list[str] | None = None) -> int:
     handlers = {"run": cmd_run, "tune": cmd_tune, "view": cmd_view, "scenarios": cmd_scenarios,
                 "init": cmd_init, "sweep": cmd_sweep, "sweeps": cmd_sweeps, "report": cmd_report}
     try:
-        return handlers[args.command](args)
+        code = handlers[args.command](args)
+        sys.stdout.flush()  # here, not at exit: a closed pipe or a full disk is seen by the barrier
+        return code
     except KeyboardInterrupt:
         print("\ntether: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except OSError as err:
+        return _os_error(err)
+
+
+# errno values that say the path given is wrong (exit 2); any other OSError is a failure while writing (exit 1)
+_BAD_PATH = {errno.ENAMETOOLONG, errno.ENOENT, errno.ENOTDIR, errno.EISDIR, errno.EACCES, errno.EPERM,
+             errno.EROFS, errno.EEXIST, errno.ENOTEMPTY, errno.ELOOP, errno.EXDEV}
+
+
+def _os_error(err: OSError) -> int:
+    """The one exception barrier of every command: an OSError becomes one line
+    on stderr (exit 2 for a bad path, 1 for a failure while writing), no
+    traceback. stdout closed by its reader (``| head -1``) ends quietly, exit 0,
+    with stdout pointed at /dev/null so that Python's flush at exit is quiet too
+    (https://docs.python.org/3/library/signal.html#note-on-sigpipe)."""
+    if err.filename is None:  # stdout (a pipe, /dev/full) or a socket: nothing more to write there
+        _silence_stdout()
+        if isinstance(err, BrokenPipeError):
+            return 0
+    code = EXIT_BAD_INPUT if err.errno in _BAD_PATH else 1
+    try:
+        _fail(f"cannot write {err.filename or 'the output'}: {err.strerror or err}")
+    except OSError:
+        pass
+    return code
+
+
+def _silence_stdout() -> None:
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):
+        pass
 
 
 if __name__ == "__main__":

@@ -493,8 +493,11 @@ def write_report(results: str | Path, out: str | Path | None = None, x: str | No
                  hue: str | None = None) -> list[Path]:
     """Write report.md and the PNGs; returns their paths (report.md first).
     ConfigError if there is no readable table or a named column is missing."""
+    from sim.outputs import check_out_folder, read_manifest, written_by_tether, write_manifest
     from tether.sweep import MANIFEST_FILE, read_results
 
+    if out is not None:  # first, tether's output policy: new, empty, or a report's / sweep's folder
+        check_out_folder(out, "report", "--out")
     source = Path(results)
     table = read_results(source)
     if table is None:
@@ -510,6 +513,7 @@ def write_report(results: str | Path, out: str | Path | None = None, x: str | No
         except (OSError, ValueError):
             manifest = None  # the report needs only the table
     target = Path(out) if out is not None else (source if source.is_dir() else source.parent)
+    marked = target.is_dir() and written_by_tether(target, "report")
     target.mkdir(parents=True, exist_ok=True)
     lines = trials_section(rows, manifest)
     pngs: list[Path] = []
@@ -525,4 +529,10 @@ def write_report(results: str | Path, out: str | Path | None = None, x: str | No
     tmp = target / ".report.md.tmp"
     tmp.write_text("\n".join(lines) + "\n")
     tmp.replace(report)
+    written = {p.name for p in (report, *pngs)}
+    own = read_manifest(target)
+    if own is not None and own.get("kind") == "report":
+        written |= set(own["files"])
+    if own is not None or not marked:  # a new folder: mark it as a report's
+        write_manifest(target, "report", written)
     return [report, *pngs]

@@ -374,6 +374,9 @@ class ResultsFolder:
     def check(self, sweep: Sweep) -> None:
         """Refuse (ConfigError) a folder holding anything but this sweep's
         results, or an unreadable or foreign row; creates nothing."""
+        from sim.outputs import check_out_path
+
+        check_out_path(self.out, "--out")  # not "", /, home, nor a name too long
         if self.out.exists() and not self.out.is_dir():
             raise ConfigError("--out", f"{self.out} exists and is not a folder")
         manifest = self.read_manifest()

@@ -472,11 +472,16 @@ class TuningSession:
     def scenario_toml(self) -> str:
         with self._lock:
             scenario = self.sim.scenario
-            header = (f"# Scenario {scenario.name!r} with the parameters tuned in `tether tune` "
+            header = (f"# tether scenario {scenario.name!r} with the parameters tuned in `tether tune` "
                       f"(saved at sim time {self.sim.time_s:.1f} s). Run it with: tether run FILE\n")
             return header + dumps_toml(to_scenario_table(scenario))
 
     def save(self) -> Path:
+        """Write the scenario TOML to the save path: a new file, or one tether
+        wrote (sim.outputs.check_out_file); ConfigError otherwise."""
+        from sim.outputs import check_out_file
+
+        check_out_file(self.save_path, "--save")
         text = self.scenario_toml()
         self.save_path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.save_path.with_suffix(self.save_path.suffix + ".tmp")
