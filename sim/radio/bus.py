@@ -251,7 +251,8 @@ class MessageBus:
         self._in_flight: dict[int, _InFlight] = {}
         self._kinds: dict[str, _KindCounters] = {}
         self._elapsed_s = 0.0
-        self._last = TickStats(math.nan, 0, 0, math.nan, math.nan, 0)
+        self._last: TickStats | None = TickStats(math.nan, 0, 0, math.nan, math.nan, 0)
+        self._idle_s = math.nan
 
     # --- sending ---------------------------------------------------------------------------------
 
@@ -292,7 +293,8 @@ class MessageBus:
         if not self._queues_busy():
             # Nothing queued (no frame in flight either: a message's frames all go out of one queue).
             self._elapsed_s += self.control_period_s
-            self._last = TickStats(float(time_s), 0, 0, math.nan, math.nan, 0)
+            self._last = None  # an empty period at self._idle_s, built only when read
+            self._idle_s = time_s
             n = self._robot_count(link) if link is not None else self._n or 0
             return [[] for _ in range(n)]
         n = self._robot_count(link)
@@ -315,10 +317,7 @@ class MessageBus:
         return deliveries
 
     def _queues_busy(self) -> bool:
-        for queue in self._queues.values():
-            if queue:
-                return True
-        return False
+        return any(self._queues.values()) if self._queues else False
 
     @property
     def idle(self) -> bool:
@@ -439,6 +438,8 @@ class MessageBus:
     @property
     def last_tick(self) -> TickStats:
         """Per-tick values of the latest ``step``, for time series."""
+        if self._last is None:
+            self._last = TickStats(float(self._idle_s), 0, 0, math.nan, math.nan, 0)
         return self._last
 
     def summary(self) -> dict[str, float | int]:
