@@ -5,7 +5,10 @@ factory (parameters -> :class:`sim.strategy.Strategy`) and a low-level
 control factory (world -> :class:`LowLevel`), and :func:`run_ticks` is handed
 the observers; the application (``tether.runner``) picks them. One
 ``np.random.Generator`` (seeded from the scenario) is created here and passed
-down in a fixed order: target motion noise, range noise, then the strategy.
+down in a fixed order: target motion noise, range noise, then the strategy;
+the radio channel and then the message bus get streams spawned from it
+(spawning draws nothing). Each tick the strategy's ``Commands.outbox`` goes
+through the bus; its deliveries are the next ``Observation.inbox``.
 Observers only read, so video and recording never change the trajectory.
 """
 
@@ -15,6 +18,7 @@ import contextlib
 import copy
 import dataclasses
 import gc
+import math
 import signal
 import threading
 import time
@@ -27,6 +31,7 @@ import numpy as np
 
 from sim.config import ConfigError
 from sim.observers import EstimationError, Frame, Observer, PhysicsState, estimation_error
+from sim.radio.bus import LinkConditions, MessageBus, link_conditions
 from sim.radio.link import RadioChannel
 from sim.scenario import Scenario, StrategyConfig
 from sim.sensing import RaySensors
@@ -126,6 +131,13 @@ class Simulation:
         # Spawned, not drawn from: the run's own stream (targets, ranges, strategy) is unchanged by the radio.
         self.radio = RadioChannel(scenario.radio, self.world.obstacles, self.world.wall_loss_db,
                                   scenario.sensing.comm_range_m, self.rng.spawn(1)[0])
+        # The message bus: Commands.outbox in, the next Observation.inbox out. Its stream is spawned after
+        # the channel's, so the channel's draws are those of a run without a bus.
+        self.bus = MessageBus(scenario.radio.bus_parameters, self.rng.spawn(1)[0],
+                              scenario.physics.control_period_s, robot_count=self.world.n_robots)
+        self._no_inbox: tuple[tuple, ...] = ((),) * self.world.n_robots
+        self._inbox = self._no_inbox  # the deliveries of the last tick's bus step, for the next observation
+        self._bus_flowed = False  # some tick's step had messages: the bus's per-tick scalars are reported
         self.control = lowlevel_factory(self.world)
         self.substeps = scenario.physics.substeps
         self.world.model.opt.timestep = scenario.physics.timestep_s
@@ -227,6 +239,7 @@ class Simulation:
             quaternion=quaternion, angular_velocity=angular, sensor_position=sensors,
             links=links, target_ranges=ranges, target_step=step,
             decorations_wanted=decorations_wanted, radio=self.radio.state(self.time_s, position, links),
+            inbox=self._inbox,
         )
 
     def tick(self, decorations_wanted: bool = True) -> tuple[Frame, bool]:
@@ -242,6 +255,7 @@ class Simulation:
         observation = self.observe(decorations_wanted=decorations_wanted)
         sensed = time.perf_counter()
         commands = self.strategy.step(observation)
+        self._exchange(observation, commands)
         planned = time.perf_counter()
         self.control.apply(observation, commands)
         frame = self._frame(observation, commands)
@@ -260,6 +274,40 @@ class Simulation:
         timing["physics"] += stepped - controlled
         return frame, not self.divergence
 
+    def _exchange(self, observation: Observation, commands: Commands) -> None:
+        """The tick's messages: ``commands.outbox`` to the bus at the tick's time, one bus step over
+        [t, t + control period) with this tick's link state, its deliveries the next observation's inbox."""
+        bus = self.bus
+        time_s = observation.time_s
+        for message in commands.outbox:
+            bus.send(message, time_s)
+        if bus.idle:  # no message anywhere: no link state read, nothing drawn
+            bus.step(time_s, None)
+            self._inbox = self._no_inbox
+            return
+        rows = bus.step(time_s, self.bus_link(observation))
+        self._inbox = tuple(tuple(row) for row in rows)
+        self._bus_flowed = True
+
+    def bus_link(self, observation: Observation) -> LinkConditions:
+        """The bus's view of the tick's channel: the mean SNR of every pair and who shares the air.
+
+        Carrier sense: the pairs whose mean received power reaches ``radio.carrier_sense_dbm``.
+        Under ``ideal``: the disk (comm range with line of sight) for both, an infinite SNR on it."""
+        if self.scenario.radio.is_ideal:
+            adjacency = observation.links.adjacency
+            return link_conditions(np.where(adjacency, np.inf, -np.inf), adjacency)
+        radio = observation.radio
+        with np.errstate(invalid="ignore"):
+            sense = radio.rx_power_dbm >= self.scenario.radio.carrier_sense_dbm
+        return LinkConditions(radio.snr_db, sense)
+
+    def radio_summary(self) -> dict[str, float | int | None]:
+        """The bus's ``radio_*`` metrics over the run (``MessageBus.summary``); a ratio or latency over no
+        packets is None (null in metrics.json: empty, not a failed figure)."""
+        return {key: (None if isinstance(value, float) and math.isnan(value) else value)
+                for key, value in self.bus.summary().items()}
+
     def _frame(self, observation: Observation, commands: Commands) -> Frame:
         """The observers' frame of this tick, before the step: read-only views of
         the observation, the physics state, and the derived figures (e_g)."""
@@ -269,8 +317,12 @@ class Simulation:
             self._estimation = EstimationError(e_g, int(observation.target_step), fresh=True)
         elif self._estimation is not None and self._estimation.fresh:
             self._estimation = dataclasses.replace(self._estimation, fresh=False)
+        radio = None
+        if self._bus_flowed:
+            last = self.bus.last_tick
+            radio = {"radio_tick_delivery_ratio": last.delivery_ratio, "radio_tick_latency_mean_s": last.latency_mean_s}
         return Frame(_readonly_observation(observation), commands, truth, PhysicsState.of(*self._state_arrays),
-                     self._estimation)
+                     self._estimation, radio)
 
     def _check(self, commands) -> str:
         """Why the state after this tick is not sane ("" if it is): non-finite

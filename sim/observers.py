@@ -78,13 +78,19 @@ class Frame:
     target_positions: np.ndarray  # (M, 3) true positions, m
     state: PhysicsState | None = None  # MuJoCo's state of the tick (the video redraws it)
     estimation: EstimationError | None = None  # None until the method's first matched estimate
+    # The message bus's figures of this tick's step (``radio_tick_delivery_ratio``, ``radio_tick_latency_mean_s``;
+    # NaN: none this tick), from the first tick that had messages on; None before.
+    radio: Mapping[str, float] | None = None
 
     @functools.cached_property
     def scalars(self) -> Mapping[str, float]:
-        """The method's scalars and the loop's derived figures (``e_g_m``), read-only."""
-        if self.estimation is None:
+        """The method's scalars and the loop's derived figures (``e_g_m``, the bus's), read-only."""
+        if self.estimation is None and self.radio is None:
             return self.commands.scalars
-        return MappingProxyType({**self.commands.scalars, "e_g_m": self.estimation.e_g_m})
+        derived = dict(self.radio or {})
+        if self.estimation is not None:
+            derived["e_g_m"] = self.estimation.e_g_m
+        return MappingProxyType({**self.commands.scalars, **derived})
 
 
 class Observer:

@@ -53,7 +53,9 @@ class Strategy(abc.ABC):
     """What the loop needs from a method.
 
     Subclasses implement :meth:`reset` and :meth:`step`; every other hook has
-    a default that means "this method has nothing to say here".
+    a default that means "this method has nothing to say here". A method
+    talks between robots through the message bus: it sends with
+    ``Commands.outbox`` and receives ``Observation.inbox`` (see :meth:`step`).
     """
 
     #: True for a mission that can end (every target visited): once
@@ -73,6 +75,15 @@ class Strategy(abc.ABC):
         ``Commands.decorations`` may be left empty when
         ``observation.decorations_wanted`` is False (no observer draws this tick);
         ``Commands.estimate`` must always be filled by a method that estimates.
+
+        Messages go through the message bus (``sim.radio.bus``, docs/radio.md):
+        ``Commands.outbox`` holds the messages the team sends this tick (each
+        ``Message`` names its sender and receivers and carries its real size);
+        the loop sends them at ``observation.time_s`` and steps the bus over the
+        control period with this tick's radio. ``observation.inbox[i]`` holds
+        the ``Delivery``s that reached robot ``i`` since the last tick, in order
+        of arrival (under ``ideal``: last tick's messages to robots within the
+        disk, latency 0). Both are read-only, like the rest of the observation.
         """
 
     @property

@@ -10,11 +10,14 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Mapping
 
 import numpy as np
 
 from sim.geometry import Boxes
+
+if TYPE_CHECKING:
+    from sim.radio.bus import Delivery, Message
 
 
 @dataclass(frozen=True)
@@ -187,6 +190,10 @@ class Observation:
     decorations_wanted: bool = True
     # The radio channel of every pair (sim.radio.link), computed on first read; None outside a Simulation.
     radio: RadioState | None = None
+    # Per robot, the message bus's deliveries (sim.radio.bus.Delivery) that arrived since the last tick, by
+    # arrival: the messages the strategy's Commands.outbox sent (its own or earlier ticks'). In a Simulation
+    # N tuples; () in a hand-built observation.
+    inbox: tuple[tuple[Delivery, ...], ...] = ()
 
 
 def readonly(array: Any) -> np.ndarray:
@@ -316,6 +323,9 @@ class Commands(_PicklableMappings):
     estimate: TargetEstimate | None = None
     # What it draws; may be empty when ``Observation.decorations_wanted`` was False.
     decorations: Decorations = NO_DECORATIONS
+    # The messages the team sends this tick (sim.radio.bus.Message, each with its sender and real size):
+    # the loop hands them to the message bus at the tick's time; they arrive in a later Observation.inbox.
+    outbox: tuple[Message, ...] = ()
 
     def __post_init__(self):
         # Every tick, so the fields are set through __dict__ (a frozen dataclass's setattr is slow).
@@ -330,6 +340,8 @@ class Commands(_PicklableMappings):
         assert yaw.shape == (n,), yaw.shape
         if type(self.scalars) is not MappingProxyType:
             fields["scalars"] = MappingProxyType(self.scalars)
+        if type(self.outbox) is not tuple:
+            fields["outbox"] = tuple(self.outbox)
 
 
 @dataclass(frozen=True)

@@ -162,6 +162,7 @@ def _metrics(scenario: Scenario, sim: Simulation, status: Status, message: str, 
         **named["tracking"].summary(),
         **named["links"].summary(),
         **named["estimation"].summary(),
+        **sim.radio_summary(),
         **sim.strategy.summary(),
     }
     missing = non_finite_fields(metrics)

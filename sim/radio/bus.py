@@ -27,9 +27,13 @@ The model, per control period:
 - **Latency** = arrival - ``sent_s``: queueing plus airtime.
 
 Under the ``ideal`` preset nothing of this applies: every message reaches
-every intended receiver in the tick it was sent, latency 0, no airtime, and
-no random number is drawn. A broadcast then reaches the robots whose
-``snr_db`` from the sender is not -inf (all others if no link is given).
+every intended receiver with a link in the tick it was sent, latency 0, no
+airtime, and no random number is drawn. A receiver has a link when its
+``snr_db`` from the sender is not -inf (every robot if no link is given); a
+unicast to a robot without one is lost (addressed, not delivered), a
+broadcast is tried only at the robots with one.
+
+A ``step`` with nothing queued returns at once (no link state read).
 
 Not modelled: hidden terminals and collisions between senders outside each
 other's carrier-sense range (their frames never interfere), the capture
@@ -247,7 +251,8 @@ class MessageBus:
         self._in_flight: dict[int, _InFlight] = {}
         self._kinds: dict[str, _KindCounters] = {}
         self._elapsed_s = 0.0
-        self._last = TickStats(math.nan, 0, 0, math.nan, math.nan, 0)
+        self._last: TickStats | None = TickStats(math.nan, 0, 0, math.nan, math.nan, 0)
+        self._idle_s = math.nan
 
     # --- sending ---------------------------------------------------------------------------------
 
@@ -285,6 +290,13 @@ class MessageBus:
         ``link`` gives this tick's (N, N) ``snr_db`` and ``carrier_sense``; under
         'ideal' it may be None (a broadcast then reaches every other robot).
         """
+        if not self._queues_busy():
+            # Nothing queued (no frame in flight either: a message's frames all go out of one queue).
+            self._elapsed_s += self.control_period_s
+            self._last = None  # an empty period at self._idle_s, built only when read
+            self._idle_s = time_s
+            n = self._robot_count(link) if link is not None else self._n or 0
+            return [[] for _ in range(n)]
         n = self._robot_count(link)
         before = self._totals()
         deliveries: list[list[Delivery]] = [[] for _ in range(n)]
@@ -303,6 +315,14 @@ class MessageBus:
         self._last = TickStats(float(time_s), sent, delivered, delivered / addressed if addressed else math.nan,
                                float(np.mean(latencies)) if latencies else math.nan, self.queued())
         return deliveries
+
+    def _queues_busy(self) -> bool:
+        return any(self._queues.values()) if self._queues else False
+
+    @property
+    def idle(self) -> bool:
+        """Nothing waits to go out: the next ``step`` needs no link state and costs next to nothing."""
+        return not self._queues_busy()
 
     def _robot_count(self, link: LinkState | None) -> int:
         if link is not None:
@@ -328,13 +348,16 @@ class MessageBus:
             while queue:
                 message = queue.popleft().message
                 audience = self._audience(message, n)
-                if message.receivers is None and link is not None:
+                if link is not None:  # the ideal disk: only receivers with a link
                     audience = tuple(j for j in audience if link.snr_db[sender, j] > -np.inf)
+                    addressed = len(message.receivers) if message.receivers is not None else len(audience)
+                else:
+                    addressed = len(audience)
                 counters = self._counters(message.kind, n)
                 counters.packets_sent += 1
                 counters.frames_sent += 1
                 counters.bytes_sent += message.size_bytes
-                counters.addressed += len(audience)
+                counters.addressed += addressed
                 counters.delivered += len(audience)
                 counters.latencies_s += [0.0] * len(audience)
                 for receiver in audience:
@@ -415,6 +438,8 @@ class MessageBus:
     @property
     def last_tick(self) -> TickStats:
         """Per-tick values of the latest ``step``, for time series."""
+        if self._last is None:
+            self._last = TickStats(float(self._idle_s), 0, 0, math.nan, math.nan, 0)
         return self._last
 
     def summary(self) -> dict[str, float | int]:

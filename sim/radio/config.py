@@ -9,12 +9,20 @@ links are today's disk with line of sight.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Literal
 
 from sim.config import check_params, param, require
 from sim.radio import channel
+from sim.radio.bus import BusParameters
 from sim.radio.presets import IEEE802154, PRESETS, RadioPreset
+
+# Carrier sense: a robot defers to every robot whose mean received power reaches the preset's
+# sensitivity minus this margin. IEEE 802.15.4-2006 6.9.9 lets a CCA's energy-detection threshold be
+# up to 10 dB above the receiver sensitivity; sensing a few dB below the sensitivity instead makes a
+# sender defer to every frame it could decode, so the bus's missing hidden-terminal collisions
+# (sim.radio.bus) stay rare: pairs that could interfere share the air.
+CARRIER_SENSE_MARGIN_DB = 3.0
 
 # Marks a key the preset fills (a NaN a scenario cannot write: tables refuse NaN).
 FROM_PRESET = math.nan
@@ -40,6 +48,10 @@ class RadioConfig:
     fading: Literal["none", "rayleigh", "rician"] | None = None
     # Rician K-factor (LOS over scattered power); -inf is K = 0 (Rayleigh); "rician" only
     rician_k_db: float = param(FROM_PRESET, unit="dB", max=60.0, allow_inf=True)
+    # -- the message bus's shared medium
+    # mean received power at which two robots hear each other's carrier and share the air (CSMA);
+    # default: the preset's sensitivity - CARRIER_SENSE_MARGIN_DB
+    carrier_sense_dbm: float = param(FROM_PRESET, unit="dBm", min=-200.0, max=40.0)
     # -- the communication graph
     reference_payload_bytes: int = param(20, unit="byte", min=0, max=1500)  # payload of the packet whose delivery is reported
     delivery_threshold: float = param(0.5, above=0.0, max=1.0)  # a link is in the communication graph at this delivery probability
@@ -67,6 +79,16 @@ class RadioConfig:
         return IEEE802154 if chosen.is_ideal else chosen
 
     @property
+    def bus_parameters(self) -> BusParameters:
+        """What the message bus needs: the preset's frame format with this table's bit rate, fading and K."""
+        chosen = PRESETS[self.preset]
+        if chosen.is_ideal:
+            return BusParameters.from_preset(chosen)
+        k = 0.0 if self.rician_k_db == -math.inf else 10.0 ** (self.rician_k_db / 10.0)
+        return replace(BusParameters.from_preset(chosen), bitrate_bps=self.bitrate_bps, fading_model=self.fading,
+                       rician_k=k)
+
+    @property
     def reference_length_bits(self) -> int:
         """Bits of the reference packet whose errors lose it: PHY header, MAC overhead and payload."""
         packet = self.radio.packet
@@ -90,6 +112,7 @@ def preset_figures(name: str) -> dict[str, float | str]:
         "shadowing_correlation_s": preset.shadowing.tau_s,
         "fading": preset.fading.model,
         "rician_k_db": -math.inf if k == 0 else 10.0 * math.log10(k),
+        "carrier_sense_dbm": preset.sensitivity.datasheet_dbm - CARRIER_SENSE_MARGIN_DB,
     }
 
 
