@@ -441,18 +441,36 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _raise_interrupt(_signum, _frame) -> None:
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
+    import signal
+    import threading
+
     try:
         args = _parser().parse_args(argv)
     except SystemExit as stop:  # --help (0) or a usage error (2, one line already printed)
         return stop.code if isinstance(stop.code, int) else EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("\ntether: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     handlers = {"run": cmd_run, "tune": cmd_tune, "view": cmd_view, "scenarios": cmd_scenarios,
                 "init": cmd_init, "sweep": cmd_sweep, "sweeps": cmd_sweeps, "report": cmd_report}
+    previous = None
+    if args.command == "run" and threading.current_thread() is threading.main_thread():
+        # SIGTERM as Ctrl-C until the run's own handlers are in place (sim.loop): set-up stops at once,
+        # nothing written; and after the run (the live viewer's wait) it ends the command the same way.
+        previous = signal.signal(signal.SIGTERM, _raise_interrupt)
     try:
         return handlers[args.command](args)
     except KeyboardInterrupt:
         print("\ntether: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":
