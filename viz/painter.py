@@ -67,9 +67,9 @@ def group_signals_deferred():
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a pending one runs the recorder now
-        for sig, handler in previous.items():
+        for sig, handler in previous.items():  # still blocked: nothing can run between these
             signal.signal(sig, handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a pending one runs the handler in place now
         for sig in dict.fromkeys(caught):
             signal.raise_signal(sig)  # the handler in place before decides
 

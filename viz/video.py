@@ -377,7 +377,7 @@ class FrameView:
 
 VIDEO_QUEUE_FRAMES = 32  # states waiting for the renderer process before the simulation waits, -
 WORKER_POLL_S = 1.0  # how often a blocked simulation checks that the renderer is still alive, s
-INTERRUPTED_CLOSE_S = 2.0  # an interrupted run's renderer renders its queue this long, then finishes the file
+INTERRUPTED_CLOSE_S = 0.5  # an interrupted run's renderer renders its queue this long, then finishes the file
 RESULT_TIMEOUT_S = 60.0  # closing: a renderer that has not finished the file by then is stopped
 STALL_S = 30.0  # a renderer that takes no frame from a full queue for this long is stopped (it hangs)
 
