@@ -1,6 +1,7 @@
 """``tether`` command line: a thin layer over :func:`tether.runner.run`.
 
-Exit codes: 0 completed or time limit, 1 diverged, 2 bad input (one line on
+Exit codes: 0 completed or time limit, 1 diverged or failed (a child process
+died), 2 bad input (one line on
 stderr naming the field and the problem; nothing written), 130 interrupted
 (Ctrl-C or SIGTERM: the run stops at the next tick and writes its files,
 status "interrupted").
