@@ -239,7 +239,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         if live:
             live.close()
         return _fail(str(err))
-    except KeyboardInterrupt:  # before the run's own handlers were in place: nothing written
+    except BaseException as error:  # noqa: BLE001
+        if not _was_interrupted(error):
+            raise
+        # before the run's own handlers were in place (a KeyboardInterrupt, or what an import made of one)
         if progress:
             progress.close()
         if live:
@@ -442,8 +445,20 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def _raise_interrupt(_signum, _frame) -> None:
+_interrupted: list[str] = []  # the signals that interrupted the command outside a run's ticks
+
+
+def _raise_interrupt(signum, _frame) -> None:
+    import signal
+
+    _interrupted.append(signal.Signals(signum).name)
     raise KeyboardInterrupt
+
+
+def _was_interrupted(error: BaseException) -> bool:
+    """A KeyboardInterrupt, or what an extension module made of one raised in
+    its import (scipy's "ImportError: initialization failed")."""
+    return isinstance(error, KeyboardInterrupt) or bool(_interrupted)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -459,19 +474,26 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_INTERRUPTED
     handlers = {"run": cmd_run, "tune": cmd_tune, "view": cmd_view, "scenarios": cmd_scenarios,
                 "init": cmd_init, "sweep": cmd_sweep, "sweeps": cmd_sweeps, "report": cmd_report}
-    previous = None
+    previous = {}
     if args.command == "run" and threading.current_thread() is threading.main_thread():
         # SIGTERM as Ctrl-C until the run's own handlers are in place (sim.loop): set-up stops at once,
         # nothing written; and after the run (the live viewer's wait) it ends the command the same way.
-        previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+        _interrupted.clear()
+        previous = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         return handlers[args.command](args)
+    except Exception as error:  # noqa: BLE001
+        if not _was_interrupted(error):
+            raise
+        print("\ntether: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except KeyboardInterrupt:
         print("\ntether: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            if handler is not None:
+                signal.signal(sig, handler)
 
 
 if __name__ == "__main__":
