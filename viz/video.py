@@ -377,7 +377,7 @@ class FrameView:
 
 VIDEO_QUEUE_FRAMES = 32  # states waiting for the renderer process before the simulation waits, -
 WORKER_POLL_S = 1.0  # how often a blocked simulation checks that the renderer is still alive, s
-INTERRUPTED_CLOSE_S = 0.5  # an interrupted run's renderer renders its queue this long, then finishes the file
+INTERRUPTED_CLOSE_S = 0.0  # an interrupted run's renderer stops at its frame (the CPU is the painters'), then finishes the file
 RESULT_TIMEOUT_S = 60.0  # closing: a renderer that has not finished the file by then is stopped
 STALL_S = 30.0  # a renderer that takes no frame from a full queue for this long is stopped (it hangs)
 
@@ -401,9 +401,10 @@ class VideoRecorder(Observer):
     a free slot (back-pressure; memory stays bounded), so a run then goes at
     the renderer's pace, with the simulation's own work done in parallel.
     ``close`` waits until the last frame is encoded; an interrupted run's
-    close renders the queue for ``INTERRUPTED_CLOSE_S`` at most, and
-    :meth:`abandon` (a signal while closing) stops it at the next frame;
-    the file is finished either way.
+    close renders the queue for ``INTERRUPTED_CLOSE_S`` at most (none: the
+    frame being drawn, and a first one if none was), and :meth:`abandon` (a
+    signal while closing) stops it at the next frame; the file is finished
+    either way.
 
     The renderer is supervised (viz.painter): it ignores the group's SIGINT
     and SIGTERM, every wait on it is bounded and checks that it is alive,
@@ -545,18 +546,23 @@ class VideoRecorder(Observer):
             self._result.close()
 
 
-def _next_state(states, parent, stop):
+def _next_state(states, parent, stop, first: bool = False):
     """The next queued state; None at the end of the video, when the run asks
-    to stop (``stop`` set), or once the simulation's process is gone
-    (killed: this process holds the queue's write end too, so no end of file
-    would come): the file is then closed and stays readable up to the last
-    frame."""
+    to stop (``stop`` set; the ``first`` frame is still taken when queued,
+    so the file exists), or once the simulation's process is gone (killed:
+    this process holds the queue's write end too, so no end of file would
+    come): the file is then closed and stays readable up to the last frame."""
     while not stop.is_set():
         try:
             return states.get(timeout=WORKER_POLL_S)
         except queue.Empty:
             if parent is not None and not parent.is_alive():
                 return None
+    if first:
+        try:
+            return states.get(timeout=WORKER_POLL_S)
+        except queue.Empty:
+            pass
     return None
 
 
@@ -582,7 +588,7 @@ def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, 
         )
         parent = multiprocessing.parent_process()
         try:
-            while (item := _next_state(states, parent, stop)) is not None:
+            while (item := _next_state(states, parent, stop, first=written == 0)) is not None:
                 frame, repeats = pickle.loads(item)
                 image = view.render(frame)  # its own state (frame.state)
                 for _ in range(repeats):
