@@ -529,7 +529,8 @@ class VideoRecorder(Observer):
             if status == "failed":
                 self._stop.set()  # the run is failing anyway: finish the file, do not render the queue
             hurry = time.monotonic() + INTERRUPTED_CLOSE_S if status == "interrupted" else float("inf")
-            if self._process.exitcode is None and not self._put(None, hurry):  # end of the video
+            queued = self._put(None) if hurry == float("inf") else self._put(None, hurry)  # end of the video
+            if self._process.exitcode is None and not queued:
                 self._stop.set()
             result = self._wait_result(hurry)  # after the last frame is encoded
             if not isinstance(result, int):
