@@ -384,24 +384,46 @@ def timing_summary(timing: dict[str, float], setup_s: float, closing_s: float) -
     }
 
 
+class ObserverFailure(RuntimeError):
+    """An observer cannot go on (its child process died, e.g. the video
+    renderer): the run ends "failed" with this message and writes its files."""
+
+
 class _Interrupts:
     """While a run ticks, SIGINT (Ctrl-C) and SIGTERM only set ``requested``
     (the signal's name): the loop stops at the next tick and closes the run
     as "interrupted". A second signal during the ticks stops the tick at
-    once; once the loop is over, signals wait for the files to be closed.
+    once; once the loop is over (``closing``), a signal never raises: it is
+    noted (``late``) and tells every observer with an ``abandon()`` to finish
+    at once (the video stops rendering its queue), so closing stays short.
     Handlers are installed only in the main thread (Python's rule)."""
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
-    def __init__(self):
+    def __init__(self, observers: Sequence[Any] = ()):
         self.requested = ""
+        self.late = ""  # a signal that came while the observers closed
         self.closing = False  # once the loop is over, signals wait for the files to be closed
+        self._observers = observers
         self._previous: dict = {}
 
     def _handle(self, signum, _frame) -> None:
-        if self.requested and not self.closing:
+        name = signal.Signals(signum).name
+        if self.closing:
+            self.requested = self.requested or name
+            self.late = self.late or name
+            self.abandon()
+            return
+        if self.requested:
             raise KeyboardInterrupt
-        self.requested = self.requested or signal.Signals(signum).name
+        self.requested = name
+
+    def abandon(self) -> None:
+        """Ask every observer that can to finish at once (it only sets a flag)."""
+        for observer in self._observers:
+            abandon = getattr(observer, "abandon", None)
+            if abandon is not None:
+                abandon()
 
     def __enter__(self) -> "_Interrupts":
         if threading.current_thread() is threading.main_thread():
@@ -430,8 +452,10 @@ def run_ticks(sim: Simulation, observers: Sequence[Observer], duration_s: float,
     """Tick ``sim`` for ``duration_s`` with ``observers``, then close them.
 
     Stops early when the strategy's mission ends (:attr:`Strategy.finished`),
-    the state diverges (``sim.divergence``) or SIGINT / SIGTERM arrives (the
-    run stops at the next tick: "interrupted"). ``progress`` is called every
+    the state diverges (``sim.divergence``), an observer fails
+    (:class:`ObserverFailure`: "failed") or SIGINT / SIGTERM arrives (the
+    run stops at the next tick: "interrupted"; one while the observers close
+    makes them hurry and the run "interrupted" too). ``progress`` is called every
     100 ticks. ``on_closed(status, message, closing_s)`` runs after every observer
     closed, still under the signal guard (the caller writes its files
     there). On an exception the observers are closed "failed" and it
@@ -445,7 +469,7 @@ def run_ticks(sim: Simulation, observers: Sequence[Observer], duration_s: float,
     timing = sim.timing
     closed = False
     try:
-        with _Interrupts() as interrupts, frozen_heap():
+        with _Interrupts(observers) as interrupts, frozen_heap():
             try:
                 for _ in range(n_ticks):
                     if interrupts.requested:
@@ -474,20 +498,36 @@ def run_ticks(sim: Simulation, observers: Sequence[Observer], duration_s: float,
                         break
             except KeyboardInterrupt:  # a second Ctrl-C, or one before the handlers were in place
                 status = Status.INTERRUPTED
-                message = f"interrupted (SIGINT) at t = {sim.time_s:.3f} s"
+                message = f"interrupted ({interrupts.requested or 'SIGINT'}) at t = {sim.time_s:.3f} s"
+            except ObserverFailure as failure:  # e.g. the video renderer died
+                status = Status.FAILED
+                message = f"failed at t = {sim.time_s:.3f} s: {failure}"
             if status == Status.COMPLETED:  # ran to its end: the mission's end or the time limit
                 status, message = end_of_run(sim.strategy, mission_ended, duration_s, sim.time_s)
             interrupts.closing = True
-            if status in (Status.DIVERGED, Status.INTERRUPTED):
-                level = "ERROR" if status == Status.DIVERGED else "WARN"
+            if interrupts.requested and status not in (Status.INTERRUPTED, Status.FAILED):
+                # came after the last tick's look: the run is interrupted all the same
+                status, message = Status.INTERRUPTED, (f"interrupted ({interrupts.requested}) at t = "
+                                                       f"{sim.time_s:.3f} s, as the run ended ({status}: {message})")
+            if status in (Status.DIVERGED, Status.INTERRUPTED, Status.FAILED):
+                level = "WARN" if status == Status.INTERRUPTED else "ERROR"
                 for observer in observers:
                     observer.on_event(sim.time_s, message, level=level, tick=sim.tick_count)
             closed = True
             closing = time.perf_counter()
             for observer in observers:  # work that can go on while the others close (plots' painters)
                 observer.start_closing(status)
+            failures = []
             for observer in observers:
-                observer.close(status)
+                try:
+                    observer.close(status)
+                except ObserverFailure as failure:  # the others still close and the files are written
+                    failures.append(str(failure))
+            if failures:
+                status, message = Status.FAILED, "; ".join([*failures, message] if message else failures)
+            elif interrupts.late and status != Status.INTERRUPTED:
+                status, message = Status.INTERRUPTED, (f"interrupted ({interrupts.late}) while closing, "
+                                                       f"after the run ended ({status}: {message})")
             closing_s = time.perf_counter() - closing
             if on_closed is not None:
                 on_closed(status, message, closing_s)

@@ -1,6 +1,7 @@
 """``tether`` command line: a thin layer over :func:`tether.runner.run`.
 
-Exit codes: 0 completed or time limit, 1 diverged, 2 bad input (one line on
+Exit codes: 0 completed or time limit, 1 diverged or failed (a child process
+died), 2 bad input (one line on
 stderr naming the field and the problem; nothing written), 130 interrupted
 (Ctrl-C or SIGTERM: the run stops at the next tick and writes its files,
 status "interrupted").
@@ -240,7 +241,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         if live:
             live.close()
         return _fail(str(err))
-    except KeyboardInterrupt:  # before the run's own handlers were in place: nothing written
+    except BaseException as error:  # noqa: BLE001
+        if not _was_interrupted(error):
+            raise
+        # before the run's own handlers were in place (a KeyboardInterrupt, or what an import made of one)
         if progress:
             progress.close()
         if live:
@@ -456,13 +460,41 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+_interrupted: list[str] = []  # the signals that interrupted the command outside a run's ticks
+
+
+def _raise_interrupt(signum, _frame) -> None:
+    import signal
+
+    _interrupted.append(signal.Signals(signum).name)
+    raise KeyboardInterrupt
+
+
+def _was_interrupted(error: BaseException) -> bool:
+    """A KeyboardInterrupt, or what an extension module made of one raised in
+    its import (scipy's "ImportError: initialization failed")."""
+    return isinstance(error, KeyboardInterrupt) or bool(_interrupted)
+
+
 def main(argv: list[str] | None = None) -> int:
+    import signal
+    import threading
+
     try:
         args = _parser().parse_args(argv)
     except SystemExit as stop:  # --help (0) or a usage error (2, one line already printed)
         return stop.code if isinstance(stop.code, int) else EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("\ntether: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     handlers = {"run": cmd_run, "tune": cmd_tune, "view": cmd_view, "scenarios": cmd_scenarios,
                 "init": cmd_init, "sweep": cmd_sweep, "sweeps": cmd_sweeps, "report": cmd_report}
+    previous = {}
+    if args.command == "run" and threading.current_thread() is threading.main_thread():
+        # SIGTERM as Ctrl-C until the run's own handlers are in place (sim.loop): set-up stops at once,
+        # nothing written; and after the run (the live viewer's wait) it ends the command the same way.
+        _interrupted.clear()
+        previous = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         code = handlers[args.command](args)
         sys.stdout.flush()  # here, not at exit: a closed pipe or a full disk is seen by the barrier
@@ -471,7 +503,19 @@ def main(argv: list[str] | None = None) -> int:
         print("\ntether: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except OSError as err:
+        if _interrupted:
+            print("\ntether: interrupted", file=sys.stderr)
+            return EXIT_INTERRUPTED
         return _os_error(err)
+    except Exception as error:  # noqa: BLE001
+        if not _was_interrupted(error):
+            raise
+        print("\ntether: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        for sig, handler in previous.items():
+            if handler is not None:
+                signal.signal(sig, handler)
 
 
 # errno values that say the path given is wrong (exit 2); any other OSError is a failure while writing (exit 1)

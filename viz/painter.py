@@ -12,12 +12,25 @@ lines' data and write the PNGs, in parallel. Where no child process can be
 started (a daemonic pool worker, say), or a painter dies, pages are drawn in
 this process by :func:`draw_pages`, through the same three steps.
 
+Child processes (the painters, the video renderer of viz.video) are
+supervised: they are started with SIGINT and SIGTERM held back
+(:func:`group_signals_deferred`) and ignore both from their first
+instruction on (:func:`ignore_group_signals`), so a terminal's Ctrl-C to the
+process group, or a SIGTERM to it, reaches only the run, which stops them in
+order; every wait on one is bounded and checks that it is alive; and any
+still running when the run's process exits is killed (:func:`supervise`),
+never left behind nor waited for without end.
+
 This module imports only numpy at the top: a painter process starts from it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
+import threading
+import time
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -28,6 +41,89 @@ LEFT, RIGHT = 0.11, 0.98  # the axes' edges, as fractions of the page's width
 LABEL_OFFSET_IN = 0.55  # a panel's title (its y label) from the axes' left edge
 LEVELS_LABEL_OFFSET_IN = 0.74  # ... beyond coded levels' names ("secondary" at 7 pt)
 MAX_PAINTERS = 4  # beyond this, another process's import costs more than the pages it would draw
+PAINTER_TIMEOUT_S = 20.0  # a painter that has not sent its pages by then is stopped; they are drawn here
+STOP_WAIT_S = 2.0  # how long a child that should end is waited for before it is killed
+GROUP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+@contextlib.contextmanager
+def group_signals_deferred():
+    """SIGINT and SIGTERM held back while a child process is started: the
+    child inherits them blocked (a spawned child keeps the mask across exec)
+    and ignores them before it unblocks them, so a Ctrl-C during its start
+    cannot print its bootstrap's traceback; in this process a signal that
+    came meanwhile is handled (by the handler in place before) once the
+    child is started and registered."""
+    from multiprocessing import resource_tracker
+
+    # Its launch (at a spawned child's first start) unblocks SIGINT and SIGTERM when done: it goes first.
+    resource_tracker.ensure_running()
+    caught: list[int] = []
+    previous: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in GROUP_SIGNALS:
+            previous[sig] = signal.signal(sig, lambda signum, _frame: caught.append(signum))
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, GROUP_SIGNALS)
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():  # still blocked: nothing can run between these
+            signal.signal(sig, handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a pending one runs the handler in place now
+        for sig in dict.fromkeys(caught):
+            signal.raise_signal(sig)  # the handler in place before decides
+
+
+def ignore_group_signals() -> None:
+    """In a child process, first thing: SIGINT and SIGTERM sent to the process
+    group are the run's to handle (it stops its children in order)."""
+    for sig in GROUP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, GROUP_SIGNALS)  # what came during the start is dropped
+
+
+_supervised: list[Any] = []  # child processes to kill, should they outlive their run, at exit
+
+
+def supervise(process) -> None:
+    """Kill ``process`` at this process's exit if it is still running. Called
+    after multiprocessing is imported, so this runs before multiprocessing's
+    own exit hook, which would SIGTERM (ignored) and join without end."""
+    import atexit
+
+    _supervised[:] = [p for p in _supervised if p.exitcode is None]
+    if not _supervised:
+        atexit.unregister(_reap)
+        atexit.register(_reap)
+    _supervised.append(process)
+
+
+def stop_process(process, wait_s: float = STOP_WAIT_S) -> None:
+    """Wait up to ``wait_s`` for ``process`` to end, then kill it (SIGKILL: it
+    ignores SIGTERM) and reap it."""
+    process.join(wait_s)
+    if process.exitcode is None:
+        process.kill()
+        process.join(wait_s)
+
+
+def _reap() -> None:
+    for process in _supervised:
+        if process.exitcode is None:
+            process.kill()
+    for process in _supervised:
+        process.join(STOP_WAIT_S)
+    _supervised.clear()
+
+
+def exit_reason(exitcode: int | None) -> str:
+    """``exit -9 (SIGKILL)`` for a child killed by a signal, ``exit 1`` otherwise."""
+    if exitcode is not None and exitcode < 0:
+        try:
+            return f"exit {exitcode}, {signal.Signals(-exitcode).name}"
+        except ValueError:
+            pass
+    return f"exit {exitcode}"
 
 # A panel's data: (title, data, values, levels). data is (T, 2) [time, value] for
 # a series (values None), or times (T,) with values (T, N) for a per-robot series,
@@ -181,25 +277,28 @@ class Painters:
         self._send_shares("draw", pages, title)
 
     def finish(self) -> list[str]:
-        """The PNG paths in page order; a painter that died has its pages drawn here."""
+        """The PNG paths in page order; a painter that died, or sent nothing within
+        ``PAINTER_TIMEOUT_S``, has its pages drawn here."""
         if self._started is None:  # nothing to draw: the painters see their pipe close and end
             for process, connection in self._painters:
                 connection.close()
-                process.join()
+            for process, _ in self._painters:
+                stop_process(process)
             self._painters = []
             return []
         pages, title = self._started, self._title
         files: list[str | None] = [None] * len(pages)
         n = len(self._painters)
+        deadline = time.monotonic() + PAINTER_TIMEOUT_S
         for index, (process, connection) in enumerate(self._painters):
             share = list(range(index, len(pages), n))
-            try:
-                drawn = connection.recv()
-            except (EOFError, OSError):  # the painter died: draw its share here
+            drawn = _receive(process, connection, deadline)
+            if drawn is None:  # the painter died or hangs: draw its share here
                 drawn = draw_pages([pages[i] for i in share], title, self.robot_names)
             for i, path in zip(share, drawn):
                 files[i] = path
-            process.join()
+            connection.close()
+            stop_process(process)
         if not self._painters:
             files = draw_pages(pages, title, self.robot_names)
         self._painters = []
@@ -208,10 +307,12 @@ class Painters:
     def _send_shares(self, kind: str, pages: list, *extra: Any) -> None:
         n = len(self._painters)
         for index, (_, connection) in enumerate(self._painters):
-            try:
-                connection.send((kind, pages[index::n], *extra))
-            except (OSError, BrokenPipeError):  # a dead painter: finish() draws its share here
-                pass
+            message = (kind, pages[index::n], *extra)
+            if kind == "draw":  # the data can exceed the pipe's buffer: never wait on a painter here
+                threading.Thread(target=_send_quietly, args=(connection, message), daemon=True,
+                                 name=f"plot-painter-{index}-send").start()
+            else:
+                _send_quietly(connection, message)
 
     def _add_painter(self) -> bool:
         if not self._can_spawn:
@@ -223,7 +324,9 @@ class Painters:
             connection, child = context.Pipe()
             process = context.Process(target=_paint, args=(child, self.robot_names), daemon=True,
                                       name=f"plot-painter-{len(self._painters)}")
-            process.start()
+            with group_signals_deferred():
+                process.start()
+                supervise(process)
             child.close()
         except (AssertionError, OSError, RuntimeError):  # no child processes here (e.g. a daemonic worker)
             self._can_spawn = False
@@ -232,10 +335,33 @@ class Painters:
         return True
 
 
+def _send_quietly(connection, message) -> None:
+    try:
+        connection.send(message)
+    except (OSError, ValueError):  # a dead painter (or a closed pipe): finish() draws its share here
+        pass
+
+
+def _receive(process, connection, deadline: float) -> list[str] | None:
+    """A painter's PNG paths; None once it is dead, or past ``deadline`` (it is then killed)."""
+    while True:
+        try:
+            if connection.poll(0.1):
+                return connection.recv()
+        except (EOFError, OSError):
+            return None
+        if process.exitcode is not None and not connection.poll(0):
+            return None
+        if time.monotonic() > deadline:
+            process.kill()
+            return None
+
+
 def _paint(connection, robot_names) -> None:
     """A painter process: build (and draw once, which creates the ticks and
     rasterises the fonts) the figures of the pages it is planned, then fill
-    and save them when the data comes."""
+    and save them when the data comes. Signals to the group are the run's."""
+    ignore_group_signals()
     _matplotlib()
     from matplotlib.figure import Figure  # noqa: F401  (the expensive import, while the run goes on)
 
@@ -243,7 +369,7 @@ def _paint(connection, robot_names) -> None:
     while True:
         try:
             kind, pages, *extra = connection.recv()
-        except EOFError:  # the run ended without plots
+        except (EOFError, OSError):  # the run ended without plots (or is gone)
             return
         if kind == "layout":
             for path, layout in pages:
@@ -255,5 +381,6 @@ def _paint(connection, robot_names) -> None:
                     built[path] = (layout, page)
             continue
         (title,) = extra
-        connection.send(draw_pages(pages, title, robot_names, built))
+        drawn = draw_pages(pages, title, robot_names, built)
+        _send_quietly(connection, drawn)  # the run may be gone: nothing to tell then
         os._exit(0)  # at once: a normal exit tears down the figures while the run waits in join

@@ -28,6 +28,7 @@ from __future__ import annotations
 import functools
 import pickle
 import queue
+import time
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -376,6 +377,9 @@ class FrameView:
 
 VIDEO_QUEUE_FRAMES = 32  # states waiting for the renderer process before the simulation waits, -
 WORKER_POLL_S = 1.0  # how often a blocked simulation checks that the renderer is still alive, s
+INTERRUPTED_CLOSE_S = 0.0  # an interrupted run's renderer stops at its frame (the CPU is the painters'), then finishes the file
+RESULT_TIMEOUT_S = 60.0  # closing: a renderer that has not finished the file by then is stopped
+STALL_S = 30.0  # a renderer that takes no frame from a full queue for this long is stopped (it hangs)
 
 
 class VideoRecorder(Observer):
@@ -396,26 +400,45 @@ class VideoRecorder(Observer):
     slower than the simulation, the queue fills and the simulation waits for
     a free slot (back-pressure; memory stays bounded), so a run then goes at
     the renderer's pace, with the simulation's own work done in parallel.
-    ``close`` waits until the last frame is encoded.
+    ``close`` waits until the last frame is encoded; an interrupted run's
+    close renders the queue for ``INTERRUPTED_CLOSE_S`` at most (none: the
+    frame being drawn, and a first one if none was), and :meth:`abandon` (a
+    signal while closing) stops it at the next frame; the file is finished
+    either way.
+
+    The renderer is supervised (viz.painter): it ignores the group's SIGINT
+    and SIGTERM, every wait on it is bounded and checks that it is alive,
+    and one that died (killed, out of memory) or failed (disk full) raises
+    :class:`sim.loop.ObserverFailure` naming it and its exit code: the run
+    ends "failed" with its files written.
     """
 
     def __init__(self, world: World, config: VideoConfig, path: str, control_period_s: float):
         import multiprocessing
+
+        from viz.painter import group_signals_deferred, supervise
 
         resolve_camera(world.model, config.camera)  # refuse an unknown camera here, not in the renderer
         self.world = world
         self.config = config
         self.path = path
         self.control_period_s = control_period_s
-        self.frames_written = 0  # frames handed to the renderer (all of them are written by close)
+        self.frames_written = 0  # frames handed to the renderer
+        self.frames_encoded: int | None = None  # frames in the file, once closed
+        self.failure = ""  # why the renderer is gone, once it is
+        self._abandoned = False
         context = multiprocessing.get_context("spawn")
         self._queue = context.Queue(maxsize=VIDEO_QUEUE_FRAMES)
+        self._queue.cancel_join_thread()  # never wait at exit on a feeder blocked by a dead renderer
+        self._stop = context.Event()
         self._result, child = context.Pipe(duplex=False)
         self._process = context.Process(
-            target=_render_worker, args=(pickle.dumps(world), config, path, self._queue, child),
+            target=_render_worker, args=(pickle.dumps(world), config, path, self._queue, child, self._stop),
             daemon=True, name="video-renderer",
         )
-        self._process.start()
+        with group_signals_deferred():
+            self._process.start()
+            supervise(self._process)
         child.close()
 
     def on_tick(self, frame: Frame) -> None:
@@ -425,57 +448,135 @@ class VideoRecorder(Observer):
         while (self.frames_written + repeats) / self.config.fps < until:
             repeats += 1
         if repeats:
+            if self._process.exitcode is not None:  # a cheap look (waitpid): it died since the last frame
+                raise self._fail()
             # Pickled now, not by the queue's feeder thread later: the strategy may reuse its arrays.
             self._put(pickle.dumps((FrameView.of(frame), repeats), protocol=pickle.HIGHEST_PROTOCOL))
             self.frames_written += repeats
 
-    def _put(self, item) -> None:
+    def abandon(self) -> None:
+        """Finish the file at the next frame (safe in a signal handler: it only sets a flag)."""
+        self._abandoned = True
+
+    def _put(self, item, until: float = float("inf")) -> bool:
+        """Queue ``item``, waiting for a free slot while the renderer lives;
+        False when abandoned or past ``until`` (monotonic)."""
+        stalled = time.monotonic() + STALL_S
+        while not self._abandoned and time.monotonic() < until:
+            try:
+                self._queue.put(item, timeout=min(WORKER_POLL_S, max(0.01, until - time.monotonic())))
+                return True
+            except queue.Full:  # back-pressure: the renderer is behind
+                if self._process.exitcode is None and time.monotonic() > stalled:
+                    self._process.kill()
+                    self._process.join(WORKER_POLL_S)
+                    self.failure = f"video renderer hung (no frame taken for {STALL_S:g} s; killed)"
+                if self._process.exitcode is not None:
+                    raise self._fail() from None
+        return False
+
+    def _fail(self):
+        """The ObserverFailure of a renderer that is gone (its report, else its exit code)."""
+        if not self.failure:
+            report = None
+            try:
+                if self._result.poll(0.5):
+                    report = self._result.recv()
+            except (EOFError, OSError):
+                pass
+            from viz.painter import exit_reason
+
+            self._process.join(0.5)
+            if isinstance(report, str):  # its error (a traceback's text): the last line says what
+                lines = [line for line in report.strip().splitlines() if line.strip()]
+                self.failure = f"video renderer failed ({exit_reason(self._process.exitcode)}): " \
+                               f"{lines[-1] if lines else 'no report'}"
+            else:
+                self.failure = f"video renderer died ({exit_reason(self._process.exitcode)})"
+        from sim.loop import ObserverFailure
+
+        return ObserverFailure(self.failure)
+
+    def _wait_result(self, hurry: float):
+        """The renderer's report (frames written, or an error's text); None when it
+        died without one. Bounded: rendering stops at ``hurry`` (monotonic: an
+        interrupted run's INTERRUPTED_CLOSE_S) or at once when abandoned, and a renderer silent
+        for RESULT_TIMEOUT_S is stopped."""
+        give_up = time.monotonic() + RESULT_TIMEOUT_S
         while True:
             try:
-                self._queue.put(item, timeout=WORKER_POLL_S)
-                return
-            except queue.Full:  # back-pressure: the renderer is behind
-                if not self._process.is_alive():
-                    raise RuntimeError(f"video renderer stopped: {self._worker_result()}") from None
-
-    def _worker_result(self):
-        """The renderer's report: frames written (int) or an error's text; blocks until it comes."""
-        try:
-            return self._result.recv()
-        except EOFError:
-            self._process.join()
-            return f"no report (exit code {self._process.exitcode})"
+                if self._result.poll(0.1):
+                    return self._result.recv()
+            except (EOFError, OSError):
+                return None
+            if self._process.exitcode is not None and not self._result.poll(0):
+                return None
+            now = time.monotonic()
+            if self._abandoned or now > hurry:
+                if not self._stop.is_set():
+                    self._stop.set()  # finish the file at the next frame
+                    give_up = min(give_up, now + 5.0)
+            if now > give_up:
+                self._process.kill()
+                return None
 
     def close(self, status: str) -> None:
-        if self._process.is_alive():
-            self._put(None)  # end of the video
-        result = self._worker_result()  # after the last frame is encoded
-        self._process.join()
-        if not isinstance(result, int):
-            raise RuntimeError(f"video renderer failed: {result}")
-        if result != self.frames_written:
-            raise RuntimeError(f"video renderer wrote {result} frames of {self.frames_written}")
+        from viz.painter import stop_process
+
+        try:
+            if self.failure:  # already reported (the run ends "failed")
+                return
+            if status == "failed":
+                self._stop.set()  # the run is failing anyway: finish the file, do not render the queue
+            hurry = time.monotonic() + INTERRUPTED_CLOSE_S if status == "interrupted" else float("inf")
+            queued = self._put(None) if hurry == float("inf") else self._put(None, hurry)  # end of the video
+            if self._process.exitcode is None and not queued:
+                self._stop.set()
+            result = self._wait_result(hurry)  # after the last frame is encoded
+            if not isinstance(result, int):
+                raise self._fail()
+            self.frames_encoded = result
+            if result != self.frames_written and not self._stop.is_set():
+                self.failure = f"video renderer wrote {result} frames of {self.frames_written}"
+                from sim.loop import ObserverFailure
+
+                raise ObserverFailure(self.failure)
+        finally:
+            stop_process(self._process)
+            self._queue.close()
+            self._result.close()
 
 
-def _next_state(states, parent):
-    """The next queued state; None at the end of the video, or once the
-    simulation's process is gone (killed: this process holds the queue's
-    write end too, so no end of file would come): the file is then closed
-    and stays readable up to the last frame."""
-    while True:
+def _next_state(states, parent, stop, first: bool = False):
+    """The next queued state; None at the end of the video, when the run asks
+    to stop (``stop`` set; the ``first`` frame is still taken when queued,
+    so the file exists), or once the simulation's process is gone (killed:
+    this process holds the queue's write end too, so no end of file would
+    come): the file is then closed and stays readable up to the last frame."""
+    while not stop.is_set():
         try:
             return states.get(timeout=WORKER_POLL_S)
         except queue.Empty:
             if parent is not None and not parent.is_alive():
                 return None
+    if first:
+        try:
+            return states.get(timeout=WORKER_POLL_S)
+        except queue.Empty:
+            pass
+    return None
 
 
-def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, result) -> None:
+def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, result, stop) -> None:
     """The renderer process: draw and encode every state from ``states`` until
-    None; send the number of frames written (or the error's text) on ``result``."""
+    None (or ``stop``); send the number of frames written (or the error's
+    text) on ``result``. The group's SIGINT and SIGTERM are the run's."""
     import multiprocessing
     import traceback
 
+    from viz.painter import ignore_group_signals
+
+    ignore_group_signals()
     written = 0
     try:
         import imageio.v2 as imageio
@@ -488,7 +589,7 @@ def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, 
         )
         parent = multiprocessing.parent_process()
         try:
-            while (item := _next_state(states, parent)) is not None:
+            while (item := _next_state(states, parent, stop, first=written == 0)) is not None:
                 frame, repeats = pickle.loads(item)
                 image = view.render(frame)  # its own state (frame.state)
                 for _ in range(repeats):
@@ -497,6 +598,13 @@ def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, 
         finally:
             writer.close()
             view.close()
-        result.send(written)
-    except BaseException:  # noqa: BLE001 - the parent raises it with this text
-        result.send(traceback.format_exc())
+        _send(result, written)
+    except BaseException:  # noqa: BLE001 - the parent reports it with this text
+        _send(result, traceback.format_exc())
+
+
+def _send(result, report) -> None:
+    try:
+        result.send(report)
+    except OSError:  # the run is gone
+        pass
