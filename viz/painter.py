@@ -381,6 +381,9 @@ def _paint(connection, robot_names) -> None:
                     built[path] = (layout, page)
             continue
         (title,) = extra
-        drawn = draw_pages(pages, title, robot_names, built)
+        try:
+            drawn = draw_pages(pages, title, robot_names, built)
+        except OSError:  # a full disk, a folder gone: the run draws these pages itself and reports it
+            os._exit(1)
         _send_quietly(connection, drawn)  # the run may be gone: nothing to tell then
         os._exit(0)  # at once: a normal exit tears down the figures while the run waits in join
