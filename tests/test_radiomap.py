@@ -148,3 +148,29 @@ def test_the_ideal_radio_maps_the_ieee802154_figures_with_a_note(tmp_path, capsy
     out = tmp_path / "ideal.png"
     assert main(["radiomap", str(scenario), "--out", str(out)]) == 0
     assert "ieee802154 figures" in capsys.readouterr().err and out.exists()
+
+
+@pytest.mark.parametrize("preset", ["ieee802154", "ideal"])
+def test_the_recording_holds_the_radio_map_of_robot_0_under_a_real_radio(tmp_path, preset):
+    from helpers import rrd_chunks
+    from tether.radiomap import RECORDING_CELLS
+    from tether.runner import run
+
+    write_scene(tmp_path, SCENE)
+    scenario = load(str(write_scenario(tmp_path, SCENARIO.replace('preset = "ieee802154"', f'preset = "{preset}"'))),
+                    duration_s=0.1)
+    run(scenario, tmp_path / "out", rrd=True)
+    chunks = rrd_chunks(tmp_path / "out" / "run.rrd")
+    if preset == "ideal":
+        assert "/world/radio_map" not in chunks
+        return
+    (chunk,) = chunks["/world/radio_map"]
+    assert chunk.is_static
+    batch = chunk.to_record_batch()
+    vertices = np.array(batch.column("Mesh3D:vertex_positions").to_pylist()[0])
+    colours = batch.column("Mesh3D:vertex_colors").to_pylist()[0]
+    assert vertices.shape == (RECORDING_CELLS ** 2, 3) and len(colours) == len(vertices)
+    assert np.all(vertices[:, 2] < 0.05)  # on the floor
+    assert len(set(colours)) > 50  # coloured by power, not one colour
+    legend = chunks["/legend"][0].to_record_batch().column("TextDocument:text").to_pylist()[0]
+    assert "mean received power from quad0" in str(legend)

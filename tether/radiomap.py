@@ -26,6 +26,7 @@ from sim.radio.config import RadioConfig
 from sim.radio.walls import SceneWalls
 
 MAP_CELLS = 240  # receivers along the longer side of the floor plan
+RECORDING_CELLS = 160  # ... in the recording's mesh (a vertex each)
 CONTOUR_DELIVERY = 0.5  # the contour: received power at which the reference packet arrives half the time
 PNG_SOFTWARE = "tether radiomap"  # the PNG's Software text: a file tether wrote (may be replaced)
 FIGURE_SIZE_IN = (8.0, 6.5)
