@@ -15,7 +15,8 @@ from sim.radio.config import RadioConfig
 from sim.scenario import load
 from sim.world import extract_obstacles, obstacle_wall_losses
 from tether.cli import main
-from tether.radiomap import FIGURE_DPI, FIGURE_SIZE_IN, radio_map, reference_sensitivity_dbm, transmitter_of
+from sim.radio.radiomap import radio_map, reference_sensitivity_dbm
+from tether.radiomap import FIGURE_DPI, FIGURE_SIZE_IN, transmitter_of
 
 # Two walls across the room: wall_a (x = 3) takes radio.wall_loss_db, wall_b (x = 6) its own 9 dB.
 # The floor plane lies below every receiver and is crossed by no segment.

@@ -10,7 +10,7 @@ Entity tree:
                            the strategy's ``link_weights`` when given; by the
                            pair's delivery probability under a non-ideal radio)
   world/radio_map          under a non-ideal radio: the mean received power from
-                           robot 0 at its start (tether.radiomap), a static mesh
+                           robot 0 at its start (sim.radio.radiomap), a static mesh
                            with vertex colours on the floor (viridis)
   world/plans, world/meetings, world/targets/estimate, world/targets/covariance,
   world/markers            the strategy's decorations (viz.decorations)
@@ -390,9 +390,9 @@ class RerunRecorder(Observer):
         return "\n".join(["**Colours**", "", *lines])
 
     def log_radio_map(self, radio, robot_name: str) -> None:
-        """``radio`` (a :class:`tether.radiomap.RadioMap`) as a static mesh on the floor under
+        """``radio`` (a :class:`sim.radio.radiomap.RadioMap`) as a static mesh on the floor under
         ``world/radio_map``: one vertex per receiver, coloured by its power (viridis)."""
-        from tether.radiomap import colour_limits, power_rgb8
+        from sim.radio.radiomap import colour_limits
 
         ny, nx = radio.power_dbm.shape
         gx, gy = np.meshgrid(radio.x, radio.y)
@@ -401,7 +401,7 @@ class RerunRecorder(Observer):
         corner = (np.arange(ny - 1)[:, None] * nx + np.arange(nx - 1)[None, :]).ravel()
         triangles = np.concatenate([np.column_stack([corner, corner + 1, corner + nx + 1]),
                                     np.column_stack([corner, corner + nx + 1, corner + nx])]).astype(np.uint32)
-        colors = power_rgb8(radio).reshape(-1, 3)
+        colors = _power_rgb8(radio).reshape(-1, 3)
         self.rec.log("world/radio_map", rr.Mesh3D(vertex_positions=vertices, triangle_indices=triangles,
                                                   vertex_colors=colors), static=True)
         low, high = colour_limits(radio)
@@ -432,3 +432,14 @@ def _quat_xyzw(rotation: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_matrix(rotation).as_quat()  # x, y, z, w as rerun expects
+
+
+def _power_rgb8(radio) -> np.ndarray:
+    """(ny, nx, 3) uint8 image of the map (row 0 at the lowest y), viridis over :func:`colour_limits`."""
+    from matplotlib import colormaps
+
+    from sim.radio.radiomap import colour_limits
+
+    low, high = colour_limits(radio)
+    scaled = np.clip((radio.power_dbm - low) / (high - low), 0.0, 1.0)
+    return (colormaps["viridis"](scaled)[..., :3] * 255).round().astype(np.uint8)
