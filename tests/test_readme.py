@@ -95,6 +95,8 @@ def test_readme_commands_run(tmp_path, monkeypatch):
         argv = shlex.split(command)[1:]
         if sub == "run":
             argv = short(argv, tmp_path / f"run{index}", tmp_path)
+        if sub == "radiomap":  # into the scratch folder, not the repository's runs/
+            argv += ["--out", str(tmp_path / f"radiomap{index}.png")]
         out = io.StringIO()
         with contextlib.redirect_stdout(out):
             code = main(argv)

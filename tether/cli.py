@@ -86,6 +86,17 @@ def _parser() -> argparse.ArgumentParser:
     view.add_argument("--speed", default="1", metavar="X",
                       help="sim speed as a multiple of real time (default 1; 0: as fast as possible)")
 
+    radiomap = sub.add_parser("radiomap", help="draw the mean received power from one robot over the scene (PNG)")
+    radiomap.add_argument("scenario", help="built-in scenario name or a TOML file")
+    _scene_argument(radiomap, "map")
+    radiomap.add_argument("--from", dest="robot", default=None, metavar="ROBOT",
+                          help="the transmitting robot, a name (quad0, ground3) or an index (default 0), at its start")
+    radiomap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                          help="override a scenario value, e.g. --set radio.preset=\"wifi\" (repeatable)")
+    radiomap.add_argument("--out", default=None, metavar="FILE.png",
+                          help="where the PNG goes (default runs/SCENARIO/radiomap.png)")
+    radiomap.set_defaults(seed=None)
+
     sub.add_parser("scenarios", help="list built-in scenarios")
 
     init = sub.add_parser("init", help="write a scenario as a commented TOML file to start from "
@@ -348,6 +359,29 @@ def cmd_view(args: argparse.Namespace) -> int:
     return EXIT_CODES.get(status, 0)
 
 
+def cmd_radiomap(args: argparse.Namespace) -> int:
+    from tether.radiomap import check_png_target, scenario_radio_map, write_radio_map_png
+
+    try:
+        scenario, placement_notes = _load(args, args.overrides)
+        out = Path(args.out) if args.out else Path("runs") / scenario.name / "radiomap.png"
+        check_png_target(out)
+        radio, robot, obstacles = scenario_radio_map(scenario, args.robot)
+    except ConfigError as err:
+        return _fail(str(err))
+    for note in placement_notes:
+        print(note, flush=True)
+    preset = scenario.radio.preset
+    if scenario.radio.is_ideal:
+        print("note: the ideal radio has no powers; the map uses the [radio] table's ieee802154 figures",
+              file=sys.stderr)
+        preset = "ideal (ieee802154 figures)"
+    title = f"Radio map: {scenario.name} in {scenario.scene_path.stem}, {preset}, from {robot}"
+    write_radio_map_png(radio, obstacles, out, title, robot)
+    print(f"radio map: {out}  (sensitivity {radio.sensitivity_dbm:.1f} dBm at 50 % delivery)")
+    return 0
+
+
 def cmd_scenarios(args: argparse.Namespace) -> int:
     from sim.scenario import builtin_scenarios
 
@@ -488,7 +522,8 @@ def main(argv: list[str] | None = None) -> int:
         print("\ntether: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     handlers = {"run": cmd_run, "tune": cmd_tune, "view": cmd_view, "scenarios": cmd_scenarios,
-                "init": cmd_init, "sweep": cmd_sweep, "sweeps": cmd_sweeps, "report": cmd_report}
+                "init": cmd_init, "radiomap": cmd_radiomap, "sweep": cmd_sweep, "sweeps": cmd_sweeps,
+                "report": cmd_report}
     previous = {}
     if args.command == "run" and threading.current_thread() is threading.main_thread():
         # SIGTERM as Ctrl-C until the run's own handlers are in place (sim.loop): set-up stops at once,

@@ -68,6 +68,11 @@ def _observers(sim: Simulation, folder: Path | None, video: bool, rrd: bool, liv
 
         files["recording"] = final("run.rrd")
         named["recorder"] = RerunRecorder(sim.world, str(folder / "run.rrd"), scenario.name, live_stream=live)
+        if not scenario.radio.is_ideal:  # the radio map of robot 0 at its start, once (docs/radio.md)
+            from tether.radiomap import RECORDING_CELLS, world_radio_map
+
+            named["recorder"].log_radio_map(world_radio_map(sim.world, scenario.radio, cells=RECORDING_CELLS),
+                                            sim.world.robot_names[0])
         observers.append(named["recorder"])
     return observers, named, files
 

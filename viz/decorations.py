@@ -8,6 +8,12 @@ video, points and 2-sigma covariance ellipsoids in the recording). With
 ``robot_colors``, quadrotors also get a small marker sphere of their colour
 on top (e.g. the prime traveler highlighted).
 
+Links under a radio preset other than ``ideal`` are coloured by the pair's
+delivery probability (``Observation.radio.delivery``) on viridis, a
+colour-blind-safe sequential ramp from 0 to 1 (:func:`link_delivery_colors`),
+and the legend shows that scale; under ``ideal`` the links keep their colours
+(the strategy's ``link_weights``, else plain green).
+
 Pure drawing helpers: they only read the frame.
 """
 
@@ -29,12 +35,57 @@ ELLIPSOID_SIGMAS = 2.0  # recording: covariance ellipsoid half-axes in standard 
 
 
 TARGET_RGBA = np.array([0.95, 0.75, 0.1, 1.0], dtype=np.float32)  # models/robots/target.xml's marker
+LINK_DELIVERY_ALPHA = 0.9
+LINK_DELIVERY_SCALE = (0.0, 0.5, 1.0)  # the legend's swatches of the delivery ramp
+
+
+def delivery_rgba(delivery) -> np.ndarray:
+    """RGBA (0..1, float32; shape (..., 4)) of delivery probabilities on viridis: dark purple at 0, yellow at 1."""
+    from matplotlib import colormaps
+
+    rgba = np.asarray(colormaps["viridis"](np.clip(np.asarray(delivery, dtype=float), 0.0, 1.0)), dtype=np.float32)
+    rgba[..., 3] = LINK_DELIVERY_ALPHA
+    return rgba
+
+
+def radio_of(frame):
+    """The frame's ``RadioState`` when its preset is not ideal, else None (links keep today's colours)."""
+    return observation_radio(frame.observation)
+
+
+def observation_radio(observation):
+    """``observation.radio`` when its preset is not ideal, else None."""
+    from sim.radio.presets import PRESETS
+
+    radio = getattr(observation, "radio", None)
+    preset = getattr(radio, "preset", None)
+    if radio is None or preset not in PRESETS or PRESETS[preset].is_ideal:
+        return None
+    return radio
+
+
+def link_delivery_colors(frame) -> np.ndarray | None:
+    """(E, 4) RGBA of ``frame.observation.links.edges`` by the pair's delivery probability
+    (:func:`delivery_rgba`) under a non-ideal radio; None under ideal."""
+    radio = radio_of(frame)
+    if radio is None:
+        return None
+    edges = np.asarray(frame.observation.links.edges, dtype=int).reshape(-1, 2)
+    return delivery_rgba(np.asarray(radio.delivery)[edges[:, 0], edges[:, 1]])
+
+
+def link_delivery_legend() -> list[tuple[str, np.ndarray]]:
+    """The legend's entries of the delivery ramp: "link delivery 0", "link delivery 0.5", "link delivery 1"."""
+    return [(f"link delivery {value:g}", delivery_rgba(value)) for value in LINK_DELIVERY_SCALE]
 
 
 def frame_legend(frame) -> list[tuple[str, np.ndarray]]:
     """What the colours of ``frame``'s picture mean: the strategy's
-    ``legend``, then the true targets and their estimates when shown."""
+    ``legend``, the link delivery scale under a non-ideal radio, then the
+    true targets and their estimates when shown."""
     legend = list(frame.commands.decorations.legend)
+    if radio_of(frame) is not None:
+        legend += link_delivery_legend()
     if len(frame.target_positions):
         legend.append(("target (true)", TARGET_RGBA))
     estimate = frame.commands.estimate

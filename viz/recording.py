@@ -7,7 +7,11 @@ Entity tree:
   world/references         each robot's reference (virtual point)
   world/targets/true       true target positions
   world/links              communication links as line segments (coloured by
-                           the strategy's ``link_weights`` when given)
+                           the strategy's ``link_weights`` when given; by the
+                           pair's delivery probability under a non-ideal radio)
+  world/radio_map          under a non-ideal radio: the mean received power from
+                           robot 0 at its start (sim.radio.radiomap), a static mesh
+                           with vertex colours on the floor (viridis)
   world/plans, world/meetings, world/targets/estimate, world/targets/covariance,
   world/markers            the strategy's decorations (viz.decorations)
   metrics/...              scalar time series (tracking error, edges, and the
@@ -52,7 +56,8 @@ from rerun.chunk import RrdReader
 from sim.observers import Frame, Observer, link_figures, tracking_errors
 from sim.strategy import Status
 from sim.world import INFINITE_PLANE_HALF_SIZE, World
-from viz.decorations import colour_name, frame_legend, log_events, log_recording_decorations, robot_colors_rgb8
+from viz.decorations import (colour_name, frame_legend, link_delivery_colors, log_events, log_recording_decorations,
+                             radio_of, robot_colors_rgb8)
 from viz.video import link_color
 
 KIND_COLORS = {"quadrotor": (230, 120, 40), "ground": (60, 160, 80)}
@@ -69,6 +74,7 @@ FILE_FLUSH_BYTES = 8 * 1024 * 1024  # ... or up to this many bytes
 SEGMENT_FIRST_S = 1.0
 SEGMENT_MAX_S = 30.0
 SEGMENTS_SUFFIX = ".segments"
+RADIO_MAP_LIFT_M = 0.01  # the radio map's mesh lies this far above the floor, m
 PROPERTIES = "/__properties"  # Rerun's recording properties entity  # ... in run.rrd.segments/, merged into run.rrd when the run ends
 
 
@@ -240,6 +246,7 @@ class RerunRecorder(Observer):
         self._robot_series: set[str] = set()
         self._decorations_logged: dict = {}  # decoration key -> the object last logged
         self._legend = ""  # the legend text last logged
+        self._radio_map_note = ""  # the legend's line on the radio map, when logged
         self._kind_colors = np.array([KIND_COLORS[k] for k in world.robot_kinds], dtype=np.uint8)
         self._log_static(scenario_name)
 
@@ -336,6 +343,9 @@ class RerunRecorder(Observer):
         weights = decorations.link_weights  # optional (N, N): green (1) to red (0)
         colors = LINK_COLOR if weights is None or not len(edges) else [
             tuple(int(round(255 * c)) for c in link_color(weights[i, j])[:3]) for i, j in edges]
+        delivery = link_delivery_colors(frame)  # a non-ideal radio: by the pair's delivery probability
+        if delivery is not None and len(edges):
+            colors = np.clip(np.round(delivery[:, :3] * 255), 0, 255).astype(np.uint8)
         self.rec.log("world/links", rr.LineStrips3D(strips, colors=colors, radii=0.01))
         error = tracking_errors(self.world.robot_kinds, obs.position, frame.commands.position)
         figures = link_figures(obs)
@@ -366,14 +376,40 @@ class RerunRecorder(Observer):
         if frame.commands.decorations.robot_colors is None:
             entries += [(f"{kind} robot", KIND_COLORS[kind]) for kind in dict.fromkeys(self.world.robot_kinds)]
         entries.append(("reference (the point a robot is steered to)", REFERENCE_COLOR))
-        if frame.commands.decorations.link_weights is None:
+        if radio_of(frame) is not None:
+            pass  # frame_legend's link delivery scale
+        elif frame.commands.decorations.link_weights is None:
             entries.append(("communication link", LINK_COLOR))
         else:
             entries += [("link of full weight (1)", LINK_FULL_RGB), ("link of weight near 0", LINK_EMPTY_RGB)]
         if len(frame.target_positions) and not any(label == "target (true)" for label, _ in entries):
             entries.append(("target (true)", TARGET_COLOR))
         lines = [f"- **{colour_name(rgb)}** `#{rgb[0]:02x}{rgb[1]:02x}{rgb[2]:02x}`: {label}" for label, rgb in entries]
+        if self._radio_map_note:
+            lines.append(f"- {self._radio_map_note}")
         return "\n".join(["**Colours**", "", *lines])
+
+    def log_radio_map(self, radio, robot_name: str) -> None:
+        """``radio`` (a :class:`sim.radio.radiomap.RadioMap`) as a static mesh on the floor under
+        ``world/radio_map``: one vertex per receiver, coloured by its power (viridis)."""
+        from sim.radio.radiomap import colour_limits
+
+        ny, nx = radio.power_dbm.shape
+        gx, gy = np.meshgrid(radio.x, radio.y)
+        floor = float(self.world.bounds[0][2]) + RADIO_MAP_LIFT_M
+        vertices = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, floor)])
+        corner = (np.arange(ny - 1)[:, None] * nx + np.arange(nx - 1)[None, :]).ravel()
+        triangles = np.concatenate([np.column_stack([corner, corner + 1, corner + nx + 1]),
+                                    np.column_stack([corner, corner + nx + 1, corner + nx])]).astype(np.uint32)
+        colors = _power_rgb8(radio).reshape(-1, 3)
+        self.rec.log("world/radio_map", rr.Mesh3D(vertex_positions=vertices, triangle_indices=triangles,
+                                                  vertex_colors=colors), static=True)
+        low, high = colour_limits(radio)
+        self._radio_map_note = (f"the floor: mean received power from {robot_name} at its start (z = "
+                                f"{radio.height_m:.2f} m; no shadowing or fading), viridis from {low:.0f} dBm "
+                                f"(dark purple) to {high:.0f} dBm (yellow); 50 % delivery at "
+                                f"{radio.sensitivity_dbm:.1f} dBm")
+        self.on_event(0.0, f"radio map: {self._radio_map_note}", tick=0)
 
     def on_event(self, time_s: float, text: str, level: str = "INFO", tick: int | None = None) -> None:
         """One line of the event log at ``time_s`` (and ``tick``, when known)."""
@@ -396,3 +432,14 @@ def _quat_xyzw(rotation: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_matrix(rotation).as_quat()  # x, y, z, w as rerun expects
+
+
+def _power_rgb8(radio) -> np.ndarray:
+    """(ny, nx, 3) uint8 image of the map (row 0 at the lowest y), viridis over :func:`colour_limits`."""
+    from matplotlib import colormaps
+
+    from sim.radio.radiomap import colour_limits
+
+    low, high = colour_limits(radio)
+    scaled = np.clip((radio.power_dbm - low) / (high - low), 0.0, 1.0)
+    return (colormaps["viridis"](scaled)[..., :3] * 255).round().astype(np.uint8)

@@ -40,7 +40,7 @@ from sim.observers import Frame, Observer, PhysicsState
 from sim.types import Decorations, TargetEstimate
 from sim.scenario import VideoConfig
 from sim.world import World
-from viz.decorations import draw_video_decorations, frame_legend, halo_color
+from viz.decorations import draw_video_decorations, frame_legend, halo_color, link_delivery_colors, observation_radio
 
 LINK_RGBA = np.array([0.1, 0.75, 0.2, 0.9], dtype=np.float32)
 REFERENCE_RGBA = np.array([0.2, 0.4, 1.0, 0.6], dtype=np.float32)
@@ -198,8 +198,9 @@ def draw_decorations(canvas, frame: Frame) -> None:
     positions = frame.observation.position
     weights = frame.commands.decorations.link_weights
     link_width = canvas.at_least(LINK_WIDTH_M, LINK_MIN_PX)
-    for i, j in frame.observation.links.edges:
-        rgba = LINK_RGBA if weights is None else link_color(weights[i, j])
+    delivery = link_delivery_colors(frame)  # non-ideal radio: by delivery; None: today's colours
+    for k, (i, j) in enumerate(frame.observation.links.edges):
+        rgba = delivery[k] if delivery is not None else LINK_RGBA if weights is None else link_color(weights[i, j])
         canvas._add_capsule(positions[i], positions[j], link_width, rgba)
     for p in frame.commands.position:
         canvas._add_sphere(p, canvas.at_least(REFERENCE_RADIUS_M, REFERENCE_MIN_PX), REFERENCE_RGBA)
@@ -346,6 +347,13 @@ class _ObservationView:
     position: np.ndarray  # (N, 3) robot positions, m, world frame
     time_s: float  # sim time, s
     links: _LinksView
+    radio: "_RadioView | None" = None  # the link colours' delivery (non-ideal radio only)
+
+
+@dataclass(frozen=True)
+class _RadioView:
+    preset: str
+    delivery: np.ndarray  # (N, N) delivery probability of each pair
 
 
 @dataclass(frozen=True)
@@ -368,11 +376,17 @@ class FrameView:
     def of(frame: Frame) -> "FrameView":
         obs, cmd = frame.observation, frame.commands
         return FrameView(
-            _ObservationView(np.array(obs.position), float(obs.time_s), _LinksView(list(obs.links.edges))),
+            _ObservationView(np.array(obs.position), float(obs.time_s), _LinksView(list(obs.links.edges)),
+                             _radio_view(obs)),
             _CommandsView(np.array(cmd.position), cmd.decorations, cmd.estimate),
             np.array(frame.target_positions),
             frame.state,
         )
+
+
+def _radio_view(obs) -> _RadioView | None:
+    radio = observation_radio(obs)
+    return None if radio is None else _RadioView(radio.preset, np.array(radio.delivery))
 
 
 VIDEO_QUEUE_FRAMES = 32  # states waiting for the renderer process before the simulation waits, -
