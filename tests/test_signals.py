@@ -90,21 +90,22 @@ class Run:
         assert group_gone(self.proc.pid), group_members(self.proc.pid)
 
 
-def group_members(pgid: int) -> list[str]:
-    """The live (not zombie) processes of group ``pgid``: 'pid command'.
-
-    A zombie is dead; one reparented to a PID 1 that does not reap (a
-    container's init) would stay, and ``os.killpg(pgid, 0)`` still finds it."""
-    members = []
+def proc_stats():
+    """(pid, command, the fields after "pid (comm) ") of every process in /proc."""
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
             text = stat.read_text()
         except OSError:
             continue
-        fields = text[text.rindex(")") + 2:].split()  # after "pid (comm) "
-        if int(fields[2]) == pgid and fields[0] != "Z":
-            members.append(f"{stat.parent.name} {text[text.index('(') + 1:text.rindex(')')]}")
-    return members
+        yield int(stat.parent.name), text[text.index("(") + 1:text.rindex(")")], text[text.rindex(")") + 2:].split()
+
+
+def group_members(pgid: int) -> list[str]:
+    """The live (not zombie) processes of group ``pgid``: 'pid command'.
+
+    A zombie is dead; one reparented to a PID 1 that does not reap (a
+    container's init) would stay, and ``os.killpg(pgid, 0)`` still finds it."""
+    return [f"{pid} {command}" for pid, command, fields in proc_stats() if int(fields[2]) == pgid and fields[0] != "Z"]
 
 
 def group_gone(pgid: int, timeout_s: float = 5.0) -> bool:
@@ -127,15 +128,7 @@ def children(pid: int) -> list[int]:
 
         return [child.pid for child in psutil.Process(pid).children()]
     except ImportError:
-        found = []
-        for stat in Path("/proc").glob("[0-9]*/stat"):
-            try:
-                text = stat.read_text()
-            except OSError:
-                continue
-            if int(text[text.rindex(")") + 2:].split()[1]) == pid:
-                found.append(int(stat.parent.name))
-        return found
+        return [child for child, _, fields in proc_stats() if int(fields[1]) == pid]
 
 
 def command(pid: int) -> str:
