@@ -48,6 +48,8 @@ TASK_PARAMS: dict[str, dict] = {
     "prior_mean": dict(default=(), unit="m"),  # empty: the paper's x^0
     "prior_variance_m2": dict(default=0.25, unit="m^2", above=0.0),  # paper: C(0) = 0.25 I
     "resolve_mirror": dict(default=True),
+    # Under a real radio (radio.preset other than ideal): a reliable message without an ack this long is sent again
+    "retransmit_after_s": dict(default=2.0, unit="s", above=0.0, max=600.0),
 }
 # strategy.step_s is not a key: one step of the task is the scenario's sensing period.
 STEP_KEY_REMOVED = {"step_s": "set sensing.period_s (one discrete step of the paper; target_motion.step_s "
