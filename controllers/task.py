@@ -34,6 +34,7 @@ is ``speed_mps`` = 0.1 m/s.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 from dataclasses import dataclass, field
 
@@ -189,7 +190,7 @@ class RadioFusion:
     the last step up to which it holds every reading the fictitious global
     belief holds, may lag t.
 
-    Each tick: :meth:`exchange` with the tick's observation and, on a step
+    Each tick: :meth:`exchange` with the tick's time and inbox and, on a step
     with readings, every robot's records; ``drain`` the outbox into
     ``Commands.outbox``.
     """
@@ -208,11 +209,12 @@ class RadioFusion:
         self.lags: list[tuple[int, int, float]] = []  # (step, t*, e(t)) per step with readings
         self.fused = 0  # records the belief took, the fusion robot's own included
 
-    def exchange(self, observation: Observation, records: list[list[RangeMeasurement]] | None) -> None:
-        """Read the tick's fusion messages and acks, then send what each robot has waiting."""
-        t = observation.time_s
+    def exchange(self, time_s: float, inbox: Any, records: list[list[RangeMeasurement]] | None) -> None:
+        """Read the tick's fusion messages and acks (``inbox``: ``Observation.inbox``), then send what each
+        robot has waiting; ``records``: every robot's readings on a step with readings, else None."""
+        t = time_s
         for robot, link in enumerate(self.links):
-            events = link.poll(t, deliveries_of(observation.inbox, robot, FUSION_KIND))
+            events = link.poll(t, deliveries_of(inbox, robot, FUSION_KIND))
             for got in events.received:
                 if robot == self.fusion_robot:
                     self.fused += self.belief.receive(got.data)

@@ -282,7 +282,7 @@ class MeetingStrategy(Strategy):
         self.links = [ReliableLink(self.outbox, r, timeout_s=params.retransmit_after_s, max_attempts=attempts)
                       for r in range(n)]
         self.exchange_times: list[float] = []  # exchange start to the meeting's end, s
-        self.records_sent = 0  # range records put on the radio (each copy to each member), -
+        self.records_sent = 0  # range records handed to the bus, every copy (each member, each retransmission), -
         self.open_exchanges: dict[tuple[int, int], Meeting] = {}  # (team, epoch) -> meeting exchanging
         # Footnote 4: the paths to the first meeting of every team, a priori.
         for epoch in range(1, self.schedule.period + 1):
@@ -394,7 +394,6 @@ class MeetingStrategy(Strategy):
                 if other != robot:
                     self.links[robot].send(RECORDS_KIND, other, (meeting.team, meeting.epoch, tuple(records)),
                                            range_records_bytes(len(records)), t)
-                    self.records_sent += len(records)
         meeting.exchange = Exchange(t, sent, cursors, {r: set() for r in meeting.members})
         self.open_exchanges[(meeting.team, meeting.epoch)] = meeting
 
@@ -533,7 +532,9 @@ class MeetingStrategy(Strategy):
         self.closest_m = min(self.closest_m, closest)
         commands = commands_from_plane(observation, positions, velocities)
         if self.over_radio:
-            commands = dataclasses.replace(commands, outbox=self.outbox.drain())
+            outbox = self.outbox.drain()
+            self.records_sent += sum(len(m.payload.data[2]) for m in outbox if m.kind == RECORDS_KIND)
+            commands = dataclasses.replace(commands, outbox=outbox)
         if observation.decorations_wanted:
             return dataclasses.replace(commands, scalars=self._scalars, estimate=self.series.estimate,
                                        decorations=self._decorations(t))
