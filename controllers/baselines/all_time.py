@@ -18,7 +18,10 @@ those of all N robots of the formation (``PlanningProblem.sensor_offsets``),
 and the collision margin is the formation's radius plus ``clearance_m``.
 Every robot tracks centre(t) + its fixed offset. All robots are always
 connected, so every reading is fused at once into the single belief, which
-is the global one: t*(t) = t and no meeting is ever needed.
+is the global one: t*(t) = t and no meeting is ever needed. That holds under
+the ideal radio; under a real one the readings reach the belief the formation
+plans with only as messages to its fusion robot
+(:class:`controllers.task.RadioFusion`), so t*(t) may lag t.
 
 If the planner fails ``1 + max_replans`` times, the formation drives the
 geodesic path towards the most uncertain target and plans again there.

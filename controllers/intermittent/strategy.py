@@ -40,6 +40,15 @@ again where it just met (each member returns on its geodesic path), or, for
 an a-priori plan, around the start of the member that starts last. The
 schedule is never broken: the meeting still takes place at its epoch.
 
+Under a real radio (``radio.preset`` other than ``ideal``) the exchange of
+lines 3-4 goes over the message bus: a meeting starts when every member has
+arrived and the team's communication graph is connected; each member sends
+the others its records (``"range_records"``, over a ``ReliableLink``); the
+meeting is held once every member has every other member's records, or ends
+at ``exchange_timeout_s`` with the team belief fusing only what every member
+received (``NetworkBeliefs.meet_over_radio``; docs/radio.md). Under ``ideal``
+the logs are pooled the tick the team is connected, as above.
+
 ``random_meeting`` (:mod:`controllers.baselines.random_meeting`) reuses all
 of this and only designs the segments differently.
 """

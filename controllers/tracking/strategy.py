@@ -13,7 +13,10 @@ explorers are sent to viewpoints of the most uncertain targets.
 
 Estimation. The team is connected at every tick (lambda2 > lambda2_min is the
 controller's invariant), so every reading is fused the tick it is taken into
-one network-wide EKF: the belief is the global one, t*(t) = t, no delay. The
+one network-wide EKF: the belief is the global one, t*(t) = t, no delay (under
+the ideal radio; under a real one the readings reach the EKF the generator
+uses only as messages to a fusion robot, :class:`controllers.task.RadioFusion`,
+so t*(t) may lag t). The
 readings, the EKF (:class:`estimation.beliefs.Belief`), the prior and the
 e_g / lambda-bar metrics are those of the three intermittent-task methods
 (:mod:`controllers.task`).
@@ -168,7 +171,7 @@ class ConnectedTrackingStrategy(WrappingStrategy):
             **self.series.summary(),
             **core,
             "viewpoints_visited": len(self.core.last.visits) if self.core.last is not None else 0,
-            "readings_fused": self.readings_fused,
+            "readings_fused": self.fusion.fused if self.fusion is not None else self.readings_fused,
             **self.generator.summary(),
             "t_star_lag_mean_s": 0.0,
             "t_star_lag_max_s": 0.0,
