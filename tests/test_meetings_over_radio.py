@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -209,8 +210,7 @@ def test_fusion_never_uses_a_reading_that_did_not_reach_it(data, fusion_robot):
             arrives = tick >= lossy_ticks or data.draw(st.booleans(), label="delivered")
             if arrives:
                 (receiver,) = message.receivers
-                stamped = type(message)(message.kind, message.sender, message.receivers, message.payload,
-                                        message.size_bytes, sequence=tick, sent_s=time_s)
+                stamped = dataclasses.replace(message, sequence=tick, sent_s=time_s)
                 rows[receiver].append(Delivery(stamped, receiver, time_s))
                 if message.kind == FUSION_KIND and receiver == fusion_robot:
                     reached |= {r.key for r in message.payload.data}
