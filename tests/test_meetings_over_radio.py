@@ -19,10 +19,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from controllers.intermittent.teams import PAPER_DENSE_TEAMS, Teams
+from controllers.intermittent.teams import PAPER_DENSE_TEAMS, PAPER_RING_TEAMS, Teams
 from controllers.task import FUSION_KIND, RadioFusion
 from estimation.beliefs import Belief, NetworkBeliefs
 from estimation.ekf import paper_prior
+from estimation.metrics import delay_report
 from intermittent_helpers import room_scenario
 from sim.radio.bus import Delivery, link_conditions
 from sim.radio.protocols import RELIABLE_HEADER_BYTES
@@ -83,13 +84,38 @@ def test_a_partial_exchange_fuses_only_the_records_every_member_got():
     assert report.new_to_team == len(sent[1]) + len(sent[2])
     assert {r.key for r in sent[0]} <= set(network.robot_beliefs[1]._records)
     assert not {r.key for r in sent[0]} & set(network.robot_beliefs[2]._records)
-    # Robot 0's records go again at the team's next meeting; 1's and 2's do not.
+    # Robot 0's records go again at the team's next meeting, from 0 and from 1, which heard them;
+    # 1's and 2's, which the team holds, do not.
     assert {r.key for r in network.outgoing(0, 0)} == {r.key for r in sent[0]}
-    assert network.outgoing(1, 0) == [] or {r.key for r in network.outgoing(1, 0)} <= {r.key for r in sent[0]}
+    assert {r.key for r in network.outgoing(1, 0)} == {r.key for r in sent[0]}
     assert network.outgoing(2, 0) == []
     # Only 1's and 2's packets reached the team.
     delivered = {packet.robot for packet, by_team in network.deliveries.items() if 0 in by_team}
     assert delivered == {1, 2}
+
+
+def test_a_packet_held_up_past_the_delay_bound_is_overdue():
+    """Proposition III.2's D assumes complete meetings: when team 0's exchanges never get through, the
+    packets that must reach it are reported overdue once older than D, and the bound as broken."""
+    def run(broken_team):
+        run = NetworkRun(PAPER_RING_TEAMS, np.random.default_rng(4))
+        complete = radio_meet(run.network)
+
+        def meet(team, epoch):
+            if team != broken_team:
+                return complete(team, epoch)
+            members = run.network.teams.members[team]
+            return run.network.meet_over_radio(team, epoch, {r: run.network.outgoing(r, team) for r in members},
+                                               {}, {r: 0 for r in members})
+        run.network.meet = meet
+        for _ in range(run.schedule.delay_bound + 2 * run.schedule.period):
+            run.advance_epoch()
+        return delay_report(run.network, run.schedule.delay_bound, run.epoch)
+
+    whole = run(broken_team=None)
+    assert whole.overdue == 0 and whole.within_bound
+    broken = run(broken_team=0)
+    assert broken.overdue > 0 and not broken.within_bound
 
 
 # --------------------------------------------------------- meetings in real runs
