@@ -191,8 +191,7 @@ class RadioFusion:
     belief holds, may lag t.
 
     Each tick: :meth:`exchange` with the tick's time and inbox and, on a step
-    with readings, every robot's records; ``drain`` the outbox into
-    ``Commands.outbox``.
+    with readings, every robot's records; :meth:`drain` into ``Commands.outbox``.
     """
 
     def __init__(self, n_robots: int, fusion_robot: int, belief: Belief, global_belief: Belief,
@@ -208,12 +207,15 @@ class RadioFusion:
         self.global_belief = global_belief
         self.lags: list[tuple[int, int, float]] = []  # (step, t*, e(t)) per step with readings
         self.fused = 0  # records the belief took, the fusion robot's own included
+        self.records_sent = 0  # records handed to the bus, every copy (retransmissions included)
 
     def exchange(self, time_s: float, inbox: Any, records: list[list[RangeMeasurement]] | None) -> None:
         """Read the tick's fusion messages and acks (``inbox``: ``Observation.inbox``), then send what each
         robot has waiting; ``records``: every robot's readings on a step with readings, else None."""
         t = time_s
         for robot, link in enumerate(self.links):
+            if not link.pending and not (inbox and inbox[robot]):
+                continue  # nothing arrived and nothing to retransmit
             events = link.poll(t, deliveries_of(inbox, robot, FUSION_KIND))
             for got in events.received:
                 if robot == self.fusion_robot:
@@ -234,6 +236,12 @@ class RadioFusion:
                 transfer = self.links[robot].send(FUSION_KIND, self.fusion_robot, data, range_records_bytes(len(data)), t)
                 self.in_flight[(robot, transfer)] = data
                 waiting.clear()
+
+    def drain(self) -> tuple:
+        """This tick's messages, for ``Commands.outbox``."""
+        messages = self.outbox.drain()
+        self.records_sent += sum(len(m.payload.data) for m in messages if m.kind == FUSION_KIND)
+        return messages
 
     def record_lag(self, step: int) -> tuple[int, float]:
         """t*(t) (steps; -1 before any agreement) and e(t) (m, eq. (14)) at t = ``step`` from what the
@@ -256,4 +264,5 @@ class RadioFusion:
             "fusion_robot": self.fusion_robot,
             "fusion_readings_fused": self.fused,
             "fusion_readings_missing": self.global_belief.n_records - self.belief.n_records,
+            "fusion_records_sent": self.records_sent,
         }

@@ -186,6 +186,22 @@ def test_a_meeting_whose_records_never_arrive_ends_at_the_timeout(tmp_path):
     assert metrics["radio_range_records_packets_delivered"] == 0
 
 
+def test_a_real_run_puts_20_bytes_a_record_on_the_air(tmp_path):
+    """Ungated ieee802154 in the room: the meetings' records and the all-time formation's readings
+    go over the bus, 20 bytes a record plus the 4-byte reliable header per message copy."""
+    sim, metrics = gated_room_run(tmp_path, lambda sim: False, duration=30.0)
+    assert metrics["meetings_held"] >= 1 and metrics["meetings_timed_out"] == 0
+    assert metrics["radio_range_records_packets_sent"] > 0 and metrics["radio_packets_queued"] == 0
+    assert metrics["radio_range_records_bytes_sent"] == (
+        20 * metrics["range_records_sent"] + RELIABLE_HEADER_BYTES * metrics["radio_range_records_packets_sent"])
+    assert metrics["radio_range_records_ack_bytes_sent"] == 4 * metrics["radio_range_records_ack_packets_sent"]
+    sim, metrics = gated_room_run(tmp_path, lambda sim: False, duration=10.0, kind="all_time")
+    assert metrics["radio_fusion_packets_sent"] > 0 and metrics["fusion_records_sent"] > 0
+    assert metrics["radio_packets_queued"] == 0
+    assert metrics["radio_fusion_bytes_sent"] == (
+        20 * metrics["fusion_records_sent"] + RELIABLE_HEADER_BYTES * metrics["radio_fusion_packets_sent"])
+
+
 def test_under_ideal_meetings_pool_their_logs_at_once(tmp_path):
     """The default radio keeps Algorithm 5's exchange: nothing on the bus, no exchange, no timeout."""
     scenario = load(str(room_scenario(tmp_path, duration=25.0, n_sample=60)))
@@ -232,7 +248,7 @@ def test_fusion_never_uses_a_reading_that_did_not_reach_it(data, fusion_robot):
         fusion.exchange(time_s, inbox, records)
         assert set(team._records) <= reached
         rows = [[], [], []]
-        for message in fusion.outbox.drain():
+        for message in fusion.drain():
             arrives = tick >= lossy_ticks or data.draw(st.booleans(), label="delivered")
             if arrives:
                 (receiver,) = message.receivers

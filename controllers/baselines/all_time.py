@@ -218,7 +218,7 @@ class AllTimeStrategy(Strategy):
         commands = commands_from_plane(observation, references,
                                        np.broadcast_to(velocity, self.offsets.shape).copy())
         if self.fusion is not None:
-            commands = dataclasses.replace(commands, outbox=self.fusion.outbox.drain())
+            commands = dataclasses.replace(commands, outbox=self.fusion.drain())
         if not observation.decorations_wanted:  # (sim.types.Observation) events wait for a tick that draws
             return dataclasses.replace(commands, estimate=self.series.estimate)
         events, self.events = tuple(self.events), []

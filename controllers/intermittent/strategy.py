@@ -411,8 +411,11 @@ class MeetingStrategy(Strategy):
         still goes into the receiver's own belief."""
         t = observation.time_s
         open_exchanges = self.open_exchanges
+        inbox = observation.inbox
         for robot, link in enumerate(self.links):
-            events = link.poll(t, deliveries_of(observation.inbox, robot, RECORDS_KIND))
+            if not link.pending and not (inbox and inbox[robot]):
+                continue  # nothing arrived and nothing to retransmit
+            events = link.poll(t, deliveries_of(inbox, robot, RECORDS_KIND))
             for got in events.received:
                 team, epoch, records = got.data
                 meeting = open_exchanges.get((team, epoch))

@@ -159,7 +159,7 @@ class ConnectedTrackingStrategy(WrappingStrategy):
         self.generator.update(estimate, core.q, core.explorer, core.queues, fresh)
         commands = core.step(observation)
         if self.fusion is not None:
-            commands = dataclasses.replace(commands, outbox=commands.outbox + self.fusion.outbox.drain())
+            commands = dataclasses.replace(commands, outbox=commands.outbox + self.fusion.drain())
         scalars = {**commands.scalars, **self._scalars} if observation.decorations_wanted else commands.scalars
         return dataclasses.replace(commands, scalars=scalars, estimate=self.series.estimate)
 
