@@ -129,14 +129,16 @@ def test_a_lighter_graph_of_messages_gives_the_lower_lambda2_once_a_link_is_sile
     assert laplacian_lambda2(reduced) < full
 
 
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2**31 - 1), delivery=st.floats(0.2, 1.0), burst=st.integers(1, 30),
        graph=st.sampled_from(["path5", "ring6", "random7"]))
 def test_lost_messages_leave_the_estimate_finite_and_bounded(seed, delivery, burst, graph):
     """Over random loss patterns (each link independently lost, and bursts where one robot is not heard at
-    all) the state stays finite and each robot's lambda2 estimate within [0, the estimator's ceiling]."""
+    all) the state stays finite and bounded, and each robot's lambda2 estimate near [0, lambda_max(L)], where
+    every Rayleigh quotient of L lies."""
     weights = {"path5": path(5), "ring6": ring(6), "random7": random_weights(7, 0)}[graph]
     n = len(weights)
+    largest = float(np.linalg.eigvalsh(np.diag(weights.sum(axis=1)) - weights)[-1])
     rng = np.random.default_rng(seed)
     deaf = rng.integers(n)
 
@@ -153,8 +155,9 @@ def test_lost_messages_leave_the_estimate_finite_and_bounded(seed, delivery, bur
         assert estimator.failure == ""
         for array in (estimator._core.components, estimator._core.consensus, estimator._core.consensus_integral):
             assert np.isfinite(array).all()
-        assert np.all(estimate.lambda2 >= -0.5) and np.all(estimate.lambda2 <= PARAMS.lambda2_ceiling + 1e-9)
+        assert np.all(estimate.lambda2 >= -0.1 * largest) and np.all(estimate.lambda2 <= largest)
         assert np.abs(estimator._core.components).max() < 10
+        assert np.abs(estimator._core.consensus_integral).max() < 100
 
 
 def test_messages_are_broadcasts_of_the_rounded_state():
@@ -162,13 +165,29 @@ def test_messages_are_broadcasts_of_the_rounded_state():
     messages = estimator.messages()
     assert [m.sender for m in messages] == [0, 1, 2, 3]
     assert all(m.kind == LAMBDA2_ESTIMATE_KIND and m.receivers is None and m.replaces_queued for m in messages)
-    # One component, three consensus channels (Ave x, Ave x^2, Ave x L x) and their integrals, the degree:
-    # 8 float32 and a uint16 round number.
-    assert messages[0].size_bytes == estimator_message_bytes(1) == 34
-    assert estimator_message_bytes(2) == 4 * (2 + 2 * 9 + 1) + 2
+    # One component, three consensus channels (Ave x, Ave x^2, Ave x L x) and their integrals, the degree,
+    # the Fiedler component: 9 float32 and a uint16 round number.
+    assert messages[0].size_bytes == estimator_message_bytes(1) == 38
+    assert estimator_message_bytes(2) == 4 * (2 + 2 * 9 + 2) + 2
     state = messages[2].payload
     assert state.components.dtype == np.float32
     assert state.components[0] == np.float32(estimator._core.components[2, 0])
+    assert state.fiedler == np.float32(estimator.estimate.fiedler[2])
+
+
+def test_each_robot_sees_the_fiedler_vector_through_its_messages():
+    weights = path(3)
+    estimator = MessageFedEstimator(3, PARAMS, np.random.default_rng(0), 1, timeout_s=0.05)
+    one_way = np.ones((3, 3), dtype=bool)
+    one_way[1, 0] = False  # robot 0 never hears robot 1
+    run(estimator, weights, 50, lambda tick: one_way)
+    views, own = estimator.fiedler_views(), estimator.estimate.fiedler
+    np.testing.assert_array_equal(np.diag(views), own)
+    assert views[1, 0] == own[0]  # robot 0 has no value of robot 1: its own (no eq. 17 term)
+    assert views[0, 1] == estimator.heard_fiedler[1, 0] and views[2, 1] == estimator.heard_fiedler[1, 2]
+    assert views[2, 0] == own[0]  # 0 and 2 are not linked
+    assert views[0, 1] != own[0]  # robot 1 holds robot 0's value as sent, float32, a tick old
+    assert np.float32(views[0, 1]) == views[0, 1]
 
 
 def test_gains_too_fast_for_one_exchange_a_tick_are_refused():

@@ -59,10 +59,11 @@ MAX_CONSENSUS_STEP = 1.0
 
 def estimator_message_bytes(modes: int) -> int:
     """Payload of one robot's estimator message, bytes: its K components, the D consensus
-    estimates and their D integrals, and its degree (float32 each), with a uint16 round number."""
+    estimates and their D integrals, its degree and its Fiedler component (float32 each), with a
+    uint16 round number."""
     k = int(modes)
     channels = k + k * (k + 1) // 2 + k * k
-    return _VALUE_BYTES * (k + 2 * channels + 1) + INDEX_BYTES
+    return _VALUE_BYTES * (k + 2 * channels + 2) + INDEX_BYTES
 
 
 @dataclass(frozen=True)
@@ -73,6 +74,7 @@ class EstimatorState:
     consensus: np.ndarray  # (D,) its consensus estimates y
     consensus_integral: np.ndarray  # (D,) their integrals z
     degree: float  # sum of its consensus links' a_ij at its last step (Metropolis weights)
+    fiedler: float  # its estimate of its own unit Fiedler-vector component (the force's eq. 17 terms)
     round: int  # its step count, modulo 2^16
 
 
@@ -98,6 +100,8 @@ class MessageFedEstimator:
         self._slices = (slice(0, k), slice(k, k + d), slice(k + d, k + 2 * d))
         self.heard = np.zeros((n, n, k + 2 * d))  # [i, j]: robot j's last state as robot i received it
         self.heard_degree = np.zeros((n, n))
+        self.heard_fiedler = np.zeros((n, n))
+        self.used = np.zeros((n, n), dtype=bool)  # the links of the last step, row i: robot i's
         self.heard_s = np.full((n, n), -np.inf)  # when robot i received it, s
         self.degree = np.zeros(n)
         self.rounds = 0
@@ -124,7 +128,8 @@ class MessageFedEstimator:
             return EstimatorState(core.components[robot].astype(np.float32),
                                   core.consensus[robot].astype(np.float32),
                                   core.consensus_integral[robot].astype(np.float32),
-                                  float(np.float32(self.degree[robot])), self.rounds % 65536)
+                                  float(np.float32(self.degree[robot])),
+                                  float(np.float32(self._estimate.fiedler[robot])), self.rounds % 65536)
 
     def messages(self) -> tuple[Message, ...]:
         """Every robot's broadcast of its current state; each supersedes its own that is still queued."""
@@ -138,6 +143,7 @@ class MessageFedEstimator:
         row = self.heard[receiver, sender]
         row[xs], row[ys], row[zs] = state.components, state.consensus, state.consensus_integral
         self.heard_degree[receiver, sender] = state.degree
+        self.heard_fiedler[receiver, sender] = state.fiedler
         self.heard_s[receiver, sender] = time_s
 
     def receive_inbox(self, inbox, time_s: float) -> int:
@@ -174,7 +180,7 @@ class MessageFedEstimator:
         self.receive_inbox(inbox, time_s)
         if self.failure:
             return self._estimate
-        used = self.used_links(weights, time_s)
+        used = self.used = self.used_links(weights, time_s)
         w = np.where(used, weights, 0.0)
         links = used.astype(float) if self.consensus_links == "links" else w
         degree = links.sum(axis=1)
@@ -206,6 +212,15 @@ class MessageFedEstimator:
         core.components, core.consensus, core.consensus_integral = x, y, z
         self._estimate = core.estimate
         return self._estimate
+
+    def fiedler_views(self) -> np.ndarray:
+        """(N, N): column i is the Fiedler vector as robot i knows it, its own component and the last
+        received ones of the neighbours it used in the last step; a robot it did not hear gets its own
+        value (that link adds nothing to its eq. 17)."""
+        own = self._estimate.fiedler
+        views = np.where(self.used.T, self.heard_fiedler.T, own[None, :])
+        np.fill_diagonal(views, own)
+        return views
 
     def warm_up(self, weights, dt: float, steps: int) -> SubspaceEstimate:
         """``steps`` ticks on a fixed graph with every message delivered at once: the exchange on the ground

@@ -328,7 +328,14 @@ class ConnectedStrategy(Strategy):
                 f_lambda = -guarded_potential_slope(lambda2_used, p)[:, None] * gradient
             else:
                 lambda2_used = np.maximum(np.minimum(estimate.lambda2, bound), floor)
-                f_lambda = generalized_connectivity_force(links, lambda2_used, estimate.fiedler, p)
+                if self.estimator_over_radio:
+                    # Robot i's eq. (17) from the neighbours' components it received: its own row of the
+                    # gradient for its own view of the vector.
+                    gradients = links.lambda2_gradients(self.estimator.fiedler_views())
+                    own = gradients[np.arange(n), np.arange(n)]
+                    f_lambda = -guarded_potential_slope(lambda2_used, p)[:, None] * own
+                else:
+                    f_lambda = generalized_connectivity_force(links, lambda2_used, estimate.fiedler, p)
         elif p.spectrum_smoothing > 0:
             smooth, gradient = smooth_lambda2_gradient(state.links, state.eigenvalues, state.eigenvectors,
                                                        p.spectrum_smoothing)
