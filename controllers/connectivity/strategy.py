@@ -223,6 +223,7 @@ class ConnectedStrategy(Strategy):
                 except ValueError as err:
                     raise ConfigError("strategy.estimator_message_speedup", str(err)) from None
                 self.estimator.warm_up(weights, _WARMUP_STEP_S, warmup_steps)
+                self._weights = weights
             else:
                 if p.estimator_modes == 1:
                     self.estimator = FiedlerEstimator(n, p.estimator, rng)
@@ -289,7 +290,13 @@ class ConnectedStrategy(Strategy):
         scalars = commands.scalars
         lambda2 = scalars.get("lambda2", np.inf)
         if not lambda2 > p.lambda2_min + LAMBDA2_TOLERANCE:
-            return f"lambda2 = {lambda2:.3g} fell to lambda2_min = {p.lambda2_min:g} (connectivity lost)"
+            lost = f"lambda2 = {lambda2:.3g} fell to lambda2_min = {p.lambda2_min:g} (connectivity lost)"
+            if self.estimator_over_radio:
+                estimate = self.estimator.estimate.lambda2
+                lost += (f"; the robots' estimates over the radio were {estimate.min():.3g} to {estimate.max():.3g}, "
+                         f"over {int(self.estimator.used.sum())} of {int(np.count_nonzero(self._weights))} link "
+                         "directions heard")
+            return lost
         distance = scalars.get("min_robot_distance_m", np.inf)
         if not distance >= p.min_robot_distance_m:
             return (f"two virtual points came {distance:.3f} m apart, inside R_c = "
@@ -314,6 +321,7 @@ class ConnectedStrategy(Strategy):
             links = self._estimator_links(state, observation.links.adjacency)
             if self.estimator_over_radio:
                 estimate = self.estimator.step(links.weights, self.dt, t, observation.inbox)
+                self._weights = links.weights
             else:
                 estimate = self.estimator.step(links.weights, self.dt, self._consensus_weights(links.weights))
             # Each robot also knows its own degree d_i = sum_j W_ij, and lambda2 <= N / (N - 1) min_i d_i
