@@ -83,6 +83,11 @@ election.py, targets.py). Here:
   lambda2_min + ``estimator_floor`` (an estimator transient below the true
   lambda2 would otherwise launch the virtual points with the barrier's
   near-singular slope).
+- Estimator mode under a radio preset other than "ideal": the estimator's
+  state travels as messages on the bus, one exchange a tick, fed to
+  estimator_messages.MessageFedEstimator (one vector; gains
+  ``estimator_message_speedup``); each robot's eq. (17) uses the Fiedler
+  components it received. Under "ideal" it runs in process as before.
 - Exact mode with ``spectrum_smoothing`` > 0: V acts on a smooth lower bound
   of lambda2 (smooth_spectrum.py) instead of lambda2 itself.
 - Estimator mode with ``estimator_modes`` K >= 2 (not in the paper): the
