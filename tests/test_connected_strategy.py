@@ -208,6 +208,14 @@ def test_estimator_over_a_real_radio_sends_its_state_on_the_bus():
     assert np.abs(estimator.estimate.lambda2 - exact).max() < 0.1 * exact
 
 
+def test_estimator_gains_too_fast_for_the_radio_are_refused_by_name():
+    scenario = load("connected-office", ['strategy.lambda2_source="estimator"', 'radio.preset="wifi"',
+                                         "strategy.estimator_message_speedup=1.0"])
+    with pytest.raises(ConfigError, match="unstable") as err:
+        build_simulation(scenario)
+    assert err.value.field == "strategy.estimator_message_speedup"
+
+
 def test_papers_raw_lambda2_gradient_keeps_the_invariants():
     sim, log = run_checked(load("connected-office", ["strategy.spectrum_smoothing=0.0"]), 3.0)
     assert sim.strategy.summary()["mean_travel_m"] > 0.5

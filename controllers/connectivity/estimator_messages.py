@@ -25,19 +25,21 @@ estimator:
 - The step is a discrete-time iteration, one exchange per tick: one forward
   Euler step over the control period, the neighbours' values held (more
   Euler substeps against frozen neighbours only let a robot's own state run
-  away from the values it couples to). The consensus loops use Metropolis weights (Xiao and Boyd 2004),
-  c_ij = a_ij / (1 + max(deg_i, deg_j)), with a_ij the link (1, or W_ij) and
-  deg_j the neighbour's own degree carried in its message: every row of the
-  consensus Laplacian then sums to at most 1 and the iteration is stable for
-  K_P h <= 1 whatever the graph. Unit weights would need K_P h deg_max <= 1.
+  away from the values it couples to). The consensus loops use Metropolis
+  weights (Xiao and Boyd 2004), c_ij = a_ij / (1 + max(deg_i, deg_j)), with
+  a_ij the link (1, or W_ij) and deg_j the neighbour's own degree carried in
+  its message: every row of the consensus Laplacian then sums to at most 1
+  and the iteration is stable for K_P dt <= 1 whatever the graph. Unit
+  weights would need K_P dt deg_max <= 1.
 
 Why it is slower than the in-process estimator: with one exchange per 10 ms
 tick, the consensus step K_P dt must stay at most 1 (``check_gains``): the
 gains can be at most 1 / (K_P dt) of the library's (0.25 at 10 ms), against
 10x in process, and information crosses one hop a tick. When the air carries
-fewer than one message per robot a tick (802.15.4: about two of ten robots'
-a tick), the held values are several ticks old and lower gains are needed
-again (ConnectedParams.estimator_message_speedup). See docs/radio.md.
+fewer than one message per robot a tick (802.15.4: about four of ten
+robots' 38-byte states a tick), the held values are several ticks old and
+lower gains are needed again (ConnectedParams.estimator_message_speedup).
+See docs/radio.md.
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ from sim.radio.bus import INDEX_BYTES, Message
 LAMBDA2_ESTIMATE_KIND = "lambda2_estimate"
 # A message's values go out as float32.
 _VALUE_BYTES = 4
-# Largest consensus step K_P h (and input step gamma h) the discrete iteration takes.
+# Largest consensus step K_P dt (and input step gamma dt) the discrete iteration takes.
 MAX_CONSENSUS_STEP = 1.0
 
 
@@ -101,8 +103,8 @@ class MessageFedEstimator:
         self.heard = np.zeros((n, n, k + 2 * d))  # [i, j]: robot j's last state as robot i received it
         self.heard_degree = np.zeros((n, n))
         self.heard_fiedler = np.zeros((n, n))
-        self.used = np.zeros((n, n), dtype=bool)  # the links of the last step, row i: robot i's
         self.heard_s = np.full((n, n), -np.inf)  # when robot i received it, s
+        self.used = np.zeros((n, n), dtype=bool)  # the links of the last step, row i: robot i's
         self.degree = np.zeros(n)
         self.rounds = 0
         self.failure = ""  # why the estimate is no longer usable ("" while it is)
@@ -117,7 +119,7 @@ class MessageFedEstimator:
         p = self.params
         step = max(p.consensus_proportional_gain, p.consensus_integral_gain, p.consensus_input_gain) * dt
         if step > MAX_CONSENSUS_STEP:
-            raise ValueError(f"consensus gain x substep = {step:.3g} above {MAX_CONSENSUS_STEP:g}: "
+            raise ValueError(f"consensus gain x control period = {step:.3g} above {MAX_CONSENSUS_STEP:g}: "
                              f"the message-fed estimator would be unstable at a {dt:g} s control period")
 
     # -- the radio ----------------------------------------------------------------------------------
