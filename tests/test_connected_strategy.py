@@ -17,6 +17,7 @@ from connected_helpers import run_checked
 from helpers import TickLog, recorded_ticks, rrd_chunks, rrd_column, rrd_scalars, rrd_texts
 from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.estimator import SubspaceEstimator
+from controllers.connectivity.estimator_messages import MessageFedEstimator
 from controllers.connectivity.roles import Role
 from sim.config import ConfigError, build, to_table
 from tether.runner import build_simulation, run
@@ -185,6 +186,34 @@ def test_estimator_mode_tracks_lambda2_and_reports_its_error():
     summary = sim.strategy.summary()
     assert summary["lambda2_source"] == "estimator"
     assert 0 <= summary["lambda2_estimate_error_mean"] < 0.05
+    assert "radio_lambda2_estimate_packets_sent" not in sim.bus.summary()  # ideal radio: in process
+
+
+def test_estimator_over_a_real_radio_sends_its_state_on_the_bus():
+    sim = build_simulation(load("connected-office", ['strategy.lambda2_source="estimator"',
+                                                     'radio.preset="ieee802154"']))
+    estimator = sim.strategy.estimator
+    assert isinstance(estimator, MessageFedEstimator) and estimator.modes == 1
+    for _ in range(30):
+        frame, healthy = sim.tick()
+        assert healthy, sim.divergence
+    summary = sim.bus.summary()
+    assert summary["radio_lambda2_estimate_packets_sent"] > 0
+    assert summary["radio_lambda2_estimate_packets_delivered"] > 0
+    assert summary["radio_lambda2_estimate_bytes_sent"] == 38 * summary["radio_lambda2_estimate_packets_sent"]
+    # The air holds about two 38-byte 802.15.4 frames of the ten robots' a tick: the rest are superseded.
+    assert summary["radio_lambda2_estimate_packets_superseded"] > 0
+    assert estimator.heard_s.max() > 0.2  # the states arrived during the run, not only in the warm-up
+    exact = frame.commands.scalars["lambda2"]
+    assert np.abs(estimator.estimate.lambda2 - exact).max() < 0.1 * exact
+
+
+def test_estimator_gains_too_fast_for_the_radio_are_refused_by_name():
+    scenario = load("connected-office", ['strategy.lambda2_source="estimator"', 'radio.preset="wifi"',
+                                         "strategy.estimator_message_speedup=1.0"])
+    with pytest.raises(ConfigError, match="unstable") as err:
+        build_simulation(scenario)
+    assert err.value.field == "strategy.estimator_message_speedup"
 
 
 def test_papers_raw_lambda2_gradient_keeps_the_invariants():

@@ -246,8 +246,15 @@ class ConnectedParams:
     # true lambda2 must not launch the virtual points)
     estimator_floor: float = param(0.003, min=0.0, max=1.0)
     # Estimator only: eigenpairs tracked. 1: Yang et al.'s single power-iteration vector (FiedlerEstimator);
-    # K >= 2: K vectors (subspace iteration) with Rayleigh-Ritz, lambda2..lambda_{K+1} (SubspaceEstimator)
+    # K >= 2: K vectors (subspace iteration) with Rayleigh-Ritz, lambda2..lambda_{K+1} (SubspaceEstimator);
+    # under a radio preset other than "ideal" always 1
     estimator_modes: int = param(2, min=1, max=5, tunable=False)
+    # Estimator under a radio preset other than "ideal" (its state travels as messages, one exchange a tick):
+    # its gains times this instead of estimator_speedup (one exchange per 10 ms tick is stable up to 0.25; lower
+    # holds when the air lets each robot send only every few ticks)
+    estimator_message_speedup: float = param(0.1, min=0.01, max=1.0, tunable=False)
+    # Estimator under a real radio: a neighbour's last received state counts for this long, s
+    estimator_message_timeout_s: float = param(0.2, unit="s", min=0.0, max=1.0, tunable=False)
 
     # -- connectivity, Appendix A (link weight W_ij = range x line of sight x inter-robot factors;
     # R_s, where the range factor vanishes, is sensing.comm_range_m)
@@ -433,6 +440,16 @@ class ConnectedParams:
                  "consensus_proportional_gain", "consensus_integral_gain")
         return dataclasses.replace(base, **{name: getattr(base, name) * self.estimator_speedup for name in rates},
                                    max_substep=base.max_substep / self.estimator_speedup)
+
+    @property
+    def message_estimator(self) -> FiedlerEstimatorParams:
+        """The gains of the estimator over the radio: the defaults times ``estimator_message_speedup``."""
+        base = FiedlerEstimatorParams()
+        rates = ("mean_removal_gain", "laplacian_gain", "normalisation_gain", "consensus_input_gain",
+                 "consensus_proportional_gain", "consensus_integral_gain")
+        speedup = self.estimator_message_speedup
+        return dataclasses.replace(base, **{name: getattr(base, name) * speedup for name in rates},
+                                   max_substep=base.max_substep / speedup)
 
     @classmethod
     def examples(cls) -> dict[str, "ConnectedParams"]:

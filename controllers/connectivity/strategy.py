@@ -83,6 +83,11 @@ election.py, targets.py). Here:
   lambda2_min + ``estimator_floor`` (an estimator transient below the true
   lambda2 would otherwise launch the virtual points with the barrier's
   near-singular slope).
+- Estimator mode under a radio preset other than "ideal": the estimator's
+  state travels as messages on the bus, one exchange a tick, fed to
+  estimator_messages.MessageFedEstimator (one vector; gains
+  ``estimator_message_speedup``); each robot's eq. (17) uses the Fiedler
+  components it received. Under "ideal" it runs in process as before.
 - Exact mode with ``spectrum_smoothing`` > 0: V acts on a smooth lower bound
   of lambda2 (smooth_spectrum.py) instead of lambda2 itself.
 - Estimator mode with ``estimator_modes`` K >= 2 (not in the paper): the
@@ -102,6 +107,7 @@ import numpy as np
 from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.dynamics import step_virtual_dynamics_applied
 from controllers.connectivity.estimator import FiedlerEstimator, SubspaceEstimator, ritz_connectivity_gradient
+from controllers.connectivity.estimator_messages import MessageFedEstimator
 from controllers.connectivity.exploration import ExplorationController, ExplorationStep
 from controllers.connectivity.graph import connectivity_state, generalized_connectivity_force
 from controllers.connectivity.mission import (
@@ -202,18 +208,35 @@ class ConnectedStrategy(Strategy):
         self.explorers = np.flatnonzero(self.queues.pending())
         self.explorer = ExplorationController(p, self.planner, self.queues)
         self.estimator = None
+        # Under a real radio the estimator's state travels as messages (estimator_messages.py); under the
+        # ideal one it runs in process, as before the bus.
+        self.estimator_over_radio = p.lambda2_source == "estimator" and initial.radio is not None and (
+            initial.radio.preset != "ideal")
         if p.lambda2_source == "estimator":
-            if p.estimator_modes == 1:
-                self.estimator = FiedlerEstimator(n, p.estimator, rng)
-            else:
-                if p.estimator_modes >= n:
-                    raise ConfigError("strategy.estimator_modes", f"must be below the team size {n}, "
-                                      f"got {p.estimator_modes}")
-                self.estimator = SubspaceEstimator(n, p.estimator, rng, p.estimator_modes)
+            if p.estimator_modes >= n:
+                raise ConfigError("strategy.estimator_modes", f"must be below the team size {n}, "
+                                  f"got {p.estimator_modes}")
             weights = self._estimator_links(state, initial.links.adjacency).weights
-            consensus = self._consensus_weights(weights)
-            for _ in range(int(round(p.estimator_warmup_s / _WARMUP_STEP_S))):
-                self.estimator.step(weights, _WARMUP_STEP_S, consensus)
+            warmup_steps = int(round(p.estimator_warmup_s / _WARMUP_STEP_S))
+            if self.estimator_over_radio:
+                # Yang et al.'s single vector: over slow, lossy consensus a saturated second mode is not
+                # recognised and gives a spurious Ritz value (docs/radio.md).
+                self.estimator = MessageFedEstimator(n, p.message_estimator, rng, 1, p.estimator_message_timeout_s,
+                                                     p.estimator_consensus)
+                try:
+                    self.estimator.check_gains(max(self.dt, _WARMUP_STEP_S))
+                except ValueError as err:
+                    raise ConfigError("strategy.estimator_message_speedup", str(err)) from None
+                self.estimator.warm_up(weights, _WARMUP_STEP_S, warmup_steps)
+                self._weights = weights
+            else:
+                if p.estimator_modes == 1:
+                    self.estimator = FiedlerEstimator(n, p.estimator, rng)
+                else:
+                    self.estimator = SubspaceEstimator(n, p.estimator, rng, p.estimator_modes)
+                consensus = self._consensus_weights(weights)
+                for _ in range(warmup_steps):
+                    self.estimator.step(weights, _WARMUP_STEP_S, consensus)
         self.stats = MissionStatistics(self.explorers, self.targets_total)
         self.roles = np.full(n, int(Role.CONNECTOR))
         self.completion_time: float | None = None
@@ -267,10 +290,18 @@ class ConnectedStrategy(Strategy):
         """The invariant the tick of ``commands`` broke, or None: Nestmeyer et al. 2017
         keeps lambda2 > lambda2_min and no two virtual points within R_c."""
         p = self.params
+        if getattr(self.estimator, "failure", ""):
+            return self.estimator.failure
         scalars = commands.scalars
         lambda2 = scalars.get("lambda2", np.inf)
         if not lambda2 > p.lambda2_min + LAMBDA2_TOLERANCE:
-            return f"lambda2 = {lambda2:.3g} fell to lambda2_min = {p.lambda2_min:g} (connectivity lost)"
+            lost = f"lambda2 = {lambda2:.3g} fell to lambda2_min = {p.lambda2_min:g} (connectivity lost)"
+            if self.estimator_over_radio:
+                estimate = self.estimator.estimate.lambda2
+                lost += (f"; the robots' estimates over the radio were {estimate.min():.3g} to {estimate.max():.3g}, "
+                         f"over {int(self.estimator.used.sum())} of {int(np.count_nonzero(self._weights))} link "
+                         "directions heard")
+            return lost
         distance = scalars.get("min_robot_distance_m", np.inf)
         if not distance >= p.min_robot_distance_m:
             return (f"two virtual points came {distance:.3f} m apart, inside R_c = "
@@ -293,20 +324,31 @@ class ConnectedStrategy(Strategy):
         estimate = None
         if self.estimator is not None:
             links = self._estimator_links(state, observation.links.adjacency)
-            estimate = self.estimator.step(links.weights, self.dt, self._consensus_weights(links.weights))
+            if self.estimator_over_radio:
+                estimate = self.estimator.step(links.weights, self.dt, t, observation.inbox)
+                self._weights = links.weights
+            else:
+                estimate = self.estimator.step(links.weights, self.dt, self._consensus_weights(links.weights))
             # Each robot also knows its own degree d_i = sum_j W_ij, and lambda2 <= N / (N - 1) min_i d_i
             # (Fiedler 1973): it never uses an estimate above its own bound.
             n = len(q)
             bound = n / (n - 1) * links.weights.sum(axis=1)
             floor = p.lambda2_min + p.estimator_floor
-            if isinstance(self.estimator, SubspaceEstimator):
+            if getattr(self.estimator, "modes", 1) >= 2:  # SubspaceEstimator, or K >= 2 over the radio
                 # Soft minimum of each robot's Ritz values and its gradient from its Ritz vectors.
                 smooth, gradient = ritz_connectivity_gradient(links, estimate, p.spectrum_smoothing)
                 lambda2_used = np.maximum(np.minimum(smooth, bound), floor)
                 f_lambda = -guarded_potential_slope(lambda2_used, p)[:, None] * gradient
             else:
                 lambda2_used = np.maximum(np.minimum(estimate.lambda2, bound), floor)
-                f_lambda = generalized_connectivity_force(links, lambda2_used, estimate.fiedler, p)
+                if self.estimator_over_radio:
+                    # Robot i's eq. (17) from the neighbours' components it received: its own row of the
+                    # gradient for its own view of the vector.
+                    gradients = links.lambda2_gradients(self.estimator.fiedler_views())
+                    own = gradients[np.arange(n), np.arange(n)]
+                    f_lambda = -guarded_potential_slope(lambda2_used, p)[:, None] * own
+                else:
+                    f_lambda = generalized_connectivity_force(links, lambda2_used, estimate.fiedler, p)
         elif p.spectrum_smoothing > 0:
             smooth, gradient = smooth_lambda2_gradient(state.links, state.eigenvalues, state.eigenvectors,
                                                        p.spectrum_smoothing)
@@ -339,7 +381,9 @@ class ConnectedStrategy(Strategy):
         if observation.decorations_wanted:  # figures and decorations only for observers that read them
             scalars, decorations = self._outputs(out, state, estimate, f_lambda, tick, robot_distance,
                                                  obstacle_distance)
-        commands = Commands(q.copy(), v.copy(), acceleration, np.zeros(len(q)), scalars, decorations=decorations)
+        outbox = self.estimator.messages() if self.estimator_over_radio else ()
+        commands = Commands(q.copy(), v.copy(), acceleration, np.zeros(len(q)), scalars, decorations=decorations,
+                            outbox=outbox)
         self.q, self.v = q_next, v_next
         return commands
 

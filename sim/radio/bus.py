@@ -86,6 +86,9 @@ class Message:
     receivers: tuple[int, ...] | None  # intended receivers; None broadcasts to whoever hears it
     payload: Any
     size_bytes: int  # the real payload size on the air, bytes (> 0)
+    # True: it supersedes its sender's queued message of the same kind whose frames have not started going
+    # out (a state update where only the newest counts); that one is dropped unsent and counted superseded
+    replaces_queued: bool = False
     sequence: int = -1  # assigned by the bus, increasing over all messages
     sent_s: float = math.nan  # when it was handed to the bus, s
 
@@ -217,6 +220,8 @@ class _KindCounters:
     bytes_sent: int = 0
     addressed: int = 0  # (message, receiver) pairs tried
     delivered: int = 0
+    supersedes: bool = False  # some of its messages replace queued ones (Message.replaces_queued)
+    superseded: int = 0  # messages dropped unsent for a newer one
     latencies_s: list[float] = field(default_factory=list)
     airtime_s: np.ndarray | None = None  # per robot, s
 
@@ -265,8 +270,13 @@ class MessageBus:
         stamped = replace(message, sequence=self._sequence, sent_s=float(time_s))
         self._sequence += 1
         queue = self._queues.setdefault(stamped.sender, deque())
+        position = len(queue)
+        if stamped.replaces_queued:
+            self._counters(stamped.kind, self._n or 0).supersedes = True
+            position = self._supersede(queue, stamped)
+        frames: list[_Frame] = []
         if self.params.is_ideal:
-            queue.append(_Frame(stamped, stamped.size_bytes, True, 0.0))
+            frames.append(_Frame(stamped, stamped.size_bytes, True, 0.0))
         else:
             payloads = self.params.frame_payloads(stamped.size_bytes)
             airtimes = self.params.airtime_s(np.array(payloads))
@@ -274,8 +284,24 @@ class MessageBus:
                 raise ValueError(f"a {self.params.name} frame takes {airtimes.max():.6f} s, longer than the "
                                  f"control period {self.control_period_s} s: it would never go out")
             for k, (payload, airtime) in enumerate(zip(payloads, airtimes)):
-                queue.append(_Frame(stamped, payload, k == len(payloads) - 1, float(airtime)))
+                frames.append(_Frame(stamped, payload, k == len(payloads) - 1, float(airtime)))
+        for offset, frame in enumerate(frames):
+            queue.insert(position + offset, frame)
         return stamped
+
+    def _supersede(self, queue: deque[_Frame], message: Message) -> int:
+        """Drop from ``queue`` the sender's not yet started messages of ``message.kind``; returns the queue
+        position of the first one dropped (where the new one goes), else the queue's end."""
+        stale = {frame.message.sequence for frame in queue
+                 if frame.message.kind == message.kind and frame.message.sequence not in self._in_flight}
+        if not stale:
+            return len(queue)
+        position = next(k for k, frame in enumerate(queue) if frame.message.sequence in stale)
+        kept = [frame for frame in queue if frame.message.sequence not in stale]
+        queue.clear()
+        queue.extend(kept)
+        self._counters(message.kind, self._n or 0).superseded += len(stale)
+        return position
 
     def queued(self, sender: int | None = None) -> int:
         """Messages waiting (some of their frames not yet on the air), at ``sender`` or at all."""
@@ -463,7 +489,10 @@ class MessageBus:
         result = self._metrics("radio", merged)
         result["radio_packets_queued"] = self.queued()
         for kind in sorted(self._kinds):
-            result.update(self._metrics(f"radio_{kind}", self._kinds[kind]))
+            counters = self._kinds[kind]
+            result.update(self._metrics(f"radio_{kind}", counters))
+            if counters.supersedes:
+                result[f"radio_{kind}_packets_superseded"] = counters.superseded
         return result
 
     def _metrics(self, prefix: str, counters: _KindCounters) -> dict[str, float | int]:
