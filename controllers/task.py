@@ -14,7 +14,10 @@ EKF from the same prior and report the same e_g and lambda-bar:
 - :func:`measurement_records` - an Observation's range readings as
   :class:`estimation.beliefs.RangeMeasurement` records, per robot;
 - :class:`EstimateSeries` - lambda_max(C_g(t)) per step and the latest
-  :class:`sim.types.TargetEstimate` (``Commands.estimate``).
+  :class:`sim.types.TargetEstimate` (``Commands.estimate``);
+- :class:`RadioFusion` - under a real radio, the readings of the two
+  always-connected methods (``all_time``, ``connected_tracking``) reach the
+  team's belief only as ``"fusion"`` messages over the bus.
 
 ``params`` is any parameter object with the task's keys used here
 (``prior_mean``, ``prior_variance_m2``):
@@ -31,14 +34,18 @@ is ``speed_mps`` = 0.1 m/s.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimation.beliefs import RangeMeasurement
+from estimation.beliefs import AgreementTracker, Belief, RangeMeasurement
 from estimation.ekf import PAPER_INITIAL_ESTIMATE, FilterState
+from estimation.metrics import local_error
 from sim.config import ConfigError, param
+from sim.radio.bus import range_records_bytes
+from sim.radio.protocols import Outbox, ReliableLink, deliveries_of
 from sim.types import Observation, SceneChange, TargetEstimate, WorldInfo
 
 # The task's keys, shared by the four methods that run it (a scenario runs under any of them).
@@ -48,6 +55,8 @@ TASK_PARAMS: dict[str, dict] = {
     "prior_mean": dict(default=(), unit="m"),  # empty: the paper's x^0
     "prior_variance_m2": dict(default=0.25, unit="m^2", above=0.0),  # paper: C(0) = 0.25 I
     "resolve_mirror": dict(default=True),
+    # Under a real radio (radio.preset other than ideal): a reliable message without an ack this long is sent again
+    "retransmit_after_s": dict(default=2.0, unit="s", above=0.0, max=600.0),
 }
 # strategy.step_s is not a key: one step of the task is the scenario's sensing period.
 STEP_KEY_REMOVED = {"step_s": "set sensing.period_s (one discrete step of the paper; target_motion.step_s "
@@ -157,3 +166,103 @@ class EstimateSeries:
         if values.size == 0:
             return {"lambda_bar_mean_m2": None, "lambda_bar_std_m2": None}
         return {"lambda_bar_mean_m2": float(values.mean()), "lambda_bar_std_m2": float(values.std())}
+
+
+FUSION_KIND = "fusion"  # the bus's message kind of a robot's readings on their way to the team belief
+FUSION_ATTEMPTS = 3  # copies of one fusion message before its readings wait for the robot's next message
+
+
+def over_radio(observation: Observation) -> bool:
+    """Whether the run's radio is a real one (``radio.preset`` other than ``ideal``)."""
+    return observation.radio is not None and observation.radio.preset != "ideal"
+
+
+class RadioFusion:
+    """The team's belief of an always-connected method, fed only by the radio.
+
+    The belief lives at one robot, ``fusion_robot``: it takes its own readings
+    at once and every other robot's when they arrive as a ``"fusion"``
+    message (its records, ``range_records_bytes`` of them, unicast over a
+    :class:`sim.radio.protocols.ReliableLink`, one hop: nothing is relayed).
+    A message without an ack after ``FUSION_ATTEMPTS`` copies is not lost: its
+    readings go again with the robot's next message. The belief accepts late
+    and out-of-order records (:class:`estimation.beliefs.Belief`), so t*(t),
+    the last step up to which it holds every reading the fictitious global
+    belief holds, may lag t.
+
+    Each tick: :meth:`exchange` with the tick's time and inbox and, on a step
+    with readings, every robot's records; :meth:`drain` into ``Commands.outbox``.
+    """
+
+    def __init__(self, n_robots: int, fusion_robot: int, belief: Belief, global_belief: Belief,
+                 retransmit_after_s: float) -> None:
+        self.fusion_robot = int(fusion_robot)
+        self.belief = belief
+        self.outbox = Outbox()
+        self.links = [ReliableLink(self.outbox, r, timeout_s=retransmit_after_s, max_attempts=FUSION_ATTEMPTS)
+                      for r in range(n_robots)]
+        self.waiting: list[list[RangeMeasurement]] = [[] for _ in range(n_robots)]
+        self.in_flight: dict[tuple[int, int], tuple[RangeMeasurement, ...]] = {}
+        self.tracker = AgreementTracker(belief, global_belief)
+        self.global_belief = global_belief
+        self.lags: list[tuple[int, int, float]] = []  # (step, t*, e(t)) per step with readings
+        self.fused = 0  # records the belief took, the fusion robot's own included
+        self.records_sent = 0  # records handed to the bus, every copy (retransmissions included)
+
+    def exchange(self, time_s: float, inbox: Any, records: list[list[RangeMeasurement]] | None) -> None:
+        """Read the tick's fusion messages and acks (``inbox``: ``Observation.inbox``), then send what each
+        robot has waiting; ``records``: every robot's readings on a step with readings, else None."""
+        t = time_s
+        for robot, link in enumerate(self.links):
+            if not link.pending and not (inbox and inbox[robot]):
+                continue  # nothing arrived and nothing to retransmit
+            events = link.poll(t, deliveries_of(inbox, robot, FUSION_KIND))
+            for got in events.received:
+                if robot == self.fusion_robot:
+                    self.fused += self.belief.receive(got.data)
+            for transfer in events.acknowledged:
+                self.in_flight.pop((robot, transfer), None)
+            for transfer in events.gave_up:
+                self.waiting[robot].extend(self.in_flight.pop((robot, transfer), ()))
+        if records is not None:
+            for robot, own in enumerate(records):
+                if robot == self.fusion_robot:
+                    self.fused += self.belief.receive(own)
+                else:
+                    self.waiting[robot].extend(own)
+        for robot, waiting in enumerate(self.waiting):
+            if waiting:
+                data = tuple(waiting)
+                transfer = self.links[robot].send(FUSION_KIND, self.fusion_robot, data, range_records_bytes(len(data)), t)
+                self.in_flight[(robot, transfer)] = data
+                waiting.clear()
+
+    def drain(self) -> tuple:
+        """This tick's messages, for ``Commands.outbox``."""
+        messages = self.outbox.drain()
+        self.records_sent += sum(len(m.payload.data) for m in messages if m.kind == FUSION_KIND)
+        return messages
+
+    def record_lag(self, step: int) -> tuple[int, float]:
+        """t*(t) (steps; -1 before any agreement) and e(t) (m, eq. (14)) at t = ``step`` from what the
+        belief holds now, kept for the summary. The strategies read it at the end of step t's period,
+        just before the next readings: a reading that took a tick to arrive does not count as a lag."""
+        horizon = self.tracker.horizon(step)
+        start = horizon + 1
+        error = local_error(self.global_belief.mean_trajectory(start, step + 1),
+                            self.belief.mean_trajectory(start, step + 1))
+        self.lags.append((step, horizon, error))
+        return horizon, error
+
+    def summary(self, step_s: float) -> dict:
+        lag = np.array([s - a for s, a, _ in self.lags], dtype=float) * step_s
+        error = np.array([e for _, _, e in self.lags], dtype=float)
+        return {
+            "t_star_lag_mean_s": float(lag.mean()) if lag.size else 0.0,
+            "t_star_lag_max_s": float(lag.max()) if lag.size else 0.0,
+            "local_error_mean_m": float(error.mean()) if error.size else 0.0,
+            "fusion_robot": self.fusion_robot,
+            "fusion_readings_fused": self.fused,
+            "fusion_readings_missing": self.global_belief.n_records - self.belief.n_records,
+            "fusion_records_sent": self.records_sent,
+        }

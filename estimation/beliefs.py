@@ -376,6 +376,66 @@ class NetworkBeliefs:
             new_to_robot=new_to_robot,
         )
 
+    def outgoing(self, robot: int, team: int) -> list[RangeMeasurement]:
+        """What ``robot`` has to send at its meeting with ``team``: the records it
+        gathered or heard since it last met this team, less those the team
+        belief already holds (the robot heard all of them at that meeting)."""
+        team_belief = self.team_beliefs[team]
+        return [r for r in self.robot_beliefs[robot].records_since(self._robot_cursor.get((robot, team), 0))
+                if not team_belief.has(r.key)]
+
+    def meet_over_radio(self, team: int, epoch: int, sent: Mapping[int, Sequence[RangeMeasurement]],
+                        heard: Mapping[int, Iterable[int]], cursors: Mapping[int, int]) -> MeetingReport:
+        """Team ``team``'s meeting at ``epoch`` when its exchange went over a radio.
+
+        sent: per member, the records it sent (:meth:`outgoing` when it sent);
+        heard: per member, the members whose records reached it; cursors: per
+        member, its robot belief's ``n_records`` when it sent. Each member's
+        belief takes what reached it. The team belief (what the team plans with)
+        takes only the records of the members that reached every other member:
+        those all members hold. A member whose records did not is not cut off
+        at its cursor, so what it sent goes again at its next meeting with the
+        team. Every member's epoch advances either way (the meeting is over).
+        With every member heard by all, this is :meth:`meet` on what was sent.
+        """
+        if not 0 <= team < self.teams.n_teams:
+            raise ValueError(f"team: {team} out of range for {self.teams.n_teams} teams")
+        members = tuple(self.teams.members[team])
+        for robot in members:
+            if epoch <= self._last_epoch_of_robot[robot]:
+                raise ValueError(
+                    f"epoch: robot {robot} already met at epoch {self._last_epoch_of_robot[robot]}; "
+                    f"its meetings must follow its schedule in increasing epochs, got {epoch}"
+                )
+        heard_by = {robot: set(heard.get(robot, ())) - {robot} for robot in members}
+        shared = [s for s in members if all(s in heard_by[r] for r in members if r != s)]
+        team_belief = self.team_beliefs[team]
+        pooled = [record for s in shared for record in sent.get(s, ())]
+        fresh = [r for r in pooled if not team_belief.has(r.key)]
+        new_to_team = team_belief.receive(fresh)
+        new_to_robot = {}
+        packets_of = {robot: set(self._packets_of_robot[robot]) for robot in members}
+        for robot in members:
+            belief = self.robot_beliefs[robot]
+            new_to_robot[robot] = sum(belief.receive(sent.get(s, ())) for s in sorted(heard_by[robot]))
+            for s in heard_by[robot]:
+                self._packets_of_robot[robot] |= packets_of[s]
+            self._team_cursor[(team, robot)] = team_belief.n_records
+            if robot in shared:
+                self._robot_cursor[(robot, team)] = int(cursors[robot])
+            self._last_epoch_of_robot[robot] = epoch
+        self._last_epoch_of_team[team] = epoch
+        for s in shared:
+            for packet in packets_of[s]:
+                self._deliveries[packet].setdefault(team, epoch)
+        return MeetingReport(
+            team=team,
+            epoch=epoch,
+            new_to_team=new_to_team,
+            refilter_from=min((r.step for r in fresh), default=None),
+            new_to_robot=new_to_robot,
+        )
+
     def last_epoch_of_robot(self, robot: int) -> int:
         """Epoch of the robot's last meeting (0 before its first)."""
         return self._last_epoch_of_robot[robot]

@@ -114,7 +114,8 @@ class DelayReport:
 
     delays: one entry per packet that has reached every team; worst/mean:
     their max and mean (0 if none); bound: D; pending: packets still missing
-    some team.
+    some team; overdue: of those, the ones older than D epochs at the epoch
+    the report was made for (0 when it was not given).
     """
 
     delays: np.ndarray
@@ -122,10 +123,12 @@ class DelayReport:
     mean: float
     bound: int
     pending: int
+    overdue: int = 0
 
     @property
     def within_bound(self) -> bool:
-        return self.worst <= self.bound
+        """No packet took longer than D, nor is still on its way after D (as far as it is known)."""
+        return self.worst <= self.bound and self.overdue == 0
 
 
 def packet_delays(deliveries: Mapping["PacketId", Mapping[int, int]], n_teams: int) -> tuple[np.ndarray, int]:
@@ -141,9 +144,15 @@ def packet_delays(deliveries: Mapping["PacketId", Mapping[int, int]], n_teams: i
     return np.array(delays, dtype=int), pending
 
 
-def delay_report(network: "NetworkBeliefs", bound: int) -> DelayReport:
-    """Observed delays of every completed packet of ``network`` vs ``bound``."""
-    delays, pending = packet_delays(network.deliveries, network.teams.n_teams)
+def delay_report(network: "NetworkBeliefs", bound: int, epoch: int | None = None) -> DelayReport:
+    """Observed delays of every completed packet of ``network`` vs ``bound``; with ``epoch`` (the
+    latest epoch the teams met at), also the pending packets already older than ``bound``."""
+    deliveries = network.deliveries
+    delays, pending = packet_delays(deliveries, network.teams.n_teams)
     worst = int(delays.max()) if delays.size else 0
     mean = float(delays.mean()) if delays.size else 0.0
-    return DelayReport(delays, worst, mean, int(bound), pending)
+    overdue = 0
+    if epoch is not None:
+        overdue = sum(len(reached) < network.teams.n_teams and epoch - packet.epoch > bound
+                      for packet, reached in deliveries.items())
+    return DelayReport(delays, worst, mean, int(bound), pending, int(overdue))

@@ -18,7 +18,10 @@ those of all N robots of the formation (``PlanningProblem.sensor_offsets``),
 and the collision margin is the formation's radius plus ``clearance_m``.
 Every robot tracks centre(t) + its fixed offset. All robots are always
 connected, so every reading is fused at once into the single belief, which
-is the global one: t*(t) = t and no meeting is ever needed.
+is the global one: t*(t) = t and no meeting is ever needed. That holds under
+the ideal radio; under a real one the readings reach the belief the formation
+plans with only as messages to its fusion robot
+(:class:`controllers.task.RadioFusion`), so t*(t) may lag t.
 
 If the planner fails ``1 + max_replans`` times, the formation drives the
 geodesic path towards the most uncertain target and plans again there.
@@ -51,7 +54,7 @@ from controllers.intermittent.runtime import (
     team_color,
 )
 from controllers.intermittent.strategy import team_connected
-from controllers.task import neutral_prior
+from controllers.task import RadioFusion, neutral_prior, over_radio
 from estimation.beliefs import Belief
 from sim.config import ConfigError
 from sim.types import Commands, Decorations, Observation, SceneChange, WorldInfo, readonly
@@ -93,8 +96,17 @@ class AllTimeStrategy(Strategy):
         self.planner = planner_params(params, world, self.planning, robot_radius=self.radius)
         self.motion = world.target_motion
         self.prior = prior_state(params, world.n_targets)
-        self.belief = Belief(self.motion, self.prior,
-                             self.planning.sensor_height if params.resolve_mirror else None)
+        mirror = self.planning.sensor_height if params.resolve_mirror else None
+        self.belief = Belief(self.motion, self.prior, mirror)
+        # Under the ideal radio every reading is fused the tick it is taken (the paper's baseline); under a
+        # real one the formation plans with the belief its fusion robot (nearest the centre) holds, fed
+        # over the bus, and self.belief stays the fictitious global one of e_g and lambda-bar.
+        self.fusion: RadioFusion | None = None
+        self.plan_belief = self.belief
+        if over_radio(initial):
+            self.plan_belief = Belief(self.motion, self.prior, mirror)
+            self.fusion = RadioFusion(n, int(np.argmin(np.linalg.norm(self.offsets, axis=1))), self.plan_belief,
+                                      self.belief, params.retransmit_after_s)
         self.series = EstimateSeries()
         self.geodesic = GeodesicPlanner(self.planning.boxes, self.planning.bounds, self.planning.sensor_height,
                                         self.radius)
@@ -117,7 +129,7 @@ class AllTimeStrategy(Strategy):
     def _plan(self, start: np.ndarray, now_s: float, belief_step: int) -> TimedPath:
         params = self.params
         start_step = max(belief_step, int(math.ceil(now_s / self.step_s - 1e-9)))
-        estimate = self.belief.estimate(belief_step)
+        estimate = self.plan_belief.estimate(belief_step)
         problem = PlanningProblem(
             start_positions=start[None], start_times=np.array([start_step]), estimate=estimate.mean,
             covariance=estimate.covariance, belief_time=belief_step, motion=self.motion,
@@ -173,11 +185,21 @@ class AllTimeStrategy(Strategy):
             if abs(t - step * self.step_s) > 1e-6 or (self.last_step is not None and step != self.last_step + 1):
                 raise ConfigError("sensing.period_s", f"readings must come once per period (reading of step {step} "
                                   f"at t = {t:.3f} s)")
-            records = [r for robot in measurement_records(observation, step) for r in robot]
-            self.belief.receive(records)
+            by_robot = measurement_records(observation, step)
+            self.belief.receive([r for robot in by_robot for r in robot])
             self.last_step = step
             self._scalars["lambda_max_m2"] = self.series.record(self.belief.estimate(step))
-            self._scalars["t_star_s"] = step * self.step_s  # always connected: t*(t) = t
+            if self.fusion is None:
+                self._scalars["t_star_s"] = step * self.step_s  # always connected: t*(t) = t
+            else:
+                self.fusion.exchange(observation.time_s, observation.inbox, by_robot)
+                if step >= 1:  # t*(t) of the step just ended: what reached the fusion robot within its period
+                    agreement, error = self.fusion.record_lag(step - 1)
+                    self._scalars["t_star_s"] = agreement * self.step_s if agreement >= 0 else math.nan
+                    self._scalars["t_star_lag_s"] = (step - 1 - agreement) * self.step_s
+                    self._scalars["local_error_m"] = error
+        elif self.fusion is not None:
+            self.fusion.exchange(observation.time_s, observation.inbox, None)
         self.ticks += 1
         self.connected_ticks += int(team_connected(observation.links.adjacency, tuple(range(len(self.offsets)))))
         if self.segment.finished(t):
@@ -195,6 +217,8 @@ class AllTimeStrategy(Strategy):
                                           np.broadcast_to(velocity, self.offsets.shape))
         commands = commands_from_plane(observation, references,
                                        np.broadcast_to(velocity, self.offsets.shape).copy())
+        if self.fusion is not None:
+            commands = dataclasses.replace(commands, outbox=self.fusion.drain())
         if not observation.decorations_wanted:  # (sim.types.Observation) events wait for a tick that draws
             return dataclasses.replace(commands, estimate=self.series.estimate)
         events, self.events = tuple(self.events), []
@@ -209,6 +233,12 @@ class AllTimeStrategy(Strategy):
         )
         return dataclasses.replace(commands, scalars=self._scalars, estimate=self.series.estimate,
                                    decorations=decorations)
+
+    def progress(self) -> str:
+        """Under a real radio, how many of the team's readings reached the fusion robot, for the run's message."""
+        if self.fusion is None:
+            return ""
+        return f"{self.fusion.fused}/{self.belief.n_records} readings fused over the radio"
 
     def summary(self) -> dict:
         return {
@@ -231,4 +261,5 @@ class AllTimeStrategy(Strategy):
             "path_clock_hold_s": self.held_ticks * self.world.control_period_s,
             "t_star_lag_mean_s": 0.0,
             "t_star_lag_max_s": 0.0,
+            **(self.fusion.summary(self.step_s) if self.fusion is not None else {}),
         }

@@ -59,6 +59,11 @@ class IntermittentParams:
     gather_after_s: float = param(5.0, unit="s", min=0.0)
     # extra planner runs (fresh samples) after a failed plan, before the fallback, -
     max_replans: int = param(2, min=0, max=MAX_REPLANS)
+    # Under a real radio: a meeting whose members' records have not all arrived this long after
+    # its exchange began ends without them (counted in meetings_timed_out), s
+    exchange_timeout_s: float = param(20.0, unit="s", above=0.0, max=3600.0)
+    # Under a real radio: a range-records message without an ack this long is sent again, s
+    retransmit_after_s: float = task_param("retransmit_after_s")
 
     # -- estimator, the EKF
 

@@ -40,6 +40,15 @@ again where it just met (each member returns on its geodesic path), or, for
 an a-priori plan, around the start of the member that starts last. The
 schedule is never broken: the meeting still takes place at its epoch.
 
+Under a real radio (``radio.preset`` other than ``ideal``) the exchange of
+lines 3-4 goes over the message bus: a meeting starts when every member has
+arrived and the team's communication graph is connected; each member sends
+the others its records (``"range_records"``, over a ``ReliableLink``); the
+meeting is held once every member has every other member's records, or ends
+at ``exchange_timeout_s`` with the team belief fusing only what every member
+received (``NetworkBeliefs.meet_over_radio``; docs/radio.md). Under ``ideal``
+the logs are pooled the tick the team is connected, as above.
+
 ``random_meeting`` (:mod:`controllers.baselines.random_meeting`) reuses all
 of this and only designs the segments differently.
 """
@@ -83,11 +92,28 @@ from estimation.ekf import FilterState
 from estimation.metrics import delay_report
 from sim.config import ConfigError
 from sim.geometry import pairwise_min_distance
+from sim.radio.bus import range_records_bytes
+from sim.radio.protocols import Outbox, ReliableLink, deliveries_of
 from sim.types import Commands, Decorations, Observation, SceneChange, WorldInfo
 from sim.strategy import Strategy
 
+RECORDS_KIND = "range_records"  # the bus's message kind of a meeting's exchange
 RING_RADIUS_M = 0.06  # members of a geodesic meeting stop on a ring this wide around its point, m
 IDLE_COLOR = np.array([0.5, 0.5, 0.5, 1.0])
+
+
+@dataclass
+class Exchange:
+    """A meeting's exchange of range records over the radio: each member sends
+    the others what it has for the team (``NetworkBeliefs.outgoing``)."""
+
+    started_s: float  # sim time the members sent, s
+    sent: dict[int, list]  # robot -> the records it sent
+    cursors: dict[int, int]  # robot -> its belief's record count when it sent
+    heard: dict[int, set[int]]  # robot -> the members whose records reached it
+
+    def complete(self, members: tuple[int, ...]) -> bool:
+        return all(self.heard[r] >= set(members) - {r} for r in members)
 
 
 @dataclass
@@ -107,6 +133,8 @@ class Meeting:
     held_s: float | None = None
     connected: bool = False
     positions_at_hold: np.ndarray | None = None  # (n, 2) body positions when held, m
+    exchange: Exchange | None = None  # under a real radio: the records sent and received
+    timed_out: bool = False  # ended at strategy.exchange_timeout_s without every member's records
 
     def point_of(self, robot: int) -> np.ndarray:
         return self.points[self.members.index(robot)]
@@ -255,6 +283,16 @@ class MeetingStrategy(Strategy):
         self._time_s = 0.0
         self.held_ticks = 0  # robot-ticks a path clock waited for its lagging body
         self.closest_m = math.inf  # closest approach of two robot bodies over the run, m
+        # Under the ideal radio a meeting's members pool their logs the tick they meet (Alg. 5), as the
+        # paper has it; under a real one the records travel over the bus (docs/radio.md).
+        self.over_radio = initial.radio is not None and initial.radio.preset != "ideal"
+        self.outbox = Outbox()
+        attempts = max(1, math.ceil(params.exchange_timeout_s / params.retransmit_after_s))
+        self.links = [ReliableLink(self.outbox, r, timeout_s=params.retransmit_after_s, max_attempts=attempts)
+                      for r in range(n)]
+        self.exchange_times: list[float] = []  # exchange start to the meeting's end, s
+        self.records_sent = 0  # range records handed to the bus, every copy (each member, each retransmission), -
+        self.open_exchanges: dict[tuple[int, int], Meeting] = {}  # (team, epoch) -> meeting exchanging
         # Footnote 4: the paths to the first meeting of every team, a priori.
         for epoch in range(1, self.schedule.period + 1):
             for team in self.schedule.teams_meeting_at(epoch):
@@ -348,12 +386,58 @@ class MeetingStrategy(Strategy):
         self._scalars["t_star_lag_s"] = (step - agreement) * self.step_s
         self._scalars["local_error_m"] = local
 
-    def _hold(self, meeting: Meeting, observation: Observation) -> None:
+    def _adjacency(self, observation: Observation) -> np.ndarray:
+        """The graph a meeting needs connected: the disk under the ideal radio, else the communication graph."""
+        if self.over_radio:
+            return observation.radio.comm_adjacency
+        return observation.links.adjacency
+
+    def _start_exchange(self, meeting: Meeting, t: float) -> None:
+        """Every member sends each other member its records for the team, reliably."""
+        sent, cursors = {}, {}
+        for robot in meeting.members:
+            records = self.beliefs.outgoing(robot, meeting.team)
+            sent[robot] = records
+            cursors[robot] = self.beliefs.robot_beliefs[robot].n_records
+            for other in meeting.members:
+                if other != robot:
+                    self.links[robot].send(RECORDS_KIND, other, (meeting.team, meeting.epoch, tuple(records)),
+                                           range_records_bytes(len(records)), t)
+        meeting.exchange = Exchange(t, sent, cursors, {r: set() for r in meeting.members})
+        self.open_exchanges[(meeting.team, meeting.epoch)] = meeting
+
+    def _receive_records(self, observation: Observation) -> None:
+        """Poll every robot's link: note whose records reached whom; a copy after its meeting ended
+        still goes into the receiver's own belief."""
+        t = observation.time_s
+        open_exchanges = self.open_exchanges
+        inbox = observation.inbox
+        for robot, link in enumerate(self.links):
+            if not link.pending and not (inbox and inbox[robot]):
+                continue  # nothing arrived and nothing to retransmit
+            events = link.poll(t, deliveries_of(inbox, robot, RECORDS_KIND))
+            for got in events.received:
+                team, epoch, records = got.data
+                meeting = open_exchanges.get((team, epoch))
+                if meeting is not None:
+                    meeting.exchange.heard[robot].add(got.sender)
+                else:
+                    self.beliefs.robot_beliefs[robot].receive(records)
+
+    def _hold(self, meeting: Meeting, observation: Observation, timed_out: bool = False) -> None:
         t = observation.time_s
         meeting.held_s = t
-        meeting.connected = team_connected(observation.links.adjacency, meeting.members)
+        meeting.timed_out = timed_out
+        meeting.connected = team_connected(self._adjacency(observation), meeting.members)
         meeting.positions_at_hold = observation.position[list(meeting.members), :2].copy()
-        report = self.beliefs.meet(meeting.team, meeting.epoch)
+        exchange = meeting.exchange
+        if exchange is None:
+            report = self.beliefs.meet(meeting.team, meeting.epoch)
+        else:
+            report = self.beliefs.meet_over_radio(meeting.team, meeting.epoch, exchange.sent, exchange.heard,
+                                                  exchange.cursors)
+            self.exchange_times.append(t - exchange.started_s)
+            del self.open_exchanges[(meeting.team, meeting.epoch)]
         for robot in meeting.members:
             self.waits.append(t - meeting.arrivals.get(robot, t))
             done = self.queues[robot].popleft()
@@ -363,14 +447,21 @@ class MeetingStrategy(Strategy):
             following = self.queues[robot][0]
             following.started = True
             following.timed.offset_s = max(0.0, t - following.timed.path.start_time * self.step_s)
-        self.events.append(
-            f"meeting held: team {meeting.team} epoch {meeting.epoch} at t = {t:.1f} s "
-            f"(planned {meeting.planned_time_s:.0f} s), {report.new_to_team} new readings"
-        )
+        if timed_out:
+            missing = sorted(r for r in meeting.members if exchange.heard[r] < set(meeting.members) - {r})
+            self.events.append(
+                f"meeting timed out: team {meeting.team} epoch {meeting.epoch} at t = {t:.1f} s, records still "
+                f"missing at robot(s) {missing} after {self.params.exchange_timeout_s:g} s; "
+                f"{report.new_to_team} readings fused")
+        else:
+            self.events.append(
+                f"meeting held: team {meeting.team} epoch {meeting.epoch} at t = {t:.1f} s "
+                f"(planned {meeting.planned_time_s:.0f} s), {report.new_to_team} new readings"
+            )
         belief_step = self.last_step if self.last_step is not None else 0
         estimate = self.beliefs.team_estimate(meeting.team, belief_step)
         self._plan(meeting.team, meeting.epoch + self.schedule.period, belief_step, estimate)
-        self._scalars["meetings_held"] = float(sum(m.held_s is not None for m in self.meetings))
+        self._scalars["meetings_held"] = float(sum(m.held_s is not None and not m.timed_out for m in self.meetings))
 
     def _gather_reference(self, meeting: Meeting, robot: int, t: float) -> np.ndarray:
         """Close in on the centroid of the meeting points at full speed."""
@@ -388,6 +479,8 @@ class MeetingStrategy(Strategy):
     def step(self, observation: Observation) -> Commands:
         t = observation.time_s
         self._time_s = t
+        if self.over_radio:
+            self._receive_records(observation)
         if observation.target_ranges is not None:
             self._take_readings(observation)
         xy = observation.position[:, :2]
@@ -403,8 +496,16 @@ class MeetingStrategy(Strategy):
         for meeting in sorted(heads.values(), key=lambda m: m.epoch):
             if not self._ready(meeting, t):
                 continue
-            if team_connected(observation.links.adjacency, meeting.members):
-                self._hold(meeting, observation)
+            if meeting.exchange is not None:  # under a real radio: the records are on their way
+                if meeting.exchange.complete(meeting.members):
+                    self._hold(meeting, observation)
+                elif t - meeting.exchange.started_s >= self.params.exchange_timeout_s - 1e-9:
+                    self._hold(meeting, observation, timed_out=True)
+            elif team_connected(self._adjacency(observation), meeting.members):
+                if self.over_radio:
+                    self._start_exchange(meeting, t)
+                else:
+                    self._hold(meeting, observation)
             elif meeting.finished_since is None:
                 meeting.finished_since = t
             elif t - meeting.finished_since >= self.params.gather_after_s and not meeting.gathering:
@@ -442,6 +543,10 @@ class MeetingStrategy(Strategy):
         positions = separated_references(positions, xy, self.planning, velocities, closest)
         self.closest_m = min(self.closest_m, closest)
         commands = commands_from_plane(observation, positions, velocities)
+        if self.over_radio:
+            outbox = self.outbox.drain()
+            self.records_sent += sum(len(m.payload.data[2]) for m in outbox if m.kind == RECORDS_KIND)
+            commands = dataclasses.replace(commands, outbox=outbox)
         if observation.decorations_wanted:
             return dataclasses.replace(commands, scalars=self._scalars, estimate=self.series.estimate,
                                        decorations=self._decorations(t))
@@ -496,14 +601,31 @@ class MeetingStrategy(Strategy):
     def progress(self) -> str:
         """Meetings held so far against those scheduled, for the run's status message."""
         scheduled = sum(m.planned_time_s <= self._time_s + 1e-9 for m in self.meetings)
-        held = sum(m.held_s is not None for m in self.meetings)
-        return f"{held}/{scheduled} scheduled meetings held"
+        held = sum(m.held_s is not None and not m.timed_out for m in self.meetings)
+        text = f"{held}/{scheduled} scheduled meetings held"
+        timed_out = sum(m.timed_out for m in self.meetings)
+        if timed_out:
+            text += (f", {timed_out} ended at the {self.params.exchange_timeout_s:g} s exchange timeout with "
+                     "records undelivered")
+        report = self._delay_report() if self.over_radio else None
+        if report is not None and not report.within_bound:
+            text += (f"; delay bound of {report.bound} epochs exceeded (worst observed {report.worst}, "
+                     f"{report.overdue} packets older than it still on their way)")
+        return text
+
+    def _delay_report(self):
+        """Packet delays against D; the pending packets measured at the last epoch whose meetings,
+        and every earlier one's, have all ended."""
+        open_epochs = [m.epoch for m in self.meetings if m.held_s is None]
+        through = min(open_epochs) - 1 if open_epochs else max((m.epoch for m in self.meetings), default=0)
+        return delay_report(self.beliefs, self.schedule.delay_bound, through)
 
     def summary(self) -> dict:
         t_end = self._time_s
         scheduled = [m for m in self.meetings if m.planned_time_s <= t_end + 1e-9]
-        held = [m for m in self.meetings if m.held_s is not None]
-        report = delay_report(self.beliefs, self.schedule.delay_bound)
+        held = [m for m in self.meetings if m.held_s is not None and not m.timed_out]
+        timed_out = [m for m in self.meetings if m.timed_out]
+        report = self._delay_report()
         lag_steps = np.array([s - a for s, a, _ in self.lags], dtype=float) * self.step_s
         local = np.array([e for _, _, e in self.lags], dtype=float)
         late = [m.held_s - m.planned_time_s for m in held]
@@ -513,12 +635,15 @@ class MeetingStrategy(Strategy):
             "meetings_held": len(held),
             "meetings_connected": sum(m.connected for m in held),
             "meetings_pending": len([m for m in scheduled if m.held_s is None]),
+            "meetings_timed_out": len(timed_out),
             "max_wait_s": float(max(self.waits, default=0.0)),
             "mean_wait_s": float(np.mean(self.waits)) if self.waits else 0.0,
             "mean_meeting_delay_s": float(np.mean(late)) if late else 0.0,
             "schedule_period_epochs": self.schedule.period,
             "delay_bound_epochs": self.schedule.delay_bound,
             "max_delay_epochs_observed": report.worst,
+            "packets_overdue": report.overdue,
+            "delay_bound_held": bool(report.within_bound),
             "packets_delivered": int(report.delays.size),
             "plan_time_mean_s": float(np.mean(self.plan_times)) if self.plan_times else 0.0,
             "plan_time_max_s": float(max(self.plan_times, default=0.0)),
@@ -532,7 +657,14 @@ class MeetingStrategy(Strategy):
             "t_star_lag_mean_s": float(lag_steps.mean()) if lag_steps.size else 0.0,
             "t_star_lag_max_s": float(lag_steps.max()) if lag_steps.size else 0.0,
             "local_error_mean_m": float(local.mean()) if local.size else 0.0,
+            "meetings_over_radio": bool(self.over_radio),
         }
+        if self.over_radio:
+            out.update({
+                "exchange_time_mean_s": float(np.mean(self.exchange_times)) if self.exchange_times else None,
+                "exchange_time_max_s": float(max(self.exchange_times)) if self.exchange_times else None,
+                "range_records_sent": self.records_sent,
+            })
         return out
 
 

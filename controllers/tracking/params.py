@@ -38,6 +38,8 @@ class ConnectedTrackingParams:
     # Reflect estimates that fall below the sensors' plane (range readings cannot tell a target
     # from its mirror image); false: the paper's plain EKF.
     resolve_mirror: bool = task_param("resolve_mirror")
+    # Under a real radio: a reading's message to the fusion robot without an ack this long is sent again, s
+    retransmit_after_s: float = task_param("retransmit_after_s")
 
     # -- explorers, the EKF target generator
 

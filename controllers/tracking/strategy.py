@@ -13,7 +13,10 @@ explorers are sent to viewpoints of the most uncertain targets.
 
 Estimation. The team is connected at every tick (lambda2 > lambda2_min is the
 controller's invariant), so every reading is fused the tick it is taken into
-one network-wide EKF: the belief is the global one, t*(t) = t, no delay. The
+one network-wide EKF: the belief is the global one, t*(t) = t, no delay (under
+the ideal radio; under a real one the readings reach the EKF the generator
+uses only as messages to a fusion robot, :class:`controllers.task.RadioFusion`,
+so t*(t) may lag t). The
 readings, the EKF (:class:`estimation.beliefs.Belief`), the prior and the
 e_g / lambda-bar metrics are those of the three intermittent-task methods
 (:mod:`controllers.task`).
@@ -35,7 +38,8 @@ import numpy as np
 
 from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.strategy import ConnectedStrategy
-from controllers.task import EstimateSeries, check_time_base, measurement_records, neutral_prior, prior_state
+from controllers.task import (EstimateSeries, RadioFusion, check_time_base, measurement_records, neutral_prior,
+                              over_radio, prior_state)
 from controllers.tracking.generator import EKFTargetGenerator, spread_robots
 from controllers.tracking.params import ConnectedTrackingParams
 from estimation.beliefs import Belief
@@ -87,6 +91,18 @@ class ConnectedTrackingStrategy(WrappingStrategy):
         self.core = self.inner = ConnectedStrategy(controller_params(params, world.comm_range_m),
                                                    targets=self._first_targets)
         self.core.reset(world, initial, rng)
+        # Under the ideal radio every reading is fused the tick it is taken; under a real one the explorers'
+        # viewpoints come from the belief of a fusion robot (the connector nearest the start centroid), fed
+        # over the bus, and self.belief stays the fictitious global one of e_g and lambda-bar.
+        self.fusion: RadioFusion | None = None
+        self.team_belief = self.belief
+        if over_radio(initial):
+            starts = initial.position[:, :2]
+            distance = np.linalg.norm(starts - starts.mean(axis=0), axis=1)
+            distance[self.generator.explorers] = np.inf  # explorers leave; a connector stays amid the team
+            self.team_belief = Belief(self.motion, self.prior, self.plane_z if params.resolve_mirror else None)
+            self.fusion = RadioFusion(n, int(np.argmin(distance)), self.team_belief, self.belief,
+                                      params.retransmit_after_s)
         self._scalars = {"lambda_max_m2": float(np.linalg.eigvalsh(self.prior.covariance)[-1]), "t_star_s": 0.0,
                          "t_star_lag_s": 0.0}
 
@@ -107,6 +123,9 @@ class ConnectedTrackingStrategy(WrappingStrategy):
     def progress(self) -> str:
         """What the team did so far, for the run's status message."""
         visited = len(self.core.last.visits) if self.core.last is not None else 0
+        if self.fusion is not None:
+            return (f"{self.fusion.fused}/{self.readings_fused} readings fused over the radio, "
+                    f"{visited} viewpoints visited")
         return f"{self.readings_fused} readings fused, {visited} viewpoints visited"
 
     def step(self, observation: Observation) -> Commands:
@@ -117,15 +136,30 @@ class ConnectedTrackingStrategy(WrappingStrategy):
             if abs(t - step * self.step_s) > 1e-6 or (self.last_step is not None and step != self.last_step + 1):
                 raise ConfigError("sensing.period_s", f"readings must come once per period (reading of step {step} "
                                   f"at t = {t:.3f} s)")
-            records = [r for robot in measurement_records(observation, step) for r in robot]
-            self.readings_fused += self.belief.receive(records)
+            by_robot = measurement_records(observation, step)
+            self.readings_fused += self.belief.receive([r for robot in by_robot for r in robot])
             self.last_step = step
             self._scalars["lambda_max_m2"] = self.series.record(self.belief.estimate(step))
-            self._scalars["t_star_s"] = step * self.step_s  # always connected: t*(t) = t
-        estimate = self.series.last if self.series.last is not None else self.prior
+            if self.fusion is None:
+                self._scalars["t_star_s"] = step * self.step_s  # always connected: t*(t) = t
+            else:
+                self.fusion.exchange(observation.time_s, observation.inbox, by_robot)
+                if step >= 1:  # t*(t) of the step just ended: what reached the fusion robot within its period
+                    agreement, error = self.fusion.record_lag(step - 1)
+                    self._scalars["t_star_s"] = agreement * self.step_s if agreement >= 0 else np.nan
+                    self._scalars["t_star_lag_s"] = (step - 1 - agreement) * self.step_s
+                    self._scalars["local_error_m"] = error
+        elif self.fusion is not None:
+            self.fusion.exchange(observation.time_s, observation.inbox, None)
+        if self.fusion is None:
+            estimate = self.series.last if self.series.last is not None else self.prior
+        else:
+            estimate = self.team_belief.estimate(self.last_step) if self.last_step is not None else self.prior
         core = self.core
         self.generator.update(estimate, core.q, core.explorer, core.queues, fresh)
         commands = core.step(observation)
+        if self.fusion is not None:
+            commands = dataclasses.replace(commands, outbox=commands.outbox + self.fusion.drain())
         scalars = {**commands.scalars, **self._scalars} if observation.decorations_wanted else commands.scalars
         return dataclasses.replace(commands, scalars=scalars, estimate=self.series.estimate)
 
@@ -137,9 +171,10 @@ class ConnectedTrackingStrategy(WrappingStrategy):
             **self.series.summary(),
             **core,
             "viewpoints_visited": len(self.core.last.visits) if self.core.last is not None else 0,
-            "readings_fused": self.readings_fused,
+            "readings_fused": self.fusion.fused if self.fusion is not None else self.readings_fused,
             **self.generator.summary(),
             "t_star_lag_mean_s": 0.0,
             "t_star_lag_max_s": 0.0,
             "comm_range_m": self.world.comm_range_m,
+            **(self.fusion.summary(self.step_s) if self.fusion is not None else {}),
         }

@@ -49,6 +49,31 @@ class Transport(Protocol):
     def send(self, message: Message, time_s: float) -> Message: ...
 
 
+class Outbox:
+    """A ``Transport`` that keeps what is sent for ``Commands.outbox``: the loop hands it to the bus."""
+
+    def __init__(self) -> None:
+        self._messages: list[Message] = []
+
+    def send(self, message: Message, time_s: float) -> Message:
+        self._messages.append(message)
+        return message
+
+    def drain(self) -> tuple[Message, ...]:
+        """The messages sent since the last drain, in order."""
+        messages, self._messages = tuple(self._messages), []
+        return messages
+
+
+def deliveries_of(inbox: Any, robot: int, kind: str) -> list[Delivery]:
+    """``robot``'s deliveries in an ``Observation.inbox`` that belong to ``kind``'s reliable
+    exchange (its data and its acks), so that one endpoint never answers another's messages."""
+    if not inbox or robot >= len(inbox):
+        return []
+    ack = f"{kind}_ack"
+    return [d for d in inbox[robot] if d.message.kind == kind or d.message.kind == ack]
+
+
 @dataclass(frozen=True)
 class ReliableData:
     """The payload of a reliable message on the bus."""
