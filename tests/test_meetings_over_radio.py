@@ -25,7 +25,7 @@ from estimation.beliefs import Belief, NetworkBeliefs
 from estimation.ekf import paper_prior
 from estimation.metrics import delay_report
 from intermittent_helpers import room_scenario
-from sim.radio.bus import Delivery, link_conditions
+from sim.radio.bus import RANGE_RECORD_BYTES, Delivery, link_conditions
 from sim.radio.protocols import RELIABLE_HEADER_BYTES
 from sim.scenario import load
 from test_beliefs import NetworkRun, paper_motion, random_records
@@ -157,13 +157,13 @@ def test_a_meeting_waits_for_every_members_records(tmp_path):
         assert meeting.held_s >= meeting.exchange.started_s + 1.0
         team_keys = set(strategy.beliefs.team_beliefs[meeting.team]._records)
         assert {r.key for records in meeting.exchange.sent.values() for r in records} <= team_keys
-    # Bytes on the air: 20 a record plus the reliable header, every copy (retransmissions included).
+    # Bytes on the air: 40 a record plus the reliable header, every copy (retransmissions included).
     assert metrics["radio_range_records_packets_sent"] > 2 * len(exchanged)  # the lost first copies went again
     first_copies = sum(len(recs) * (len(m.members) - 1) for m in exchanged for recs in m.exchange.sent.values())
     assert metrics["range_records_sent"] > first_copies
     assert metrics["radio_packets_queued"] == 0
     assert metrics["radio_range_records_bytes_sent"] == (
-        20 * metrics["range_records_sent"] + RELIABLE_HEADER_BYTES * metrics["radio_range_records_packets_sent"])
+        RANGE_RECORD_BYTES * metrics["range_records_sent"] + RELIABLE_HEADER_BYTES * metrics["radio_range_records_packets_sent"])
     assert metrics["meetings_over_radio"] is True
 
 
@@ -186,20 +186,20 @@ def test_a_meeting_whose_records_never_arrive_ends_at_the_timeout(tmp_path):
     assert metrics["radio_range_records_packets_delivered"] == 0
 
 
-def test_a_real_run_puts_20_bytes_a_record_on_the_air(tmp_path):
+def test_a_real_run_puts_40_bytes_a_record_on_the_air(tmp_path):
     """Ungated ieee802154 in the room: the meetings' records and the all-time formation's readings
-    go over the bus, 20 bytes a record plus the 4-byte reliable header per message copy."""
+    go over the bus, 40 bytes a record plus the 4-byte reliable header per message copy."""
     sim, metrics = gated_room_run(tmp_path, lambda sim: False, duration=30.0)
     assert metrics["meetings_held"] >= 1 and metrics["meetings_timed_out"] == 0
     assert metrics["radio_range_records_packets_sent"] > 0 and metrics["radio_packets_queued"] == 0
     assert metrics["radio_range_records_bytes_sent"] == (
-        20 * metrics["range_records_sent"] + RELIABLE_HEADER_BYTES * metrics["radio_range_records_packets_sent"])
+        RANGE_RECORD_BYTES * metrics["range_records_sent"] + RELIABLE_HEADER_BYTES * metrics["radio_range_records_packets_sent"])
     assert metrics["radio_range_records_ack_bytes_sent"] == 4 * metrics["radio_range_records_ack_packets_sent"]
     sim, metrics = gated_room_run(tmp_path, lambda sim: False, duration=10.0, kind="all_time")
     assert metrics["radio_fusion_packets_sent"] > 0 and metrics["fusion_records_sent"] > 0
     assert metrics["radio_packets_queued"] == 0
     assert metrics["radio_fusion_bytes_sent"] == (
-        20 * metrics["fusion_records_sent"] + RELIABLE_HEADER_BYTES * metrics["radio_fusion_packets_sent"])
+        RANGE_RECORD_BYTES * metrics["fusion_records_sent"] + RELIABLE_HEADER_BYTES * metrics["radio_fusion_packets_sent"])
 
 
 def test_under_ideal_meetings_pool_their_logs_at_once(tmp_path):

@@ -51,7 +51,7 @@ def run_until_empty(bus, link, start_s=0.0, max_ticks=10_000):
 
 def test_payload_size_helpers():
     assert float64_bytes(3) == 24
-    assert range_records_bytes(2) == 2 * (2 + 2 + 8 + 8)
+    assert range_records_bytes(2) == 2 * (4 + 2 + 2 + 3 * 8 + 8)  # 40 bytes a record
     with pytest.raises(ValueError):
         Message("fusion", 0, (1,), None, 0)
     with pytest.raises(ValueError):

@@ -58,8 +58,10 @@ from sim.radio.presets import IdealDisk, RadioPreset
 FLOAT64_BYTES = 8
 INT32_BYTES = 4
 INDEX_BYTES = 2  # a robot or target index, or a short sequence number, as a uint16
-# A range record: observer index, target index (uint16 each), time and range (float64 each).
-RANGE_RECORD_BYTES = 2 * INDEX_BYTES + 2 * FLOAT64_BYTES
+STEP_BYTES = 4  # a discrete time step k, as a uint32
+# A range record (estimation.beliefs.RangeMeasurement) as it holds: the step, the observer and the
+# target, the sensor's position (the receiver's EKF needs it) and the range.
+RANGE_RECORD_BYTES = STEP_BYTES + 2 * INDEX_BYTES + 3 * FLOAT64_BYTES + FLOAT64_BYTES
 
 
 def float64_bytes(count: int) -> int:
@@ -68,7 +70,7 @@ def float64_bytes(count: int) -> int:
 
 
 def range_records_bytes(count: int) -> int:
-    """Size of ``count`` range records (observer, target, time, range), bytes."""
+    """Size of ``count`` range records (step, observer, target, sensor position, range), bytes."""
     return RANGE_RECORD_BYTES * int(count)
 
 
