@@ -17,7 +17,10 @@ The model, per control period:
   is on the air, and only if the frame ends within this period. What does not
   fit stays queued, FIFO per sender, for a later tick, so latency grows with
   load. Senders that become ready at the same instant are ordered at random
-  (the role of CSMA's random backoff, without its slots).
+  (the role of CSMA's random backoff, without its slots). A message sent
+  ``latest_only`` replaces the sender's waiting message of the same kind (one
+  none of whose frames is on the air yet), as a transmit buffer that holds
+  only the newest value does; the replaced one counts as superseded, not sent.
 - **Loss.** Each receiver of a frame draws its own fading gain
   (``channel.fading_gain_db``, the preset's model) and gets the frame with
   probability 1 - PER(mean SNR + fading, frame bits), PER from the preset's
@@ -88,6 +91,7 @@ class Message:
     size_bytes: int  # the real payload size on the air, bytes (> 0)
     sequence: int = -1  # assigned by the bus, increasing over all messages
     sent_s: float = math.nan  # when it was handed to the bus, s
+    latest_only: bool = False  # replaces the sender's waiting message of the same kind (a newer value)
 
     def __post_init__(self) -> None:
         if not isinstance(self.size_bytes, (int, np.integer)) or self.size_bytes <= 0:
@@ -219,6 +223,7 @@ class _KindCounters:
     delivered: int = 0
     latencies_s: list[float] = field(default_factory=list)
     airtime_s: np.ndarray | None = None  # per robot, s
+    superseded: int = 0  # latest_only messages replaced while waiting
 
 
 @dataclass(frozen=True)
@@ -265,6 +270,8 @@ class MessageBus:
         stamped = replace(message, sequence=self._sequence, sent_s=float(time_s))
         self._sequence += 1
         queue = self._queues.setdefault(stamped.sender, deque())
+        if stamped.latest_only and queue:
+            self._supersede(queue, stamped)
         if self.params.is_ideal:
             queue.append(_Frame(stamped, stamped.size_bytes, True, 0.0))
         else:
@@ -276,6 +283,18 @@ class MessageBus:
             for k, (payload, airtime) in enumerate(zip(payloads, airtimes)):
                 queue.append(_Frame(stamped, payload, k == len(payloads) - 1, float(airtime)))
         return stamped
+
+    def _supersede(self, queue: deque[_Frame], newer: Message) -> None:
+        """Drop the waiting messages of ``newer``'s kind that ``newer`` replaces (none of their frames sent)."""
+        def replaced(frame: _Frame) -> bool:
+            old = frame.message
+            return old.latest_only and old.kind == newer.kind and old.sequence not in self._in_flight
+        dropped = sum(frame.last for frame in queue if replaced(frame))
+        if dropped:
+            kept = [frame for frame in queue if not replaced(frame)]
+            queue.clear()
+            queue.extend(kept)
+            self._counters(newer.kind, self._n or newer.sender + 1).superseded += dropped
 
     def queued(self, sender: int | None = None) -> int:
         """Messages waiting (some of their frames not yet on the air), at ``sender`` or at all."""
@@ -459,6 +478,7 @@ class MessageBus:
             merged.addressed += counters.addressed
             merged.delivered += counters.delivered
             merged.latencies_s += counters.latencies_s
+            merged.superseded += counters.superseded
             merged.airtime_s[:len(counters.airtime_s)] += counters.airtime_s
         result = self._metrics("radio", merged)
         result["radio_packets_queued"] = self.queued()
@@ -478,4 +498,5 @@ class MessageBus:
             f"{prefix}_latency_mean_s": float(latencies.mean()) if latencies.size else math.nan,
             f"{prefix}_latency_p95_s": float(np.percentile(latencies, 95)) if latencies.size else math.nan,
             f"{prefix}_airtime_max_share": float(airtime.max() / self._elapsed_s) if self._elapsed_s else 0.0,
+            f"{prefix}_packets_superseded": counters.superseded,
         }
