@@ -311,7 +311,7 @@ class ExplorationController:
         path_points = np.empty((n, 3))
         estimates = np.empty(n)
         if self.over_bus:
-            heard, consensus_links = self._heard_estimates(inbox)
+            heard, consensus_links = heard_estimates(inbox, n)
         else:
             heard, consensus_links = np.tile(self.estimates, (n, 1)), adjacency
         if references is None or not len(travelers):
@@ -358,19 +358,20 @@ class ExplorationController:
             outbox=outbox,
         )
 
-    def _heard_estimates(self, inbox) -> tuple[np.ndarray, np.ndarray]:
-        """Over the bus: heard[i, j], the estimate of robot j in the latest consensus message that reached
-        robot i since the last tick, and which messages arrived (bool (N, N)); NaN and False elsewhere."""
-        n = self.n_robots
-        heard = np.full((n, n), np.nan)
-        arrived = np.zeros((n, n), dtype=bool)
-        for robot, deliveries in enumerate(inbox):
-            for delivery in deliveries:  # in order of arrival: the latest value wins
-                message = delivery.message
-                if message.kind == CONSENSUS_KIND and delivery.receiver == robot:
-                    heard[robot, message.sender] = message.payload
-                    arrived[robot, message.sender] = True
-        return heard, arrived
+
+def heard_estimates(inbox, n_robots: int) -> tuple[np.ndarray, np.ndarray]:
+    """Over the bus: heard[i, j], the estimate hat-Lambda_p^j in the latest consensus message that reached
+    robot i since the last tick (``inbox``, per robot in order of arrival), and which arrived (bool (N, N));
+    NaN and False elsewhere."""
+    heard = np.full((n_robots, n_robots), np.nan)
+    arrived = np.zeros((n_robots, n_robots), dtype=bool)
+    for robot, deliveries in enumerate(inbox):
+        for delivery in deliveries:
+            message = delivery.message
+            if message.kind == CONSENSUS_KIND and delivery.receiver == robot:
+                heard[robot, message.sender] = message.payload
+                arrived[robot, message.sender] = True
+    return heard, arrived
 
 
 @kernel
