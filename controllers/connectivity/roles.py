@@ -6,8 +6,9 @@ free of geometry: each control tick it is told, per robot, whether a
 'connector' just extracted a target, whether a traveler is within R_z of its
 target, whether an 'anchor' finished its task, and each traveler's remaining
 path length; it returns the roles after the tick. Robots decide only on their
-own state and on election messages that reached them through
-``election.FloodingNetwork`` over the current communication graph.
+own state and on election messages that reached them: through
+``election.FloodingNetwork`` over the current communication graph (the ideal
+radio), or over the message bus (below).
 
 Per robot i (Alg. 1):
 

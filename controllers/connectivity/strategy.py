@@ -28,6 +28,9 @@ Per control tick (all robots at once):
    (links within ``sensing.comm_range_m`` = R_s and in ``mj_ray`` line of
    sight, one hop per ``message_latency_ticks``), consensus on the prime
    traveler's efficiency over the same graph, travel / anchor forces f_i.
+   Under a real radio (``radio.preset`` not ``ideal``) the election, the
+   token and the consensus are messages on the message bus instead
+   (``Observation.inbox`` in, ``Commands.outbox`` out; docs/radio.md).
 3. Integrate q, v; send (q, v, a) to the quadrotors.
 
 The run ends early (``finished``) once every target is visited and every
