@@ -306,3 +306,33 @@ def test_connected_office_under_ieee802154_talks_over_the_bus(tmp_path):
     strategy.roles = np.array(strategy.roles)
     strategy.roles[[2, 5]] = PRIME_CODE
     assert strategy.violation(frame.commands) == "2 prime travelers at once (quad2, quad5)"
+
+
+# --- the bus's latest-only messages ----------------------------------------------------------------
+
+def test_a_latest_only_message_replaces_its_waiting_predecessor():
+    bus = MessageBus(BusParameters.from_preset(PRESETS["ieee802154"]), np.random.default_rng(0), PERIOD_S,
+                     robot_count=3)
+    link = link_conditions(np.full((3, 3), 60.0), True)
+    for value in (0.1, 0.2, 0.3):
+        bus.send(Message(CONSENSUS_KIND, 0, None, value, 8, latest_only=True), 0.0)
+    bus.send(Message(CONSENSUS_KIND, 0, None, 0.9, 8), 0.0)  # not latest-only: kept, and it replaces nothing
+    bus.send(Message(CONSENSUS_KIND, 0, None, 0.4, 8, latest_only=True), 0.0)
+    bus.send(Message("other", 0, None, 1.0, 8, latest_only=True), 0.0)  # another kind: kept
+    rows = bus.step(0.0, link)
+    assert [(d.message.kind, d.message.payload) for d in rows[1]] == [
+        (CONSENSUS_KIND, 0.9), (CONSENSUS_KIND, 0.4), ("other", 1.0)]
+    summary = bus.summary()
+    assert summary["radio_consensus_packets_superseded"] == 3 and summary["radio_consensus_packets_sent"] == 2
+    assert summary["radio_packets_superseded"] == 3 and summary["radio_other_packets_superseded"] == 0
+
+
+def test_a_latest_only_message_never_cuts_one_already_on_the_air():
+    bus = MessageBus(BusParameters.from_preset(PRESETS["ieee802154"]), np.random.default_rng(0), PERIOD_S,
+                     robot_count=2)
+    link = link_conditions(np.full((2, 2), 60.0), True)
+    bus.send(Message(ELECTION_KIND, 0, None, "long", 300, latest_only=True), 0.0)  # three frames, two fit a tick
+    assert bus.step(0.0, link)[1] == []
+    bus.send(Message(ELECTION_KIND, 0, None, "newer", 20, latest_only=True), PERIOD_S)
+    assert [d.message.payload for d in bus.step(PERIOD_S, link)[1]] == ["long", "newer"]
+    assert bus.summary()["radio_election_packets_superseded"] == 0
