@@ -192,7 +192,8 @@ fates = st.lists(st.tuples(st.booleans(), st.integers(0, 6)), min_size=1, max_si
 @given(fates=fates, seed=st.integers(0, 2**32 - 1), n=st.integers(2, 6))
 def test_token_never_duplicated_over_any_loss_pattern(fates, seed, n):
     """Algorithm 1 with random role events over a channel that loses and delays copies by script: the
-    handover is never duplicated (never two prime travelers nor two holders, checked every tick)."""
+    handover is never duplicated (never two prime travelers nor two holders, checked every tick), and the
+    token is not lost for good."""
     rng = np.random.default_rng(seed)
     machine = RoleMachine(n, 1, host=0, bus_period_s=PERIOD_S)
     machine.start(rng.random(n) < 0.6)
@@ -205,6 +206,11 @@ def test_token_never_duplicated_over_any_loss_pattern(fates, seed, n):
                 (roles == Role.ANCHOR) & (rng.random(n) < 0.05))
 
     run_over(machine, channel.step, channel.send, remaining, 250, events=events)
+    # Liveness once the losses stop: a given-up offer returns the token, a given-up confirm is sent again,
+    # so the token ends up held by exactly one robot.
+    channel.fates, channel.used = [(False, 0)], 0
+    run_over(machine, channel.step, channel.send, remaining, 200, start=250)
+    assert machine.holds_token.sum() == 1
 
 
 def test_a_lost_confirm_is_sent_again_until_the_winner_holds_the_token():
