@@ -164,7 +164,7 @@ def test_messages_are_broadcasts_of_the_rounded_state():
     estimator = MessageFedEstimator(4, PARAMS, np.random.default_rng(0), 1, timeout_s=0.2)
     messages = estimator.messages()
     assert [m.sender for m in messages] == [0, 1, 2, 3]
-    assert all(m.kind == LAMBDA2_ESTIMATE_KIND and m.receivers is None and m.replaces_queued for m in messages)
+    assert all(m.kind == LAMBDA2_ESTIMATE_KIND and m.receivers is None and m.latest_only for m in messages)
     # One component, three consensus channels (Ave x, Ave x^2, Ave x L x) and their integrals, the degree,
     # the Fiedler component: 9 float32 and a uint16 round number.
     assert messages[0].size_bytes == estimator_message_bytes(1) == 38

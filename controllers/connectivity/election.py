@@ -24,15 +24,29 @@ one robot holds it (or it is in flight) at any time, whatever the graph does.
 ``roles.RoleMachine`` decides when rounds start and what the token holder
 does; this module only moves messages and tallies a round.
 
+Two networks carry the messages. ``FloodingNetwork`` is the in-process
+exchange over the adjacency matrix, used under the ideal radio (one hop per
+``latency_ticks``). ``BusFlooding`` is the same flooding as messages on the
+message bus (sim.radio.bus), used under a real radio: each tick every robot
+sends one ``"election"`` broadcast carrying the messages it forwards
+(``election_bytes``: their real encoded size), and a robot learns a message
+only when a broadcast carrying it reaches it (``Observation.inbox``); lost
+broadcasts are simply not heard. The election window is then a time bound:
+the host decides 2 (N - 1) latency periods after opening the round, with the
+replies that reached it by then. Over the bus the token does not travel in a
+``Handover`` but hand to hand (roles.py, ``protocols.TokenHandover``).
+
 Deviations from the paper
 -------------------------
 - The paper's "no 'prime traveler' in the group" (Alg. 1 line 7, assessed
   "by flooding on a low frequency", footnote 4) is realised by the token: a
   host without a travelling role keeps running rounds back to back, which is
   that low-frequency flooding, and hands the token to the first candidate.
-- Each message is retired from the simulated network once it is obsolete
+- Each message is retired from the in-process network once it is obsolete
   (its round decided, or the handover delivered); a real network would stop
-  forwarding it after a time-to-live.
+  forwarding it after a time-to-live. Over the bus a robot forwards a message
+  for ``forward_ticks`` ticks after it learned it (a time-to-live), and the
+  host stops forwarding its round's messages once the round is closed.
 """
 
 from __future__ import annotations
@@ -43,6 +57,8 @@ from typing import Callable, Union
 import numpy as np
 
 from sim.compiled import kernel
+from sim.radio.bus import FLOAT64_BYTES, INDEX_BYTES, INT32_BYTES
+from sim.radio.bus import Message as BusMessage
 
 # "Never learned" for the per-robot arrival ticks.
 _NEVER = np.iinfo(np.int64).max
@@ -75,6 +91,21 @@ class Handover:
 
 
 Message = Union[Candidacy, Reply, Handover]
+
+
+# Encoded sizes on the air, bytes: a one-byte type tag, epochs as int32, robots as uint16, lengths as float64.
+_TAG_BYTES = 1
+MESSAGE_BYTES = {
+    Candidacy: _TAG_BYTES + INT32_BYTES + INDEX_BYTES,
+    Reply: _TAG_BYTES + INT32_BYTES + INDEX_BYTES + FLOAT64_BYTES,
+    Handover: _TAG_BYTES + INT32_BYTES + INDEX_BYTES + INT32_BYTES,
+}
+ELECTION_KIND = "election"
+
+
+def election_bytes(messages) -> int:
+    """Size of one election broadcast carrying ``messages``, bytes."""
+    return sum(MESSAGE_BYTES[type(m)] for m in messages)
 
 
 def election_window_ticks(n_robots: int, latency_ticks: int) -> int:
@@ -132,12 +163,90 @@ class FloodingNetwork:
         """Boolean (N,): which robots have received ``message`` by ``tick``."""
         return self._known_at[self.messages.index(message)] <= tick
 
-    def retire(self, obsolete: Callable[[Message], bool]) -> None:
-        """Stop forwarding every message for which ``obsolete(message)`` is true."""
+    def retire(self, obsolete: Callable[[Message], bool], at: int | None = None) -> None:
+        """Stop forwarding every message for which ``obsolete(message)`` is true (everywhere: the
+        in-process network ignores ``at``, the robot that knows it is obsolete)."""
         keep = [not obsolete(m) for m in self.messages]
         self.messages = [m for m, k in zip(self.messages, keep) if k]
         self._origins = [o for o, k in zip(self._origins, keep) if k]
         self._known_at = self._known_at[np.array(keep, dtype=bool)] if self.messages else self._known_at[:0]
+
+
+class BusFlooding:
+    """Store-and-forward flooding as messages on the message bus, per robot.
+
+    Per tick: ``receive(tick, inbox)`` (the bus's deliveries of the last tick),
+    ``delivered(tick)`` (what each robot learned, first time only), the robots
+    act and ``broadcast``, then ``outbox(tick)``: one ``"election"`` broadcast
+    per robot that forwards anything. A robot forwards a message from the tick
+    it learns it for ``forward_ticks`` ticks (None: until retired). A hop
+    takes one tick on the bus; ``latency_ticks`` > 1 holds what arrived back
+    for the rest of the latency, as the in-process network does.
+    """
+
+    def __init__(self, n_robots: int, latency_ticks: int = 1, forward_ticks: int | None = None) -> None:
+        if n_robots < 1:
+            raise ValueError(f"n_robots must be positive, got {n_robots!r}")
+        if not (isinstance(latency_ticks, (int, np.integer)) and latency_ticks >= 1):
+            raise ValueError(f"latency_ticks must be an integer >= 1, got {latency_ticks!r}")
+        if forward_ticks is not None and forward_ticks < 1:
+            raise ValueError(f"forward_ticks must be >= 1 or None, got {forward_ticks!r}")
+        self.n_robots = n_robots
+        self.latency_ticks = int(latency_ticks)
+        self.forward_ticks = forward_ticks
+        self._seen: list[set[Message]] = [set() for _ in range(n_robots)]  # every message ever learned
+        self._forwarding: list[dict[Message, int]] = [{} for _ in range(n_robots)]  # message -> tick learned
+        self._arriving: list[tuple[int, int, Message]] = []  # (tick learned, robot, message), in arrival order
+
+    def broadcast(self, sender: int, message: Message, tick: int) -> None:
+        """``sender`` starts flooding ``message`` at ``tick``."""
+        self._seen[sender].add(message)
+        self._forwarding[sender][message] = tick
+
+    def receive(self, tick: int, inbox) -> None:
+        """Read the election broadcasts among ``inbox[robot]`` (``Delivery``s of the bus) at ``tick``."""
+        due = tick + self.latency_ticks - 1
+        for robot, deliveries in enumerate(inbox):
+            for delivery in deliveries:
+                message = delivery.message
+                if message.kind != ELECTION_KIND or delivery.receiver != robot:
+                    continue
+                for carried in message.payload:
+                    if carried not in self._seen[robot]:
+                        self._seen[robot].add(carried)
+                        self._arriving.append((due, robot, carried))
+
+    def delivered(self, tick: int) -> list[tuple[int, Message]]:
+        """(receiver, message) pairs for messages a robot learns exactly at ``tick``; it forwards them from now."""
+        now = [(robot, message) for due, robot, message in self._arriving if due == tick]
+        self._arriving = [entry for entry in self._arriving if entry[0] > tick]
+        for robot, message in now:
+            self._forwarding[robot][message] = tick
+        return now
+
+    def knows(self, message: Message, robot: int) -> bool:
+        return message in self._seen[robot]
+
+    def retire(self, obsolete: Callable[[Message], bool], at: int | None = None) -> None:
+        """Robot ``at`` (every robot if None) stops forwarding every message for which ``obsolete`` is true."""
+        for robot in range(self.n_robots) if at is None else (at,):
+            forwarding = self._forwarding[robot]
+            for message in [m for m in forwarding if obsolete(m)]:
+                del forwarding[message]
+
+    def outbox(self, tick: int) -> list[BusMessage]:
+        """This tick's election broadcasts, one per robot that forwards anything."""
+        messages = []
+        for robot, forwarding in enumerate(self._forwarding):
+            if self.forward_ticks is not None:
+                for message in [m for m, learned in forwarding.items() if tick - learned >= self.forward_ticks]:
+                    del forwarding[message]
+            if forwarding:
+                carried = tuple(forwarding)
+                # A newer broadcast carries all an unsent one would (bar what expired): it replaces it.
+                messages.append(BusMessage(ELECTION_KIND, robot, None, carried, election_bytes(carried),
+                                           latest_only=True))
+        return messages
 
 
 @kernel

@@ -15,7 +15,7 @@ estimator:
 - Each tick every robot broadcasts its state once ("lambda2_estimate",
   :func:`estimator_message_bytes`): float32 values, so a receiver holds the
   rounded copy. The bus supersedes a robot's earlier estimator message that
-  has not gone out yet (Message.replaces_queued): only the newest state
+  has not gone out yet (Message.latest_only): only the newest state
   counts, and the queue stays bounded when the air is full.
 - Robot i's links this tick are those with W_ij > 0 over which a message
   arrived within ``timeout_s``; its rows of the Laplacian use only them, with
@@ -136,7 +136,7 @@ class MessageFedEstimator:
     def messages(self) -> tuple[Message, ...]:
         """Every robot's broadcast of its current state; each supersedes its own that is still queued."""
         size = estimator_message_bytes(self.modes)
-        return tuple(Message(LAMBDA2_ESTIMATE_KIND, i, None, self.state_of(i), size, replaces_queued=True)
+        return tuple(Message(LAMBDA2_ESTIMATE_KIND, i, None, self.state_of(i), size, latest_only=True)
                      for i in range(self.num_robots))
 
     def receive(self, receiver: int, sender: int, state: EstimatorState, time_s: float) -> None:

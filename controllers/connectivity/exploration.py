@@ -25,6 +25,16 @@ Algorithm 2 (motion control)
 
 The strategy integrates M v' = -B v + f_lambda + f_i with the returned forces.
 
+Messages: with ``bus_period_s`` unset (the ideal radio) the election and the
+consensus (13) are exchanged in-process over the adjacency given to ``step``.
+With it set (a real radio) they travel on the message bus: ``step`` reads
+``inbox`` (``Observation.inbox``) and returns the tick's messages in
+``ExplorationStep.outbox``: the role machine's election broadcasts and token
+handover (roles.py), and one ``"consensus"`` broadcast per robot carrying its
+estimate hat-Lambda_p^i (8 bytes). A robot's neighbours in (13) are then the
+robots whose consensus message reached it since the last tick, at the value
+it carried.
+
 Deviations from the paper
 -------------------------
 See connected_params.py, paths.py, travel.py, election.py, roles.py and
@@ -69,9 +79,11 @@ from controllers.connectivity.travel import (
     row_norm,
 )
 from sim.compiled import kernel
+from sim.radio.bus import FLOAT64_BYTES, Message
 
 # Floor of the reference speed, as a fraction of cruise, when scaling the efficiency error.
 _MIN_REFERENCE_FRACTION = 0.1
+CONSENSUS_KIND = "consensus"
 
 
 @dataclass(frozen=True)
@@ -94,16 +106,20 @@ class ExplorationStep:
     visits: tuple[Visit, ...]  # every completed visit so far
     skipped: tuple[Target, ...]  # targets found unreachable
     finished: bool  # every queue empty and every robot a connector
+    outbox: tuple[Message, ...] = ()  # the tick's messages for the bus (over the bus only)
 
 
 class ExplorationController:
     """The exploration layer for N robots sharing one static scene.
 
     params: ConnectedParams; planner: GridPlanner of the scene; queues:
-    TargetQueues (the target generators may keep pushing during the run).
+    TargetQueues (the target generators may keep pushing during the run);
+    bus_period_s: None to exchange messages in-process, or the control period,
+    s, to send them over the message bus (see the module docstring).
     """
 
-    def __init__(self, params: ConnectedParams, planner: GridPlanner, queues: TargetQueues) -> None:
+    def __init__(self, params: ConnectedParams, planner: GridPlanner, queues: TargetQueues,
+                 bus_period_s: float | None = None) -> None:
         n = queues.n_robots
         if not params.election_host < n:
             raise ValueError(f"election_host ({params.election_host}) must be a robot index below {n}")
@@ -111,7 +127,8 @@ class ExplorationController:
         self.planner = planner
         self.queues = queues
         self.n_robots = n
-        self.role_machine = RoleMachine(n, params.message_latency_ticks, params.election_host)
+        self.role_machine = RoleMachine(n, params.message_latency_ticks, params.election_host, bus_period_s)
+        self.over_bus = bus_period_s is not None
         self.targets: list[Target | None] = [None] * n
         self._target_table: tuple[np.ndarray, np.ndarray] | None = None  # built when the targets change
         self.paths: list[SplinePath | None] = [None] * n
@@ -218,12 +235,13 @@ class ExplorationController:
 
     # -- one control tick ---------------------------------------------------
 
-    def step(self, time: float, positions, velocities, adjacency, connectivity_force) -> ExplorationStep:
+    def step(self, time: float, positions, velocities, adjacency, connectivity_force, inbox=()) -> ExplorationStep:
         """Algorithms 1 and 2 for one control tick.
 
         time: s; positions, velocities: (N, 3) virtual points, m and m/s;
-        adjacency: (N, N) current communication graph (bool or weights > 0);
-        connectivity_force: (N, 3) f_lambda, N.
+        adjacency: (N, N) current communication graph (bool or weights > 0;
+        the in-process exchange's); connectivity_force: (N, 3) f_lambda, N;
+        inbox: per robot the bus's deliveries since the last tick (over the bus).
         """
         p = self.params
         n = self.n_robots
@@ -269,7 +287,8 @@ class ExplorationController:
         if references is not None:
             remaining[travelers] = references.remaining
 
-        changes = self.role_machine.step(self.tick, adjacency, got_target, near_target, task_done, remaining)
+        changes = self.role_machine.step(self.tick, adjacency, got_target, near_target, task_done, remaining,
+                                         inbox, float(time))
         roles = changes.roles
         for i in np.flatnonzero(changes.became_anchor):
             self.paths[i] = None  # lines 13, 20
@@ -291,19 +310,28 @@ class ExplorationController:
         lam, error, alignment, gain = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
         path_points = np.empty((n, 3))
         estimates = np.empty(n)
+        if self.over_bus:
+            heard, consensus_links = heard_estimates(inbox, n)
+        else:
+            heard, consensus_links = np.tile(self.estimates, (n, 1)), adjacency
         if references is None or not len(travelers):
             points = velocities_ref = accelerations = np.zeros((0, 3))
             travelers = np.zeros(0, dtype=np.int64)
         else:
             points, velocities_ref, accelerations = references.point, references.velocity, references.acceleration
         _motion_control(q, v, f_lambda, roles, travelers, points, velocities_ref, accelerations, target_points,
-                        adjacency, self.estimates, dt, p.position_gain, p.velocity_gain, p.virtual_mass_kg,
+                        consensus_links, heard, self.estimates, dt, p.position_gain, p.velocity_gain, p.virtual_mass_kg,
                         p.travel_force_limit_n, p.position_error_weight, p.cruise_speed_mps,
                         _MIN_REFERENCE_FRACTION * p.cruise_speed_mps, p.efficiency_error_full_mps,
                         p.efficiency_error_zero_mps, p.consensus_gain, p.sigma, p.target_radius_m, p.anchor_gain_n,
                         p.anchor_force_limit_n,
                         forces, lam, error, path_points, estimates, alignment, gain)
         self.estimates = estimates
+        outbox = ()
+        if self.over_bus:
+            outbox = (*self.role_machine.outbox,
+                      *(Message(CONSENSUS_KIND, i, None, float(estimates[i]), FLOAT64_BYTES, latest_only=True)
+                        for i in range(n)))
 
         self.tick += 1
         self.last_time = float(time)
@@ -327,19 +355,36 @@ class ExplorationController:
             visits=tuple(self.visits),
             skipped=tuple(self.skipped),
             finished=finished,
+            outbox=outbox,
         )
+
+
+def heard_estimates(inbox, n_robots: int) -> tuple[np.ndarray, np.ndarray]:
+    """Over the bus: heard[i, j], the estimate hat-Lambda_p^j in the latest consensus message that reached
+    robot i since the last tick (``inbox``, per robot in order of arrival), and which arrived (bool (N, N));
+    NaN and False elsewhere."""
+    heard = np.full((n_robots, n_robots), np.nan)
+    arrived = np.zeros((n_robots, n_robots), dtype=bool)
+    for robot, deliveries in enumerate(inbox):
+        for delivery in deliveries:
+            message = delivery.message
+            if message.kind == CONSENSUS_KIND and delivery.receiver == robot:
+                heard[robot, message.sender] = message.payload
+                arrived[robot, message.sender] = True
+    return heard, arrived
 
 
 @kernel
 def _motion_control(q, v, f_lambda, roles, travelers, points, velocities, accelerations, target_points, adjacency,
-                    estimates, dt, position_gain, velocity_gain, mass, travel_force_limit, position_weight,
+                    heard, estimates, dt, position_gain, velocity_gain, mass, travel_force_limit, position_weight,
                     cruise_speed, min_reference_speed, x_full, x_zero, consensus_gain, sigma, target_radius,
                     anchor_gain, anchor_force_limit, forces, lam, error, path_points, estimates_out, alignment, gain):
     """Algorithm 2 for every robot (see the module docstring); outputs NaN where undefined.
 
     travelers (R,) with their path references' points, velocities and
     accelerations (R, 3); roles (N,) codes; estimates (N,) hat-Lambda_p^i of the
-    previous tick, estimates_out the new ones (eq. 13)."""
+    previous tick, estimates_out the new ones (eq. 13), with neighbours j of i where adjacency[i, j] > 0 at
+    the values heard[i, j]."""
     n = q.shape[0]
     for i in range(n):
         lam[i] = error[i] = alignment[i] = gain[i] = np.nan
@@ -361,7 +406,7 @@ def _motion_control(q, v, f_lambda, roles, travelers, points, velocities, accele
             path_points[i, k] = points[r, k]
     is_prime = roles == PRIME_CODE
     prime_efficiency = np.where(np.isnan(lam), 0.0, lam)
-    _consensus_kernel(estimates, adjacency, is_prime, prime_efficiency, consensus_gain, dt, estimates_out)
+    _consensus_kernel(estimates, heard, adjacency, is_prime, prime_efficiency, consensus_gain, dt, estimates_out)
     for i in range(n):
         if roles[i] == SECONDARY_CODE:
             alignment[i] = _alignment_row(f_lambda[i], forces[i])

@@ -6,8 +6,9 @@ free of geometry: each control tick it is told, per robot, whether a
 'connector' just extracted a target, whether a traveler is within R_z of its
 target, whether an 'anchor' finished its task, and each traveler's remaining
 path length; it returns the roles after the tick. Robots decide only on their
-own state and on election messages that reached them through
-``election.FloodingNetwork`` over the current communication graph.
+own state and on election messages that reached them: through
+``election.FloodingNetwork`` over the current communication graph (the ideal
+radio), or over the message bus (below).
 
 Per robot i (Alg. 1):
 
@@ -37,6 +38,23 @@ so there is never more than one prime traveler (Proposition 1), on any graph
 sequence. With a connected graph at every tick, a waiting secondary traveler
 becomes prime within about three election windows.
 
+Over the message bus (a real radio, ``bus_period_s`` given): the election's
+messages flood as ``"election"`` broadcasts (``election.BusFlooding``), and
+the token goes hand to hand with ``protocols.TokenHandover`` over one
+``protocols.ReliableLink`` per robot (acks, retransmission after
+``HANDOVER_TIMEOUT_TICKS``, at most ``HANDOVER_MAX_ATTEMPTS`` copies): the
+round's host offers it to the winner, and the winner becomes prime traveler
+only when the host's confirm arrives, so two robots never hold it at once
+whatever is lost. The offer carries the next epoch. If the offer is given up
+(the winner out of reach), the host keeps the token and, no longer
+travelling, opens a new round. If the confirm is given up
+(``token_maybe_lost``: the winner acked the offer but may never have heard the
+confirm), the host cannot take the token back, since the winner may hold it;
+it re-sends the confirm as a new transfer until one is acknowledged
+(``token_recoveries`` counts them), and the winner, while still waiting on
+that offer, acts on whichever copy arrives. Until then nobody is prime
+traveler and no round runs.
+
 Deviations from the paper
 -------------------------
 - "No prime traveler in the group" is "holds the role token" (see
@@ -55,6 +73,7 @@ from enum import IntEnum
 import numpy as np
 
 from controllers.connectivity.election import (
+    BusFlooding,
     Candidacy,
     ElectionRound,
     FloodingNetwork,
@@ -64,6 +83,29 @@ from controllers.connectivity.election import (
     election_window_ticks,
 )
 from sim.compiled import kernel
+from sim.radio.bus import INT32_BYTES
+from sim.radio.bus import Message as BusMessage
+from sim.radio.protocols import ReliableLink, TokenHandover
+
+# The token's reliable link over the bus: a copy is sent again after this many control periods without an
+# ack (an ack comes back two ticks after its copy when nothing waits in the queues), and given up after this
+# many copies in all.
+HANDOVER_TIMEOUT_TICKS = 5
+HANDOVER_MAX_ATTEMPTS = 10
+# Over the bus a robot forwards an election message for this many ticks after learning it: the first
+# copy and two more against lost broadcasts (every tick until retired would fill a 250 kbit/s medium).
+ELECTION_FORWARD_TICKS = 3
+
+
+class _Sent:
+    """The transport of the robots' reliable links: collects the tick's messages for ``Commands.outbox``."""
+
+    def __init__(self) -> None:
+        self.messages: list[BusMessage] = []
+
+    def send(self, message: BusMessage, time_s: float) -> BusMessage:
+        self.messages.append(message)
+        return message
 
 
 class Role(IntEnum):
@@ -95,15 +137,31 @@ class RoleChanges:
 class RoleMachine:
     """Algorithm 1 role switching with the token election, for N robots.
 
-    latency_ticks: control ticks per message hop; host: start-up election host.
+    latency_ticks: control ticks per message hop; host: start-up election host;
+    bus_period_s: None for the in-process exchange over the adjacency (the
+    ideal radio), or the control period, s, to exchange every message over the
+    message bus (``step``'s ``inbox`` in, ``outbox`` out; see the module docstring).
     """
 
-    def __init__(self, n_robots: int, latency_ticks: int = 1, host: int = 0) -> None:
+    def __init__(self, n_robots: int, latency_ticks: int = 1, host: int = 0,
+                 bus_period_s: float | None = None) -> None:
         if not 0 <= host < n_robots:
             raise ValueError(f"host must be a robot index in [0, {n_robots}), got {host!r}")
         self.n_robots = n_robots
         self.host = host
-        self.network = FloodingNetwork(n_robots, latency_ticks)
+        self.over_bus = bus_period_s is not None
+        self.outbox: tuple[BusMessage, ...] = ()  # the messages of the last step (over the bus)
+        self.token_recoveries = 0  # confirms re-sent after token_maybe_lost
+        if self.over_bus:
+            self.network = BusFlooding(n_robots, latency_ticks, ELECTION_FORWARD_TICKS)
+            self._sent = _Sent()
+            self.tokens = [TokenHandover(ReliableLink(self._sent, i, timeout_s=HANDOVER_TIMEOUT_TICKS * bus_period_s,
+                                                      max_attempts=HANDOVER_MAX_ATTEMPTS))
+                           for i in range(n_robots)]
+            self._period_s = float(bus_period_s)
+        else:
+            self.network = FloodingNetwork(n_robots, latency_ticks)
+        self._time_s = 0.0
         self.window_ticks = election_window_ticks(n_robots, latency_ticks)
         self.roles = np.full(n_robots, int(CONNECTOR_CODE))
         self.holds_token = np.zeros(n_robots, dtype=bool)
@@ -122,6 +180,9 @@ class RoleMachine:
 
     @property
     def token_in_flight(self) -> bool:
+        """The token is between two robots: sent and not yet arrived (no robot holds it)."""
+        if self.over_bus:
+            return not any(token.acts_as_holder for token in self.tokens)
         return any(isinstance(m, Handover) for m in self.network.messages)
 
     # -- start-up -----------------------------------------------------------
@@ -133,18 +194,25 @@ class RoleMachine:
         self.holds_token[:] = False
         self.holds_token[self.host] = True
         self.next_epoch[self.host] = 0
+        if self.over_bus:
+            self.tokens[self.host].state = "holder"
         self.started = True
 
     # -- one control tick ---------------------------------------------------
 
-    def step(self, tick: int, adjacency, got_target, near_target, task_done, remaining) -> RoleChanges:
+    def step(self, tick: int, adjacency, got_target, near_target, task_done, remaining, inbox=(),
+             time_s: float | None = None) -> RoleChanges:
         """Advance Algorithm 1 by one control tick.
 
-        tick: control tick counter (int); adjacency: (N, N) current graph;
-        got_target: (N,) bool, a connector extracted a target and planned its
-        path this tick; near_target: (N,) bool, ||q_i - z_i|| < R_z;
-        task_done: (N,) bool, the anchor's dwell time elapsed; remaining: (N,)
-        remaining path length d_gamma, m (read for travelers only).
+        tick: control tick counter (int); adjacency: (N, N) current graph (the
+        in-process exchange's; unused over the bus); got_target: (N,) bool, a
+        connector extracted a target and planned its path this tick;
+        near_target: (N,) bool, ||q_i - z_i|| < R_z; task_done: (N,) bool, the
+        anchor's dwell time elapsed; remaining: (N,) remaining path length
+        d_gamma, m (read for travelers only). Over the bus: inbox, per robot the
+        bus's deliveries since the last tick (``Observation.inbox``; () for
+        none), and time_s, the tick's time, s (default tick * period); the
+        messages to send are ``self.outbox`` afterwards.
         """
         if not self.started:
             raise RuntimeError("call start() before step()")
@@ -155,12 +223,20 @@ class RoleMachine:
         remaining = np.asarray(remaining, dtype=float)
 
         self._local_transitions(got_target, near_target, task_done)
+        if self.over_bus:
+            self._time_s = tick * self._period_s if time_s is None else float(time_s)
+            self._sent.messages = []
+            self._receive_token(inbox)
+            self.network.receive(tick, inbox)
         for robot, message in self.network.delivered(tick):
             self._receive(robot, message, remaining, tick)
         holder = np.flatnonzero(self.holds_token)
         if len(holder):
             self._host(int(holder[0]), tick, near_target, remaining)
-        self.network.exchange(adjacency, tick)
+        if self.over_bus:
+            self.outbox = (*self._sent.messages, *self.network.outbox(tick))
+        else:
+            self.network.exchange(adjacency, tick)
 
         roles = self.roles.copy()
         n = len(roles)
@@ -183,6 +259,23 @@ class RoleMachine:
                 self._close_round(int(i))  # the host needs no successor any more
             else:
                 roles[i] = SECONDARY_CODE
+
+    def _receive_token(self, inbox) -> None:
+        """Over the bus: each robot's reliable link and token side read its deliveries of the tick."""
+        time_s = self._time_s
+        for robot, token in enumerate(self.tokens):
+            handing_over = token.state == "handing_over"
+            token.handle(token.link.poll(time_s, inbox[robot] if inbox else ()), time_s)
+            if token.token_maybe_lost:
+                token.resend_confirm(time_s)
+                self.token_recoveries += 1
+            if token.acts_as_holder and not self.holds_token[robot]:
+                self.holds_token[robot] = True
+                if not handing_over:  # the confirm arrived: the token, and the next epoch, are this robot's
+                    self.next_epoch[robot] = token.token_data
+                    if self.roles[robot] == SECONDARY_CODE:
+                        self.roles[robot] = PRIME_CODE
+                # else the offer was given up: the host keeps the token and opens a new round
 
     def _receive(self, robot: int, message: Message, remaining: np.ndarray, tick: int) -> None:
         if isinstance(message, Candidacy):
@@ -228,14 +321,17 @@ class RoleMachine:
             self.roles[host] = PRIME_CODE
             return
         self.holds_token[host] = False
-        self.network.broadcast(host, Handover(current.epoch, winner, int(self.next_epoch[host])), tick)
+        if self.over_bus:
+            self.tokens[host].hand_over(winner, self._time_s, int(self.next_epoch[host]), INT32_BYTES)
+        else:
+            self.network.broadcast(host, Handover(current.epoch, winner, int(self.next_epoch[host])), tick)
 
     def _close_round(self, host: int) -> None:
         current = self.rounds[host]
         if current is None:
             return
         self.rounds[host] = None
-        self.network.retire(lambda m: isinstance(m, (Candidacy, Reply)) and m.epoch == current.epoch)
+        self.network.retire(lambda m: isinstance(m, (Candidacy, Reply)) and m.epoch == current.epoch, at=host)
 
 
 @kernel

@@ -28,6 +28,9 @@ Per control tick (all robots at once):
    (links within ``sensing.comm_range_m`` = R_s and in ``mj_ray`` line of
    sight, one hop per ``message_latency_ticks``), consensus on the prime
    traveler's efficiency over the same graph, travel / anchor forces f_i.
+   Under a real radio (``radio.preset`` not ``ideal``) the election, the
+   token and the consensus are messages on the message bus instead
+   (``Observation.inbox`` in, ``Commands.outbox`` out; docs/radio.md).
 3. Integrate q, v; send (q, v, a) to the quadrotors.
 
 The run ends early (``finished``) once every target is visited and every
@@ -206,7 +209,9 @@ class ConnectedStrategy(Strategy):
             self.queues = self._target_generator(self.planner, self.q.copy(), rng)
         self.targets_total = len(self.queues)
         self.explorers = np.flatnonzero(self.queues.pending())
-        self.explorer = ExplorationController(p, self.planner, self.queues)
+        # Under a real radio the election, the token and the consensus travel on the message bus.
+        over_bus = initial.radio is not None and initial.radio.preset != "ideal"
+        self.explorer = ExplorationController(p, self.planner, self.queues, self.dt if over_bus else None)
         self.estimator = None
         # Under a real radio the estimator's state travels as messages (estimator_messages.py); under the
         # ideal one it runs in process, as before the bus.
@@ -306,6 +311,9 @@ class ConnectedStrategy(Strategy):
         if not distance >= p.min_robot_distance_m:
             return (f"two virtual points came {distance:.3f} m apart, inside R_c = "
                     f"{p.min_robot_distance_m:g} m")
+        primes = np.flatnonzero(self.roles == PRIME_CODE)
+        if len(primes) > 1:  # Proposition 1: the token makes this impossible, whatever the radio loses
+            return f"{len(primes)} prime travelers at once ({', '.join(self.names[i] for i in primes)})"
         return None
 
     # ------------------------------------------------------------------ per tick
@@ -356,7 +364,7 @@ class ConnectedStrategy(Strategy):
         else:
             f_lambda = generalized_connectivity_force(state.links, state.lambda2, state.fiedler, p)
         middle = time.perf_counter()
-        out = self.explorer.step(t, q, v, observation.links.adjacency, f_lambda)
+        out = self.explorer.step(t, q, v, observation.links.adjacency, f_lambda, observation.inbox)
         # f_lambda + f (z dropped for planar virtual dynamics), integrated; the acceleration (v' - v) / dt.
         q_next, v_next, acceleration = step_virtual_dynamics_applied(q, v, f_lambda, out.forces, self.planar,
                                                                      self.dt, p)
@@ -381,7 +389,7 @@ class ConnectedStrategy(Strategy):
         if observation.decorations_wanted:  # figures and decorations only for observers that read them
             scalars, decorations = self._outputs(out, state, estimate, f_lambda, tick, robot_distance,
                                                  obstacle_distance)
-        outbox = self.estimator.messages() if self.estimator_over_radio else ()
+        outbox = out.outbox + (self.estimator.messages() if self.estimator_over_radio else ())
         commands = Commands(q.copy(), v.copy(), acceleration, np.zeros(len(q)), scalars, decorations=decorations,
                             outbox=outbox)
         self.q, self.v = q_next, v_next
@@ -489,5 +497,6 @@ class ConnectedStrategy(Strategy):
             "explorers": int(len(self.explorers)),
             "connectors": int(len(self.q) - len(self.explorers)),
             "prime_elections": self.stats.elections,
+            "token_recoveries": self.explorer.role_machine.token_recoveries,
             **self.stats.summary(),
         }

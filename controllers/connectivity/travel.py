@@ -31,6 +31,8 @@ Deviations from the paper
   R_z, where the paper's tan(.) changes sign: needed in discrete time.
 - eq. (13) is integrated with forward Euler over the control period using the
   neighbours' estimates of the previous tick (one message exchange per tick).
+  Over the message bus the neighbours are the robots whose ``"consensus"``
+  message reached the robot since the last tick, with the value it carried.
 """
 
 from __future__ import annotations
@@ -227,8 +229,9 @@ def _anchor_force_row(q, target, radius, gain, max_force, out):
 
 
 @kernel
-def _consensus_kernel(estimates, adjacency, is_prime, prime_efficiency, gain, dt, out):
-    """Eq. (13) for every robot into ``out`` (N,); neighbours are j != i with adjacency[i, j] > 0."""
+def _consensus_kernel(estimates, heard, adjacency, is_prime, prime_efficiency, gain, dt, out):
+    """Eq. (13) for every robot into ``out`` (N,); neighbours are j != i with adjacency[i, j] > 0, and
+    heard[i, j] is robot i's value of robot j's estimate (all equal to estimates[j] in-process)."""
     n = estimates.shape[0]
     for i in range(n):
         if is_prime[i]:
@@ -237,7 +240,7 @@ def _consensus_kernel(estimates, adjacency, is_prime, prime_efficiency, gain, dt
         incoming, degree = 0.0, 0
         for j in range(n):
             if j != i and adjacency[i, j] > 0:
-                incoming += estimates[j]
+                incoming += heard[i, j]
                 degree += 1
         out[i] = _clip01(estimates[i] + dt * gain * (incoming - degree * estimates[i]))
 
@@ -296,17 +299,22 @@ def traveling_efficiency(
     return efficiency(tracking_error(positions, velocities, reference, position_weight), x_full, x_zero)
 
 
-def consensus_step(estimates, adjacency, is_prime, prime_efficiency, gain: float, dt: float) -> np.ndarray:
+def consensus_step(estimates, adjacency, is_prime, prime_efficiency, gain: float, dt: float,
+                   heard=None) -> np.ndarray:
     """Eq. (13) over one control period ``dt`` (s), saturated to [0, 1].
 
     estimates: (N,) current hat-Lambda_p^i; adjacency: (N, N) bool or weights
     (only W_ij > 0 matters: eq. 13 sums over neighbours); is_prime: (N,) bool;
     prime_efficiency: (N,) Lambda_i, read where is_prime. Non-prime robots move
     towards their neighbours' previous estimates at rate k_A = ``gain`` (1/s).
+    heard: (N, N), heard[i, j] the estimate of robot j that reached robot i
+    (over the bus); None: every robot has every neighbour's ``estimates[j]``.
     """
     estimates = np.asarray(estimates, dtype=float)
     updated = np.empty_like(estimates)
-    _consensus_kernel(estimates, np.asarray(adjacency, dtype=float), np.asarray(is_prime, dtype=bool),
+    heard = np.broadcast_to(estimates, (len(estimates),) * 2) if heard is None else np.asarray(heard, dtype=float)
+    _consensus_kernel(estimates, np.ascontiguousarray(heard), np.asarray(adjacency, dtype=float),
+                      np.asarray(is_prime, dtype=bool),
                       np.broadcast_to(np.asarray(prime_efficiency, dtype=float), estimates.shape), float(gain),
                       float(dt), updated)
     return updated

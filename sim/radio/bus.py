@@ -17,7 +17,11 @@ The model, per control period:
   is on the air, and only if the frame ends within this period. What does not
   fit stays queued, FIFO per sender, for a later tick, so latency grows with
   load. Senders that become ready at the same instant are ordered at random
-  (the role of CSMA's random backoff, without its slots).
+  (the role of CSMA's random backoff, without its slots). A message sent
+  ``latest_only`` replaces the sender's waiting message of the same kind (one
+  none of whose frames is on the air yet) and takes its place in the queue,
+  as a transmit buffer that holds only the newest value does; the replaced
+  one counts as superseded, not sent.
 - **Loss.** Each receiver of a frame draws its own fading gain
   (``channel.fading_gain_db``, the preset's model) and gets the frame with
   probability 1 - PER(mean SNR + fading, frame bits), PER from the preset's
@@ -88,11 +92,11 @@ class Message:
     receivers: tuple[int, ...] | None  # intended receivers; None broadcasts to whoever hears it
     payload: Any
     size_bytes: int  # the real payload size on the air, bytes (> 0)
-    # True: it supersedes its sender's queued message of the same kind whose frames have not started going
-    # out (a state update where only the newest counts); that one is dropped unsent and counted superseded
-    replaces_queued: bool = False
     sequence: int = -1  # assigned by the bus, increasing over all messages
     sent_s: float = math.nan  # when it was handed to the bus, s
+    # True: it replaces its sender's waiting latest_only message of the same kind (none of whose frames has
+    # gone out), taking its place in the queue: a state update where only the newest value counts
+    latest_only: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.size_bytes, (int, np.integer)) or self.size_bytes <= 0:
@@ -222,10 +226,9 @@ class _KindCounters:
     bytes_sent: int = 0
     addressed: int = 0  # (message, receiver) pairs tried
     delivered: int = 0
-    supersedes: bool = False  # some of its messages replace queued ones (Message.replaces_queued)
-    superseded: int = 0  # messages dropped unsent for a newer one
     latencies_s: list[float] = field(default_factory=list)
     airtime_s: np.ndarray | None = None  # per robot, s
+    superseded: int = 0  # latest_only messages replaced unsent by a newer one
 
 
 @dataclass(frozen=True)
@@ -273,8 +276,7 @@ class MessageBus:
         self._sequence += 1
         queue = self._queues.setdefault(stamped.sender, deque())
         position = len(queue)
-        if stamped.replaces_queued:
-            self._counters(stamped.kind, self._n or 0).supersedes = True
+        if stamped.latest_only and queue:
             position = self._supersede(queue, stamped)
         frames: list[_Frame] = []
         if self.params.is_ideal:
@@ -291,18 +293,19 @@ class MessageBus:
             queue.insert(position + offset, frame)
         return stamped
 
-    def _supersede(self, queue: deque[_Frame], message: Message) -> int:
-        """Drop from ``queue`` the sender's not yet started messages of ``message.kind``; returns the queue
-        position of the first one dropped (where the new one goes), else the queue's end."""
+    def _supersede(self, queue: deque[_Frame], newer: Message) -> int:
+        """Drop from ``queue`` the waiting latest_only messages of ``newer``'s kind (none of their frames
+        sent); returns the queue position of the first one dropped (where ``newer`` goes), else the end."""
         stale = {frame.message.sequence for frame in queue
-                 if frame.message.kind == message.kind and frame.message.sequence not in self._in_flight}
+                 if frame.message.latest_only and frame.message.kind == newer.kind
+                 and frame.message.sequence not in self._in_flight}
         if not stale:
             return len(queue)
         position = next(k for k, frame in enumerate(queue) if frame.message.sequence in stale)
         kept = [frame for frame in queue if frame.message.sequence not in stale]
         queue.clear()
         queue.extend(kept)
-        self._counters(message.kind, self._n or 0).superseded += len(stale)
+        self._counters(newer.kind, self._n or newer.sender + 1).superseded += len(stale)
         return position
 
     def queued(self, sender: int | None = None) -> int:
@@ -487,14 +490,13 @@ class MessageBus:
             merged.addressed += counters.addressed
             merged.delivered += counters.delivered
             merged.latencies_s += counters.latencies_s
+            merged.superseded += counters.superseded
             merged.airtime_s[:len(counters.airtime_s)] += counters.airtime_s
         result = self._metrics("radio", merged)
         result["radio_packets_queued"] = self.queued()
         for kind in sorted(self._kinds):
             counters = self._kinds[kind]
             result.update(self._metrics(f"radio_{kind}", counters))
-            if counters.supersedes:
-                result[f"radio_{kind}_packets_superseded"] = counters.superseded
         return result
 
     def _metrics(self, prefix: str, counters: _KindCounters) -> dict[str, float | int]:
@@ -509,4 +511,5 @@ class MessageBus:
             f"{prefix}_latency_mean_s": float(latencies.mean()) if latencies.size else math.nan,
             f"{prefix}_latency_p95_s": float(np.percentile(latencies, 95)) if latencies.size else math.nan,
             f"{prefix}_airtime_max_share": float(airtime.max() / self._elapsed_s) if self._elapsed_s else 0.0,
+            f"{prefix}_packets_superseded": counters.superseded,
         }

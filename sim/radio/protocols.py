@@ -27,8 +27,13 @@ the token back: it never sent, and never will send, that offer's confirm, so
 the receiver stays pending and never acts on it. A lost ack therefore only
 delays: the receiver waits pending, the sender retransmits, the receiver acks
 the duplicate. The price of safety is liveness in one case: if the confirm is
-given up, nobody holds the token (``token_maybe_lost`` at the old holder);
-the application must then recover, e.g. by a new election.
+given up, nobody may hold the token (``token_maybe_lost`` at the old holder).
+The old holder cannot take it back (the receiver may have it), but it can
+finish the handover: ``resend_confirm`` sends the same confirm again as a new
+transfer, which the receiver acts on only while still pending on that offer.
+
+An offer may carry the application's data with the token (``hand_over``'s
+``data``); the new holder reads it as ``token_data``.
 """
 
 from __future__ import annotations
@@ -201,7 +206,7 @@ class ReliableLink:
 
 @dataclass(frozen=True)
 class TokenOffer:
-    pass
+    data: Any = None  # what travels with the token (the application's)
 
 
 @dataclass(frozen=True)
@@ -216,9 +221,12 @@ class TokenHandover:
     link: ReliableLink
     state: str = "idle"  # 'holder', 'handing_over', 'pending', 'idle'
     token_maybe_lost: bool = False  # a confirm this robot sent was given up
+    token_data: Any = None  # the data of the offer this robot acts on, once it holds the token
     _offer: tuple[int, int] | None = field(default=None, repr=False)  # (transfer, receiver) while handing over
     _confirm: int | None = field(default=None, repr=False)  # transfer of the confirm in flight
     _pending: tuple[int, int] | None = field(default=None, repr=False)  # (sender, offer transfer)
+    _pending_data: Any = field(default=None, repr=False)
+    _confirmed: tuple[int, int] | None = field(default=None, repr=False)  # (offer, receiver) of the last confirm
 
     OFFER_KIND = "handover"
     CONFIRM_KIND = "handover_confirm"
@@ -227,11 +235,13 @@ class TokenHandover:
     def acts_as_holder(self) -> bool:
         return self.state == "holder"
 
-    def hand_over(self, receiver: int, time_s: float) -> None:
-        """Offer the token to ``receiver``; from now on this robot does not act as holder."""
+    def hand_over(self, receiver: int, time_s: float, data: Any = None, data_bytes: int = 0) -> None:
+        """Offer the token (with ``data``, ``data_bytes`` on the air) to ``receiver``; from now on this robot
+        does not act as holder."""
         if self.state != "holder":
             raise RuntimeError(f"robot {self.link.robot} does not hold the token (state {self.state!r})")
-        transfer = self.link.send(self.OFFER_KIND, receiver, TokenOffer(), TOKEN_BYTES, time_s)
+        transfer = self.link.send(self.OFFER_KIND, receiver, TokenOffer(data), TOKEN_BYTES + int(data_bytes),
+                                  time_s)
         self._offer = (transfer, receiver)
         self.state = "handing_over"
 
@@ -242,6 +252,7 @@ class TokenHandover:
                 offer, receiver = self._offer
                 self._confirm = self.link.send(self.CONFIRM_KIND, receiver, TokenConfirm(offer), TOKEN_BYTES,
                                                time_s)
+                self._confirmed = (offer, receiver)
                 self._offer = None
                 self.state = "idle"
         for transfer in events.gave_up:
@@ -254,8 +265,22 @@ class TokenHandover:
         for got in events.received:
             if got.kind == self.OFFER_KIND and isinstance(got.data, TokenOffer) and self.state in ("idle", "pending"):
                 self._pending = (got.sender, got.transfer)
+                self._pending_data = got.data.data
                 self.state = "pending"
             elif (got.kind == self.CONFIRM_KIND and isinstance(got.data, TokenConfirm) and self.state == "pending"
                   and self._pending == (got.sender, got.data.offer)):
                 self._pending = None
+                self.token_data = self._pending_data
                 self.state = "holder"
+
+    def resend_confirm(self, time_s: float) -> None:
+        """After ``token_maybe_lost``: send the last confirm again, as a new reliable transfer.
+
+        Safe whatever happened: the receiver acts on it only while pending on
+        that very offer, and this robot gave the token up when the offer was
+        acknowledged, so it never acts as holder meanwhile."""
+        if not self.token_maybe_lost or self._confirmed is None:
+            raise RuntimeError(f"robot {self.link.robot} has no confirm given up")
+        offer, receiver = self._confirmed
+        self._confirm = self.link.send(self.CONFIRM_KIND, receiver, TokenConfirm(offer), TOKEN_BYTES, time_s)
+        self.token_maybe_lost = False
