@@ -223,7 +223,7 @@ def test_fifo_per_sender():
             assert order == sorted(order) and set(order) <= set(sent[robot])
 
 
-def test_a_newer_state_supersedes_its_queued_one_in_place():
+def test_a_newer_state_supersedes_its_queued_one():
     bus = bus_for(IEEE802154)
     bus.send(Message("election", 0, None, "E1", 20), 0.0)
     old = bus.send(Message("lambda2_estimate", 0, None, "S1", 38, latest_only=True), 0.0)
@@ -231,8 +231,8 @@ def test_a_newer_state_supersedes_its_queued_one_in_place():
     new = bus.send(Message("lambda2_estimate", 0, None, "S2", 38, latest_only=True), 0.001)
     assert bus.queued(0) == 3
     got = run_until_empty(bus, uniform_link(2, 60.0))
-    assert [d.message.payload for d in got] == ["E1", "S2", "E2"]  # S2 took S1's place in the queue
-    assert old.sequence not in {d.message.sequence for d in got} and got[1].message.sequence == new.sequence
+    assert [d.message.payload for d in got] == ["E1", "E2", "S2"]  # S1 dropped, S2 at the queue's end
+    assert old.sequence not in {d.message.sequence for d in got} and got[2].message.sequence == new.sequence
     summary = bus.summary()
     assert summary["radio_lambda2_estimate_packets_sent"] == 1
     assert summary["radio_lambda2_estimate_packets_superseded"] == 1

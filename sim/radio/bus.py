@@ -19,9 +19,9 @@ The model, per control period:
   load. Senders that become ready at the same instant are ordered at random
   (the role of CSMA's random backoff, without its slots). A message sent
   ``latest_only`` replaces the sender's waiting message of the same kind (one
-  none of whose frames is on the air yet) and takes its place in the queue,
-  as a transmit buffer that holds only the newest value does; the replaced
-  one counts as superseded, not sent.
+  none of whose frames is on the air yet) and joins the queue's end, as a
+  transmit buffer that holds only the newest value does; the replaced one
+  counts as superseded, not sent.
 - **Loss.** Each receiver of a frame draws its own fading gain
   (``channel.fading_gain_db``, the preset's model) and gets the frame with
   probability 1 - PER(mean SNR + fading, frame bits), PER from the preset's
@@ -275,9 +275,8 @@ class MessageBus:
         stamped = replace(message, sequence=self._sequence, sent_s=float(time_s))
         self._sequence += 1
         queue = self._queues.setdefault(stamped.sender, deque())
-        position = len(queue)
         if stamped.latest_only and queue:
-            position = self._supersede(queue, stamped)
+            self._supersede(queue, stamped)
         frames: list[_Frame] = []
         if self.params.is_ideal:
             frames.append(_Frame(stamped, stamped.size_bytes, True, 0.0))
@@ -289,24 +288,20 @@ class MessageBus:
                                  f"control period {self.control_period_s} s: it would never go out")
             for k, (payload, airtime) in enumerate(zip(payloads, airtimes)):
                 frames.append(_Frame(stamped, payload, k == len(payloads) - 1, float(airtime)))
-        for offset, frame in enumerate(frames):
-            queue.insert(position + offset, frame)
+        queue.extend(frames)
         return stamped
 
-    def _supersede(self, queue: deque[_Frame], newer: Message) -> int:
+    def _supersede(self, queue: deque[_Frame], newer: Message) -> None:
         """Drop from ``queue`` the waiting latest_only messages of ``newer``'s kind (none of their frames
-        sent); returns the queue position of the first one dropped (where ``newer`` goes), else the end."""
+        sent); ``newer`` then joins the queue's end, as a fresh frame in a transmit buffer does."""
         stale = {frame.message.sequence for frame in queue
                  if frame.message.latest_only and frame.message.kind == newer.kind
                  and frame.message.sequence not in self._in_flight}
-        if not stale:
-            return len(queue)
-        position = next(k for k, frame in enumerate(queue) if frame.message.sequence in stale)
-        kept = [frame for frame in queue if frame.message.sequence not in stale]
-        queue.clear()
-        queue.extend(kept)
-        self._counters(newer.kind, self._n or newer.sender + 1).superseded += len(stale)
-        return position
+        if stale:
+            kept = [frame for frame in queue if frame.message.sequence not in stale]
+            queue.clear()
+            queue.extend(kept)
+            self._counters(newer.kind, self._n or newer.sender + 1).superseded += len(stale)
 
     def queued(self, sender: int | None = None) -> int:
         """Messages waiting (some of their frames not yet on the air), at ``sender`` or at all."""
