@@ -336,13 +336,15 @@ def test_recording_entity_tree_colours_events_and_static_data(small_mission):
         assert [i for i, c in enumerate(rgb) if c == prime_rgb] == ([prime] if prime >= 0 else []), tick
         prime_ticks += prime >= 0
     assert prime_ticks > len(expected) / 2
-    # Links: one segment per communication link, coloured by weight (green 1 ... red 0).
+    # Links: one segment per communication link, coloured by weight on the palette's ramp (grey 0 ... charcoal 1).
+    from sim.palette import LINK_STRONG, LINK_WEAK
+
     seen = set()
     for tick, strips in rrd_column(chunks["/world/links"], "LineStrips3D:strips"):
         assert len(strips) == log.links[tick], tick
     for _, colors in rrd_column(chunks["/world/links"], "LineStrips3D:colors"):
         for r, g, b, _ in map(unpack_rgba, colors):
-            weight = 1.0 - r / 255
+            weight = (LINK_WEAK[0] - r / 255) / (LINK_WEAK[0] - LINK_STRONG[0])
             assert np.allclose((r, g, b), np.round(255 * link_color(weight)[:3]), atol=1), (r, g, b)
             seen.add((r, g, b))
     assert len(seen) > 5  # weights vary

@@ -84,7 +84,9 @@ def test_recording_entity_tree_targets_teams_plans_and_meetings(room_recording):
     assert names.to_record_batch().column("Points3D:labels").to_pylist()[0] == [f"ground{i}" for i in range(4)]
     # Robots coloured by the team they head to: more than one colour, none the plain ground colour.
     colours = {unpack_rgba(c)[:3] for _, row in rrd_column(chunks["/world/robots"], "Points3D:colors") for c in row}
-    assert len(colours) >= 2 and (60, 160, 80) not in colours
+    from viz.recording import KIND_COLORS
+
+    assert len(colours) >= 2 and KIND_COLORS["ground"] not in colours
     # True targets at every recorded tick; estimates and 2-sigma ellipsoids at each reading (when they change).
     true_ticks = [t for t, _ in rrd_column(chunks["/world/targets/true"], "Points3D:positions")]
     assert set(readings) <= set(true_ticks)

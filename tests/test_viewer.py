@@ -117,6 +117,6 @@ def test_the_viewer_legend_names_every_role_and_team_colour_distinctly():
     from viz.viewer import colour_name
 
     roles = [colour_name(rgba) for _, rgba in LEGEND[:4]]
-    assert roles == ["turquoise", "blue", "orange", "grey"]
+    assert roles == ["vermillion", "blue", "reddish purple", "sky blue"]
     teams = [colour_name(rgba) for rgba in TEAM_COLORS]
     assert len(set(teams)) == len(teams)

@@ -34,6 +34,7 @@ from typing import Callable
 import mujoco
 import numpy as np
 
+from sim import palette
 from sim.loop import Simulation, end_of_run
 from sim.observers import Frame
 from sim.scenario import Scenario
@@ -101,18 +102,9 @@ def _legend_text(frame: Frame) -> str:
     return "\n".join(f"{label}: {colour_name(rgba)}" for label, rgba in items)
 
 
-COLOUR_NAMES = {  # the viewer's text is one colour: the legend names each colour instead
-    "red": (0.9, 0.2, 0.15), "orange": (1.0, 0.6, 0.1), "yellow": (0.95, 0.8, 0.15), "olive": (0.55, 0.55, 0.2),
-    "green": (0.15, 0.7, 0.3), "turquoise": (0.0, 0.9, 0.8), "teal": (0.1, 0.6, 0.65), "blue": (0.2, 0.4, 1.0),
-    "purple": (0.6, 0.3, 0.8), "pink": (0.9, 0.4, 0.7), "magenta": (0.95, 0.2, 0.6), "grey": (0.55, 0.55, 0.6),
-    "dark grey": (0.2, 0.2, 0.25), "white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0),
-}
-
-
 def colour_name(rgba) -> str:
-    """The nearest of :data:`COLOUR_NAMES` to ``rgba`` (0..1)."""
-    rgb = np.asarray(list(rgba)[:3], dtype=float)
-    return min(COLOUR_NAMES, key=lambda name: float(np.sum((np.array(COLOUR_NAMES[name]) - rgb) ** 2)))
+    """The palette's name of ``rgba`` (0..1): the viewer's text is one colour, so the legend names each."""
+    return palette.colour_name(rgba)
 
 
 def _texts(frame: Frame, status: str, control: ViewerControl) -> list:
