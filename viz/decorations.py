@@ -28,7 +28,7 @@ import numpy as np
 from sim import palette
 
 PATH_WIDTH_M = 0.012  # video: planned-path capsule width, m
-PATH_MIN_PX = 0.6  # ... and at least this many pixels (large scenes)
+PATH_MIN_PX = 1.2  # ... and at least this many pixels: thinner, a path breaks into dots
 MARKER_MIN_PX = 4.0  # video: meeting points, estimates, markers: at least this radius, px
 MEETING_RADIUS_M = 0.05  # video: meeting-point sphere radius, m
 ESTIMATE_RADIUS_M = 0.07  # video: estimated-target sphere radius, m
