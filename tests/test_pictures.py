@@ -169,3 +169,23 @@ def test_drawn_paths_start_at_their_robot_and_never_serve_a_stale_path():
     other = _Line()
     strategy._drawn_paths[id(other)] = [object(), np.zeros((2, 3)), 0]
     assert draw(other, (0.0, 0.0, 1.0))[-1, 0] == pytest.approx(10.0)
+
+
+def test_a_user_scene_without_a_light_gets_a_default_light_that_does_not_wash_it_out(tmp_path):
+    unlit = ROOM.replace('    <light pos="5 5 8" dir="0 0 -1" directional="true"/>\n', "")
+    unlit = unlit.replace('rgba="0.2 0.5 0.9 1"', 'rgba="0.8 0.8 0.8 1"')
+    write_scene(tmp_path, unlit)
+    path = write_scenario(tmp_path, ROOM_SCENARIO.format(width=800, height=480))
+    frame, view, image = _render(load(str(path)))
+    model = view.world.model
+    assert model.nlight == 1 and model.light(0).name == "tether_default_sun"
+    assert np.allclose(model.vis.headlight.ambient, 0.3)
+    # The light-grey floor stays grey, not washed out to white; the walls' tops stay darker than it.
+    floor = image[200:280, 200:280].reshape(-1, 3)
+    assert 120 < np.median(floor) < 235, np.median(floor)
+    # A scene with its own light keeps it alone.
+    write_scene(tmp_path, ROOM, name="lit.xml")
+    lit = write_scenario(tmp_path, ROOM_SCENARIO.replace("scene.xml", "lit.xml").format(width=800, height=480),
+                         "lit.toml")
+    _, lit_view, _ = _render(load(str(lit)))
+    assert lit_view.world.model.nlight == 1 and lit_view.world.model.light(0).name != "tether_default_sun"
