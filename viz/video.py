@@ -238,12 +238,24 @@ def _panel_layout(draw, size, width, height, lines, legend, columns, clip=False)
     return font, items
 
 
+# The scenes' lights (headlight and sun) sum to about 1.6 on a surface facing up: a decoration's colour is
+# scaled by its inverse, so what the picture shows is the palette's colour the legend names, not a lighter one
+# (the palette's blue rendered as sky blue, the connectors' colour, before).
+LIT_GAIN = 1.6
+
+
+def _lit(rgba) -> np.ndarray:
+    out = np.array(rgba, dtype=np.float32)
+    out[:3] /= LIT_GAIN
+    return out
+
+
 def add_capsule(scene: mujoco.MjvScene, a: np.ndarray, b: np.ndarray, width: float, rgba: np.ndarray) -> None:
     """One capsule from ``a`` to ``b`` appended to ``scene`` (nothing when it is full)."""
     if scene.ngeom >= scene.maxgeom:
         return
     geom = scene.geoms[scene.ngeom]
-    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, np.zeros(3), np.zeros(3), np.zeros(9), rgba)
+    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, np.zeros(3), np.zeros(3), np.zeros(9), _lit(rgba))
     mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, width, a, b)
     scene.ngeom += 1
 
@@ -253,7 +265,7 @@ def add_sphere(scene: mujoco.MjvScene, p: np.ndarray, radius: float, rgba: np.nd
     if scene.ngeom >= scene.maxgeom:
         return
     geom = scene.geoms[scene.ngeom]
-    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_SPHERE, np.full(3, radius), p, np.eye(3).ravel(), rgba)
+    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_SPHERE, np.full(3, radius), p, np.eye(3).ravel(), _lit(rgba))
     scene.ngeom += 1
 
 

@@ -132,7 +132,7 @@ ROLE_COLORS = {
 ROLE_NAMES = {Role.PRIME_TRAVELER: "prime traveler", Role.SECONDARY_TRAVELER: "secondary traveler",
               Role.ANCHOR: "anchor", Role.CONNECTOR: "connector"}
 PRIME_PATH_RGBA = palette.PRIME_TRAVELER * np.array([1, 1, 1, 0.9], dtype=np.float32)
-SECONDARY_PATH_RGBA = palette.SECONDARY_TRAVELER * np.array([1, 1, 1, 0.55], dtype=np.float32)
+SECONDARY_PATH_RGBA = palette.SECONDARY_TRAVELER * np.array([1, 1, 1, 0.85], dtype=np.float32)  # fainter reads as sky blue
 TARGET_RGBA = palette.GOAL * np.array([1, 1, 1, 0.9], dtype=np.float32)
 # What the colours mean (``Decorations.legend``: video, tuning page, viewer, recording) and the role
 # codes' names (plots).
