@@ -4,9 +4,10 @@ What a strategy draws is :class:`sim.types.Decorations` (``commands.decorations`
 robot colours, paths, meeting points, markers, legend, overlay, events;
 every field optional, empty draws nothing) and its target estimate
 ``commands.estimate`` (:class:`sim.types.TargetEstimate`: spheres in the
-video, points and 2-sigma covariance ellipsoids in the recording). With
-``robot_colors``, quadrotors also get a small marker sphere of their colour
-on top (e.g. the prime traveler highlighted).
+video, points and 2-sigma covariance ellipsoids in the recording).
+Quadrotors get a small marker sphere on top: their ``robot_colors`` entry
+(e.g. the prime traveler highlighted), else their kind's colour, so what
+the legend names is what is drawn.
 
 Colours come from :mod:`sim.palette`. Links under a radio preset other
 than ``ideal`` are coloured by the pair's delivery probability
@@ -155,14 +156,13 @@ def draw_video_decorations(renderer, frame) -> None:
     _draw_spheres(renderer, decorations.markers, decorations.marker_colors,
                   renderer.at_least(MARKER_RADIUS_M, MARKER_MIN_PX),
                   np.array([1, 1, 1, 0.8], np.float32))
+    # Every quadrotor gets a mark on top: its role or team colour, else its kind's (the legend's entry).
     robot_colors = decorations.robot_colors
-    if robot_colors is not None:
-        positions = frame.observation.position
-        for i in renderer.world.kind_index["quadrotor"]:
-            if i < len(robot_colors):
-                top = positions[i] + np.array([0.0, 0.0, QUAD_MARK_HEIGHT_M])
-                renderer._add_sphere(top, renderer.at_least(QUAD_MARK_RADIUS_M, MARKER_MIN_PX),
-                                     np.asarray(robot_colors[i], dtype=np.float32))
+    positions = frame.observation.position
+    for i in renderer.world.kind_index["quadrotor"]:
+        rgba = robot_colors[i] if robot_colors is not None and i < len(robot_colors) else palette.KIND["quadrotor"]
+        top = positions[i] + np.array([0.0, 0.0, QUAD_MARK_HEIGHT_M])
+        renderer._add_sphere(top, renderer.at_least(QUAD_MARK_RADIUS_M, MARKER_MIN_PX), np.asarray(rgba, np.float32))
 
 
 def _draw_spheres(renderer, points, colors, radius: float, default_rgba: np.ndarray) -> None:

@@ -52,6 +52,7 @@ VIEW_MARGIN = 1.06  # ... with 6 % around it
 SLOW_SHARE = 0.9  # the band says the machine cannot keep up below this share of the asked speed
 PACE_WINDOW_S = 2.0  # the real-time factor is measured over this much wall time
 DEFAULT_ASPECT = 4 / 3  # the window's aspect when the viewer does not tell it yet
+VIEW_FOVY_DEG = 15.0  # the viewer's vertical field of view (MuJoCo's default 45)
 
 
 class ViewerControl:
@@ -130,8 +131,8 @@ def _texts(frame: Frame, status: str, control: ViewerControl, robot_kinds=(), re
                        f"running at {pace_text(real_time_factor, speed)} (Space pauses)")
     texts = [(mujoco.mjtFontScale.mjFONTSCALE_150, mujoco.mjtGridPos.mjGRID_TOPLEFT, overlay_text(frame), state)]
     legend = _legend_text(frame, robot_kinds)
-    if legend:  # at the right, beside the floor (default_camera leaves that part of the window to it)
-        texts.append((mujoco.mjtFontScale.mjFONTSCALE_150, mujoco.mjtGridPos.mjGRID_TOPRIGHT, "colours", legend))
+    if legend:  # at the right, beside the floor (default_camera leaves that part of the window to it), below the band
+        texts.append((mujoco.mjtFontScale.mjFONTSCALE_150, mujoco.mjtGridPos.mjGRID_BOTTOMRIGHT, "colours", legend))
     return texts
 
 
@@ -179,6 +180,9 @@ def view(scenario: Scenario, make_simulation: Callable[[Scenario], Simulation], 
     import mujoco.viewer
 
     sim = make_simulation(scenario)
+    # A narrow field of view from farther away: full-height walls seen from above lean over the rooms
+    # far less (the free camera's fovy is a picture setting; physics, sensing and radio never read it).
+    sim.world.model.vis.global_.fovy = VIEW_FOVY_DEG
     control = control or ViewerControl()
     launch = launch or mujoco.viewer.launch_passive
     handle = launch(sim.world.model, sim.world.data, key_callback=control.key,
