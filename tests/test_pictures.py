@@ -189,3 +189,13 @@ def test_a_user_scene_without_a_light_gets_a_default_light_that_does_not_wash_it
                          "lit.toml")
     _, lit_view, _ = _render(load(str(lit)))
     assert lit_view.world.model.nlight == 1 and lit_view.world.model.light(0).name != "tether_default_sun"
+
+
+def test_the_panel_drawn_from_its_cached_legend_is_the_panel_drawn_afresh():
+    from viz import video
+
+    legend = [("prime traveler", (0.84, 0.37, 0.0, 1.0)), ("anchor", (0.8, 0.47, 0.65, 1.0))]
+    side_panel(540, 420, ["t = 1.0 s", "links 9"], legend)  # lays out and keeps the legend
+    cached = side_panel(540, 420, ["t = 2.0 s", "links 8"], legend)
+    video._PANELS.clear()
+    np.testing.assert_array_equal(cached, side_panel(540, 420, ["t = 2.0 s", "links 8"], legend))

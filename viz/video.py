@@ -159,15 +159,34 @@ def _wrap(draw, text: str, font, width: float) -> list[str]:
     return lines + [line]
 
 
+_PANELS: dict = {}  # (height, width, line lengths, legend) -> (the panel without its lines, font, line slots)
+PANEL_CACHE_SIZE = 32
+
+
 def side_panel(height: int, width: int, lines: Sequence[str], legend: Sequence[tuple[str, Any]]) -> np.ndarray:
     """The (height, width, 3) legend panel beside the scene: the overlay's ``lines`` (time,
     links, the strategy's figures) above the ``legend`` ((label, rgba in 0..1) pairs), each
     entry a swatch and its label. Glyphs are ``TEXT_SHARE`` of the height; when the entries
-    do not fit they go into two columns, then the text shrinks, never below ``MIN_TEXT_SHARE``."""
+    do not fit they go into two columns, then the text shrinks, never below ``MIN_TEXT_SHARE``.
+    The legend changes rarely and the lines' layout with their lengths: the panel without its
+    lines is kept and only the lines are drawn each frame (laying it out cost 20 ms a frame)."""
     from PIL import Image, ImageDraw
 
+    key = (height, width, tuple(len(line) for line in lines),
+           tuple((str(label), tuple(np.round(np.asarray(rgba, dtype=float)[:3], 4))) for label, rgba in legend))
+    cached = _PANELS.get(key)
+    if cached is not None:
+        base, font, slots = cached
+        canvas = Image.fromarray(base)
+        draw = ImageDraw.Draw(canvas)
+        parts = [part for text in lines for part in _wrap(draw, text, font, width - 2 * max(4, font.size // 2))]
+        if len(parts) == len(slots):
+            for xy, part in zip(slots, parts):
+                draw.text(xy, part, fill=PANEL_TEXT_RGB, font=font)
+            return np.asarray(canvas)
     canvas = Image.new("RGB", (width, height), PANEL_RGB)
     draw = ImageDraw.Draw(canvas)
+    layout = None
     for size in range(overlay_font_px(height), min_font_px(height) - 1, -1):
         for columns in (1, 2):
             layout = _panel_layout(draw, size, width, height, lines, legend, columns)
@@ -177,16 +196,21 @@ def side_panel(height: int, width: int, lines: Sequence[str], legend: Sequence[t
             break
     if layout is None:  # does not fit even small: cut the legend at the panel's foot
         layout = _panel_layout(draw, min_font_px(height), width, height, lines, legend, 2, clip=True)
-    for kind, xy, text, rgba in layout[1]:
-        font = layout[0]
-        if kind == "text":
-            draw.text(xy, text, fill=PANEL_TEXT_RGB, font=font)
-        elif kind == "dim":
+    font, items = layout
+    for kind, xy, text, rgba in items:
+        if kind == "dim":
             draw.text(xy, text, fill=PANEL_DIM_RGB, font=font)
-        else:
-            x, y, x2, y2 = xy
+        elif kind == "text":
+            draw.text(xy, text, fill=PANEL_TEXT_RGB, font=font)
+        elif kind == "swatch":
             draw.rectangle(xy, fill=tuple(int(round(255 * float(c))) for c in np.asarray(rgba, dtype=float)[:3]),
                            outline=(90, 92, 100))
+    if len(_PANELS) >= PANEL_CACHE_SIZE:
+        _PANELS.clear()
+    _PANELS[key] = (np.asarray(canvas).copy(), font, [xy for kind, xy, _, _ in items if kind == "line"])
+    for kind, xy, text, _ in items:
+        if kind == "line":
+            draw.text(xy, text, fill=PANEL_TEXT_RGB, font=font)
     return np.asarray(canvas)
 
 
@@ -200,7 +224,7 @@ def _panel_layout(draw, size, width, height, lines, legend, columns, clip=False)
     y = pad
     for text in lines:
         for part in _wrap(draw, text, font, width - 2 * pad):
-            items.append(("text", (pad, y), part, None))
+            items.append(("line", (pad, y), part, None))
             y += line_h
     if legend:
         y += line_h // 2
