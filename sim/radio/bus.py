@@ -45,13 +45,15 @@ straddle two control periods.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
 
+from sim.compiled import kernel
 from sim.radio import channel
 from sim.radio.presets import IdealDisk, RadioPreset
 
@@ -99,6 +101,15 @@ class Message:
                 raise ValueError(f"robot {self.sender} sends message {self.kind!r} to itself")
             if len(set(self.receivers)) != len(self.receivers):
                 raise ValueError("receivers must not repeat")
+
+
+def _stamped(message: Message, sequence: int, sent_s: float) -> Message:
+    """``message`` with the bus's stamps: ``dataclasses.replace`` without re-running the checks it passed."""
+    stamped = object.__new__(Message)
+    stamped.__dict__.update(message.__dict__)
+    stamped.__dict__["sequence"] = sequence
+    stamped.__dict__["sent_s"] = sent_s
+    return stamped
 
 
 @dataclass(frozen=True)
@@ -233,6 +244,96 @@ class TickStats:
     queued: int  # messages still waiting at their senders after the period
 
 
+# How ``_schedule_frames`` draws each receiver's fading gain: none, Exp(1) (Rayleigh, Rician K = 0), or a
+# noncentral chi-square with 2 degrees of freedom over 2 (K + 1) (Rician), as ``channel.fading_gain_db`` does.
+_NO_DRAW, _EXPONENTIAL, _NONCENTRAL_CHISQUARE = 0, 1, 2
+
+
+@kernel
+def _schedule_frames(start_s, end_s, eps, sense, first, count, sent_s, airtime_s, audience_start, audience_count,
+                     listed, fading_code, noncentrality, gain_scale, rng,
+                     popped, sent_frame, sent_finish, sent_draws, draw_sender, draw_receiver, draw_gain,
+                     draw_uniform):
+    """One period of the shared medium (``ReferenceMessageBus._step_medium``'s loop, step for step).
+
+    Sender s offers frames first[s] .. first[s] + count[s] - 1 in order. Each round, every sender whose next
+    frame is ready starts at max(ready, the end of the latest frame of anyone it senses); the earliest go,
+    a tie broken by ``rng.integers``; a frame that would end after the period stops its sender. A frame
+    that goes draws, per receiver of its audience (``listed[audience_start:][:audience_count]``, or every
+    other robot when the count is -1), its fading gain and then, for all of them, a uniform: the reference's
+    draws in its order. Fills ``popped`` (frames gone per sender), the frames gone in order with their end
+    and the range of their draws, and returns how many went.
+    """
+    n = sense.shape[0]
+    on_air_until = np.full(n, -np.inf)
+    medium_free = np.full(n, -np.inf)  # per sender: the latest end of a frame of anyone it senses
+    done = np.zeros(n, dtype=np.bool_)
+    ready = np.full(n, np.inf)
+    start = np.empty(n)
+    tied = np.empty(n, dtype=np.int64)
+    for s in range(n):
+        if count[s] > 0 and sent_s[first[s]] < end_s - eps:
+            ready[s] = max(start_s, sent_s[first[s]])
+    sent = 0
+    draws = 0
+    sent_draws[0] = 0
+    while True:
+        earliest = np.inf
+        for s in range(n):
+            start[s] = max(ready[s], medium_free[s])
+            if start[s] < earliest:
+                earliest = start[s]
+        if earliest == np.inf:
+            return sent
+        ties = 0
+        for s in range(n):
+            if start[s] <= earliest + eps:
+                tied[ties] = s
+                ties += 1
+        sender = tied[rng.integers(0, ties)] if ties > 1 else tied[0]
+        frame = first[sender] + popped[sender]
+        finish = earliest + airtime_s[frame]
+        if finish > end_s + eps:
+            done[sender] = True
+            ready[sender] = np.inf
+            continue
+        popped[sender] += 1
+        on_air_until[sender] = finish
+        for s in range(n):
+            if sense[s, sender] and finish > medium_free[s]:
+                medium_free[s] = finish
+        ready[sender] = np.inf
+        if popped[sender] < count[sender]:
+            following = first[sender] + popped[sender]
+            if sent_s[following] < end_s - eps:
+                ready[sender] = max(start_s, sent_s[following])
+        sent_frame[sent] = frame
+        sent_finish[sent] = finish
+        size = audience_count[frame]
+        first_draw = draws
+        if size < 0:
+            for receiver in range(n):
+                if receiver != sender:
+                    draw_receiver[draws] = receiver
+                    draws += 1
+        else:
+            for k in range(size):
+                draw_receiver[draws] = listed[audience_start[frame] + k]
+                draws += 1
+        for d in range(first_draw, draws):
+            draw_sender[d] = sender
+            if fading_code == 1:
+                draw_gain[d] = rng.standard_exponential()
+            elif fading_code == 2:
+                draw_gain[d] = rng.noncentral_chisquare(2.0, noncentrality) / gain_scale
+            else:
+                draw_gain[d] = 1.0
+        for d in range(first_draw, draws):
+            draw_uniform[d] = rng.random()
+        sent += 1
+        sent_draws[sent] = draws
+
+
 class MessageBus:
     """Queues, airtime, loss and latency of every message. See the module docstring."""
 
@@ -248,6 +349,9 @@ class MessageBus:
         self._n = robot_count
         self._sequence = 0
         self._queues: dict[int, deque[_Frame]] = {}
+        self._waiting: dict[int, int] = {}  # per sender, messages whose last frame is still queued
+        self._waiting_total = 0
+        self._frames_of_size: dict[int, tuple[tuple[int, float], ...]] = {}  # (payload, airtime) of each frame
         self._in_flight: dict[int, _InFlight] = {}
         self._kinds: dict[str, _KindCounters] = {}
         self._elapsed_s = 0.0
@@ -262,25 +366,42 @@ class MessageBus:
             targets = message.receivers or ()
             if not 0 <= message.sender < self._n or any(not 0 <= r < self._n for r in targets):
                 raise ValueError(f"message {message.kind!r} names a robot outside 0..{self._n - 1}")
-        stamped = replace(message, sequence=self._sequence, sent_s=float(time_s))
+        frames = None if self.params.is_ideal else self._frames(message.size_bytes)
+        stamped = _stamped(message, self._sequence, float(time_s))
         self._sequence += 1
         queue = self._queues.setdefault(stamped.sender, deque())
-        if self.params.is_ideal:
+        if frames is None:
             queue.append(_Frame(stamped, stamped.size_bytes, True, 0.0))
         else:
-            payloads = self.params.frame_payloads(stamped.size_bytes)
+            last = len(frames) - 1
+            for k, (payload, airtime) in enumerate(frames):
+                queue.append(_Frame(stamped, payload, k == last, airtime))
+        self._waiting[stamped.sender] = self._waiting.get(stamped.sender, 0) + 1
+        self._waiting_total += 1
+        return stamped
+
+    def _frames(self, size_bytes: int) -> tuple[tuple[int, float], ...]:
+        """(payload bytes, airtime s) of each frame of a ``size_bytes`` message, computed once per size."""
+        frames = self._frames_of_size.get(size_bytes)
+        if frames is None:
+            payloads = self.params.frame_payloads(size_bytes)
             airtimes = self.params.airtime_s(np.array(payloads))
             if airtimes.max() > self.control_period_s:
                 raise ValueError(f"a {self.params.name} frame takes {airtimes.max():.6f} s, longer than the "
                                  f"control period {self.control_period_s} s: it would never go out")
-            for k, (payload, airtime) in enumerate(zip(payloads, airtimes)):
-                queue.append(_Frame(stamped, payload, k == len(payloads) - 1, float(airtime)))
-        return stamped
+            frames = self._frames_of_size[size_bytes] = tuple(
+                (payload, float(airtime)) for payload, airtime in zip(payloads, airtimes))
+        return frames
+
+    def _popped(self, sender: int, frame: _Frame) -> None:
+        """Bookkeeping of ``frame`` leaving ``sender``'s queue."""
+        if frame.last:
+            self._waiting[sender] -= 1
+            self._waiting_total -= 1
 
     def queued(self, sender: int | None = None) -> int:
         """Messages waiting (some of their frames not yet on the air), at ``sender`` or at all."""
-        queues = self._queues.values() if sender is None else [self._queues.get(sender, deque())]
-        return sum(sum(frame.last for frame in queue) for queue in queues)
+        return self._waiting_total if sender is None else self._waiting.get(sender, 0)
 
     # --- one control period ----------------------------------------------------------------------
 
@@ -346,7 +467,9 @@ class MessageBus:
         for sender in sorted(self._queues):
             queue = self._queues[sender]
             while queue:
-                message = queue.popleft().message
+                frame = queue.popleft()
+                self._popped(sender, frame)
+                message = frame.message
                 audience = self._audience(message, n)
                 if link is not None:  # the ideal disk: only receivers with a link
                     audience = tuple(j for j in audience if link.snr_db[sender, j] > -np.inf)
@@ -363,37 +486,98 @@ class MessageBus:
                 for receiver in audience:
                     deliveries[receiver].append(Delivery(message, receiver, message.sent_s))
 
+    # Tolerance on instants: airtimes are sums of microseconds; 1 ns never changes an order.
+    _EPS_S = 1e-9
+
     def _step_medium(self, start_s: float, link: LinkState, n: int, deliveries: list[list[Delivery]]) -> None:
+        """The medium's period, scheduled by the compiled ``_schedule_frames``: the same frames, instants and
+        random draws, in the same order, as ``ReferenceMessageBus``'s loop (tests/test_radio_bus_fast.py)."""
         end_s = start_s + self.control_period_s
         sense = np.asarray(link.carrier_sense, dtype=bool) | np.eye(n, dtype=bool)
         snr = np.nan_to_num(np.asarray(link.snr_db, dtype=float), nan=-np.inf)
-        on_air_until = np.full(n, -np.inf)  # end of each robot's latest frame
-        done = np.zeros(n, dtype=bool)  # its head frame does not fit in this period
-        # Tolerance on instants: airtimes are sums of microseconds; 1 ns never changes an order.
-        eps = 1e-9
-        while True:
-            ready = np.full(n, np.inf)
-            for sender, queue in self._queues.items():
-                if queue and not done[sender] and queue[0].message.sent_s < end_s - eps:
-                    ready[sender] = max(start_s, queue[0].message.sent_s)
-            if not np.isfinite(ready).any():
-                return
-            medium_free = np.where(sense, on_air_until[None, :], -np.inf).max(axis=1)
-            start = np.maximum(ready, medium_free)
-            earliest = start.min()
-            tied = np.flatnonzero(start <= earliest + eps)
-            sender = int(tied[self.rng.integers(len(tied))]) if len(tied) > 1 else int(tied[0])
-            frame = self._queues[sender][0]
-            finish = earliest + frame.airtime_s
-            if finish > end_s + eps:
-                done[sender] = True
-                continue
-            self._queues[sender].popleft()
-            on_air_until[sender] = finish
-            self._transmit(frame, finish, snr, n, deliveries)
+        # The head of each queue that can go out in this period: frames while the airtime before them fits,
+        # and one more, which cannot (the loop must meet it to stop that sender, drawing as it does).
+        reach_s = self.control_period_s + 1e-6
+        frames: list[_Frame] = []
+        first = np.zeros(n, dtype=np.int64)
+        count = np.zeros(n, dtype=np.int64)
+        for sender, queue in self._queues.items():
+            first[sender] = len(frames)
+            before_s = 0.0
+            for frame in queue:
+                frames.append(frame)
+                before_s += frame.airtime_s
+                if before_s > reach_s:
+                    break
+            count[sender] = len(frames) - first[sender]
+        total = len(frames)
+        if total == 0:
+            return
+        sent_s = np.empty(total)
+        airtime_s = np.empty(total)
+        audience_start = np.zeros(total, dtype=np.int64)
+        audience_count = np.full(total, -1, dtype=np.int64)  # -1: every other robot (a broadcast)
+        listed: list[int] = []
+        for index, frame in enumerate(frames):
+            message = frame.message
+            sent_s[index] = message.sent_s
+            airtime_s[index] = frame.airtime_s
+            flight = self._in_flight.get(message.sequence)
+            audience = flight.audience if flight is not None else message.receivers
+            if audience is not None:
+                audience_start[index] = len(listed)
+                audience_count[index] = len(audience)
+                listed.extend(audience)
+        fading, rician_k = self.params.fading_model, self.params.rician_k
+        if fading == "none" or (fading == "rician" and math.isinf(rician_k)):
+            fading_code, gain_scale = _NO_DRAW, 1.0
+        elif fading == "rayleigh" or rician_k == 0:
+            fading_code, gain_scale = _EXPONENTIAL, 1.0
+        elif fading == "rician":
+            if rician_k < 0:
+                raise ValueError("the Rician K-factor must be >= 0")
+            fading_code, gain_scale = _NONCENTRAL_CHISQUARE, 2.0 * (rician_k + 1.0)
+        else:
+            raise ValueError(f"unknown fading model {fading!r}; known: {', '.join(channel.FADING_MODELS)}")
+        sent_frame = np.empty(total, dtype=np.int64)
+        sent_finish = np.empty(total)
+        sent_draws = np.empty(total + 1, dtype=np.int64)
+        most_draws = total * max(n - 1, 0)
+        draw_sender = np.empty(most_draws, dtype=np.int64)
+        draw_receiver = np.empty(most_draws, dtype=np.int64)
+        draw_gain = np.empty(most_draws)
+        draw_uniform = np.empty(most_draws)
+        popped = np.zeros(n, dtype=np.int64)
+        sent = _schedule_frames(
+            start_s, end_s, self._EPS_S, sense, first, count, sent_s, airtime_s, audience_start, audience_count,
+            np.array(listed, dtype=np.int64), fading_code, 2.0 * rician_k, gain_scale, self.rng,
+            popped, sent_frame, sent_finish, sent_draws, draw_sender, draw_receiver, draw_gain, draw_uniform)
+        if sent == 0:
+            return
+        draws = int(sent_draws[sent])
+        # Per-packet fading and loss of every (frame, receiver) tried, in one pass of the reference formulas.
+        survived = np.zeros(draws, dtype=bool)
+        if draws:
+            if fading_code == _NO_DRAW and fading == "none":
+                fading_db = np.zeros(draws)
+            else:
+                fading_db = 10.0 * np.log10(np.maximum(draw_gain[:draws], np.finfo(float).tiny))
+            payloads = np.repeat(np.array([frames[k].payload_bytes for k in sent_frame[:sent]]),
+                                 np.diff(sent_draws[:sent + 1]))
+            per = self.params.packet_error_rate(snr[draw_sender[:draws], draw_receiver[:draws]] + fading_db,
+                                                payloads)
+            survived = draw_uniform[:draws] >= per
+        for sender in np.flatnonzero(popped):
+            queue = self._queues[int(sender)]
+            for _ in range(int(popped[sender])):
+                self._popped(int(sender), queue.popleft())
+        for k in range(sent):
+            frame = frames[sent_frame[k]]
+            self._received(frame, float(sent_finish[k]), survived[sent_draws[k]:sent_draws[k + 1]], n, deliveries)
 
-    def _transmit(self, frame: _Frame, finish_s: float, snr: np.ndarray, n: int,
+    def _received(self, frame: _Frame, finish_s: float, survived: np.ndarray, n: int,
                   deliveries: list[list[Delivery]]) -> None:
+        """Counters, the message's surviving receivers and, after its last frame, its deliveries."""
         message = frame.message
         counters = self._counters(message.kind, n)
         counters.frames_sent += 1
@@ -403,11 +587,7 @@ class MessageBus:
             audience = self._audience(message, n)
             flight = self._in_flight[message.sequence] = _InFlight(audience, np.ones(len(audience), dtype=bool))
         if flight.audience:
-            receivers = np.array(flight.audience)
-            fading = channel.fading_gain_db(self.params.fading_model, self.rng, len(receivers),
-                                            self.params.rician_k)
-            per = self.params.packet_error_rate(snr[message.sender, receivers] + fading, frame.payload_bytes)
-            flight.alive &= self.rng.random(len(receivers)) >= per
+            flight.alive &= survived
         if not frame.last:
             return
         del self._in_flight[message.sequence]
@@ -479,3 +659,66 @@ class MessageBus:
             f"{prefix}_latency_p95_s": float(np.percentile(latencies, 95)) if latencies.size else math.nan,
             f"{prefix}_airtime_max_share": float(airtime.max() / self._elapsed_s) if self._elapsed_s else 0.0,
         }
+
+
+class ReferenceMessageBus(MessageBus):
+    """The same bus, each period stepped by the plain loop that ``MessageBus``'s compiled scheduling replaces:
+    the specification the fast bus is held to (tests/test_radio_bus_fast.py), frame by frame and draw by draw."""
+
+    def _step_medium(self, start_s: float, link: LinkState, n: int, deliveries: list[list[Delivery]]) -> None:
+        end_s = start_s + self.control_period_s
+        sense = np.asarray(link.carrier_sense, dtype=bool) | np.eye(n, dtype=bool)
+        snr = np.nan_to_num(np.asarray(link.snr_db, dtype=float), nan=-np.inf)
+        on_air_until = np.full(n, -np.inf)  # end of each robot's latest frame
+        done = np.zeros(n, dtype=bool)  # its head frame does not fit in this period
+        # Tolerance on instants: airtimes are sums of microseconds; 1 ns never changes an order.
+        eps = self._EPS_S
+        while True:
+            ready = np.full(n, np.inf)
+            for sender, queue in self._queues.items():
+                if queue and not done[sender] and queue[0].message.sent_s < end_s - eps:
+                    ready[sender] = max(start_s, queue[0].message.sent_s)
+            if not np.isfinite(ready).any():
+                return
+            medium_free = np.where(sense, on_air_until[None, :], -np.inf).max(axis=1)
+            start = np.maximum(ready, medium_free)
+            earliest = start.min()
+            tied = np.flatnonzero(start <= earliest + eps)
+            sender = int(tied[self.rng.integers(len(tied))]) if len(tied) > 1 else int(tied[0])
+            frame = self._queues[sender][0]
+            finish = earliest + frame.airtime_s
+            if finish > end_s + eps:
+                done[sender] = True
+                continue
+            self._popped(sender, self._queues[sender].popleft())
+            on_air_until[sender] = finish
+            self._transmit(frame, finish, snr, n, deliveries)
+
+    def _transmit(self, frame: _Frame, finish_s: float, snr: np.ndarray, n: int,
+                  deliveries: list[list[Delivery]]) -> None:
+        message = frame.message
+        counters = self._counters(message.kind, n)
+        counters.frames_sent += 1
+        counters.airtime_s[message.sender] += frame.airtime_s
+        flight = self._in_flight.get(message.sequence)
+        if flight is None:
+            audience = self._audience(message, n)
+            flight = self._in_flight[message.sequence] = _InFlight(audience, np.ones(len(audience), dtype=bool))
+        if flight.audience:
+            receivers = np.array(flight.audience)
+            fading = channel.fading_gain_db(self.params.fading_model, self.rng, len(receivers),
+                                            self.params.rician_k)
+            per = self.params.packet_error_rate(snr[message.sender, receivers] + fading, frame.payload_bytes)
+            flight.alive &= self.rng.random(len(receivers)) >= per
+        if not frame.last:
+            return
+        del self._in_flight[message.sequence]
+        counters.packets_sent += 1
+        counters.bytes_sent += message.size_bytes
+        counters.addressed += len(flight.audience)
+        for receiver, alive in zip(flight.audience, flight.alive):
+            if alive:
+                counters.delivered += 1
+                counters.latencies_s.append(finish_s - message.sent_s)
+                deliveries[receiver].append(Delivery(message, receiver, finish_s))
+
