@@ -214,6 +214,35 @@ def test_the_channel_is_the_formulas_chain_exactly():
     np.testing.assert_array_equal(state.shadowing_db[np.triu_indices(30, 1)], expected)
 
 
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), exponent=st.floats(1.0, 8.0), reference_loss_db=st.floats(0.0, 200.0),
+       tx_power_dbm=st.floats(-60.0, 40.0), noise_floor_dbm=st.floats(-200.0, 0.0),
+       preset=st.sampled_from(["ieee802154", "nrf24", "wifi"]))
+def test_pair_figures_are_the_formulas_chain_to_the_bit(seed, exponent, reference_loss_db, tx_power_dbm,
+                                                         noise_floor_dbm, preset):
+    """The compiled pass over the pairs against channel.py's functions, the reference they replace."""
+    from sim.radio import channel as formulas
+
+    overrides = {"path_loss_exponent": exponent, "reference_loss_db": reference_loss_db,
+                 "tx_power_dbm": tx_power_dbm, "noise_floor_dbm": noise_floor_dbm}
+    config = build(RadioConfig, {"preset": preset, **overrides}, "radio")
+    boxes, _ = _scene()
+    channel = RadioChannel(config, boxes, None, 10.0, np.random.default_rng(0))
+    rng = np.random.default_rng(seed)
+    pairs = 300
+    distance = np.concatenate([rng.uniform(0.0, 200.0, pairs - 3), [0.0, 0.5, 1.0]])
+    walls = rng.integers(0, 5, pairs) * rng.uniform(0.0, 10.0, pairs)
+    shadowing = rng.normal(0.0, 8.0, pairs)
+    path_loss = formulas.log_distance_path_loss_db(distance, exponent, reference_loss_db, total_wall_loss_db=walls)
+    rx = formulas.received_power_dbm(tx_power_dbm, path_loss, shadowing)
+    snr = formulas.snr_db(rx, noise_floor_dbm)
+    got = channel.pair_figures(distance, walls, shadowing)
+    np.testing.assert_array_equal(got["rx_power_dbm"], rx)
+    np.testing.assert_array_equal(got["snr_db"], snr)
+    np.testing.assert_array_equal(got["shadowing_db"], shadowing)
+    np.testing.assert_array_equal(got["delivery"], channel.delivery_at_snr(snr))
+
+
 def _radio_run(preset: str, seed: int, ticks: int = 40):
     scenario = load("connected-office", ["robots.0.count=6", f'radio.preset="{preset}"'], seed=seed, duration_s=1.0)
     return _ticks(scenario, ticks)

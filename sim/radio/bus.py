@@ -513,21 +513,18 @@ class MessageBus:
         total = len(frames)
         if total == 0:
             return
-        sent_s = np.empty(total)
-        airtime_s = np.empty(total)
+        sent_s = np.fromiter((frame.message.sent_s for frame in frames), float, total)
+        airtime_s = np.fromiter((frame.airtime_s for frame in frames), float, total)
+        # A frame's audience is its message's (``_audience``: the robot count does not change within a run).
         audience_start = np.zeros(total, dtype=np.int64)
         audience_count = np.full(total, -1, dtype=np.int64)  # -1: every other robot (a broadcast)
         listed: list[int] = []
         for index, frame in enumerate(frames):
-            message = frame.message
-            sent_s[index] = message.sent_s
-            airtime_s[index] = frame.airtime_s
-            flight = self._in_flight.get(message.sequence)
-            audience = flight.audience if flight is not None else message.receivers
-            if audience is not None:
+            receivers = frame.message.receivers
+            if receivers is not None:
                 audience_start[index] = len(listed)
-                audience_count[index] = len(audience)
-                listed.extend(audience)
+                audience_count[index] = len(receivers)
+                listed.extend(receivers)
         fading, rician_k = self.params.fading_model, self.params.rician_k
         if fading == "none" or (fading == "rician" and math.isinf(rician_k)):
             fading_code, gain_scale = _NO_DRAW, 1.0
@@ -593,11 +590,14 @@ class MessageBus:
         del self._in_flight[message.sequence]
         counters.packets_sent += 1
         counters.bytes_sent += message.size_bytes
-        counters.addressed += len(flight.audience)
-        for receiver, alive in zip(flight.audience, flight.alive):
-            if alive:
-                counters.delivered += 1
-                counters.latencies_s.append(finish_s - message.sent_s)
+        audience = flight.audience
+        counters.addressed += len(audience)
+        reached = np.flatnonzero(flight.alive).tolist()
+        if reached:
+            counters.delivered += len(reached)
+            counters.latencies_s += [finish_s - message.sent_s] * len(reached)
+            for k in reached:
+                receiver = audience[k]
                 deliveries[receiver].append(Delivery(message, receiver, finish_s))
 
     # --- metrics ---------------------------------------------------------------------------------
