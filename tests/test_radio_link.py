@@ -114,6 +114,19 @@ def test_walls_are_symmetric_and_never_fewer_on_a_longer_segment(boxes, start, e
     assert longer.loss_db[0] >= forward.loss_db[0] - 1e-12
 
 
+def test_walls_of_pairs_are_the_walls_of_their_segments():
+    from sim.radio.walls import SceneWalls
+
+    boxes, losses = _scene()
+    walls = SceneWalls(boxes, np.where(np.isnan(losses), 3.4, losses))
+    positions = np.random.default_rng(2).uniform([0.0, 0.0, 0.0], [10.0, 10.0, 4.5], (25, 3))
+    first, second = np.triu_indices(25, 1)
+    pairs, segments = walls.crossed_pairs(positions, first, second), walls.crossed(positions[first], positions[second])
+    assert pairs.count.max() >= 3
+    np.testing.assert_array_equal(pairs.count, segments.count)
+    np.testing.assert_array_equal(pairs.loss_db, segments.loss_db)
+
+
 def test_the_preset_fills_the_keys_and_every_key_overrides():
     ideal = RadioConfig()
     assert ideal.is_ideal and ideal.delivery_threshold == 0.5

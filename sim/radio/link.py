@@ -125,7 +125,7 @@ class RadioChannel:
         config = self.config
 
         def walls() -> dict[str, np.ndarray]:
-            crossed = self.walls.crossed(positions[first], positions[second])
+            crossed = self.walls.crossed_pairs(positions, first, second)
             return {"count": crossed.count, "loss_db": crossed.loss_db}
 
         if config.is_ideal:
@@ -140,14 +140,18 @@ class RadioChannel:
                               ideal, walls, (first, second))
         shadowing = self._advance_shadowing(time_s, len(first))
         distance = links.distance
-        state: RadioState
+        computed: dict[str, dict[str, np.ndarray]] = {}  # the walls, once, for whichever reads first
+
+        def walls_once() -> dict[str, np.ndarray]:
+            if "walls" not in computed:
+                computed["walls"] = walls()
+            return computed["walls"]
 
         def figures() -> dict[str, np.ndarray]:
-            return self.pair_figures(distance[first, second], state.wall_pairs["loss_db"], shadowing)
+            return self.pair_figures(distance[first, second], walls_once()["loss_db"], shadowing)
 
-        state = RadioState(config.preset, config.delivery_threshold, self.comm_range_m, distance, figures, walls,
-                           (first, second))
-        return state
+        return RadioState(config.preset, config.delivery_threshold, self.comm_range_m, distance, figures,
+                          walls_once, (first, second))
 
 
 @kernel
