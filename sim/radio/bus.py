@@ -250,9 +250,9 @@ _NO_DRAW, _EXPONENTIAL, _NONCENTRAL_CHISQUARE = 0, 1, 2
 
 
 @kernel
-def _schedule_frames(start_s, end_s, eps, sense, first, count, sent_s, airtime_s, audience_start, audience_count,
-                     listed, fading_code, noncentrality, gain_scale, rng,
-                     popped, sent_frame, sent_finish, sent_draws, draw_sender, draw_receiver, draw_gain,
+def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airtime_s, error_bits, audience_start,
+                     audience_count, listed, fading_code, noncentrality, gain_scale, rng,
+                     popped, sent_frame, sent_finish, sent_draws, draw_receiver, draw_snr, draw_bits, draw_gain,
                      draw_uniform):
     """One period of the shared medium (``ReferenceMessageBus._step_medium``'s loop, step for step).
 
@@ -262,7 +262,8 @@ def _schedule_frames(start_s, end_s, eps, sense, first, count, sent_s, airtime_s
     that goes draws, per receiver of its audience (``listed[audience_start:][:audience_count]``, or every
     other robot when the count is -1), its fading gain and then, for all of them, a uniform: the reference's
     draws in its order. Fills ``popped`` (frames gone per sender), the frames gone in order with their end
-    and the range of their draws, and returns how many went.
+    and the range of their draws (each with its receiver, mean SNR and frame bits), and returns how many
+    went.
     """
     n = sense.shape[0]
     on_air_until = np.full(n, -np.inf)
@@ -321,7 +322,8 @@ def _schedule_frames(start_s, end_s, eps, sense, first, count, sent_s, airtime_s
                 draw_receiver[draws] = listed[audience_start[frame] + k]
                 draws += 1
         for d in range(first_draw, draws):
-            draw_sender[d] = sender
+            draw_snr[d] = snr[sender, draw_receiver[d]]
+            draw_bits[d] = error_bits[frame]
             if fading_code == 1:
                 draw_gain[d] = rng.standard_exponential()
             elif fading_code == 2:
@@ -352,6 +354,7 @@ class MessageBus:
         self._waiting: dict[int, int] = {}  # per sender, messages whose last frame is still queued
         self._waiting_total = 0
         self._frames_of_size: dict[int, tuple[tuple[int, float], ...]] = {}  # (payload, airtime) of each frame
+        self._broadcast_audiences: dict[tuple[int, int], tuple[int, ...]] = {}  # (sender, robots): every other
         self._in_flight: dict[int, _InFlight] = {}
         self._kinds: dict[str, _KindCounters] = {}
         self._elapsed_s = 0.0
@@ -461,7 +464,11 @@ class MessageBus:
     def _audience(self, message: Message, n: int) -> tuple[int, ...]:
         if message.receivers is not None:
             return message.receivers
-        return tuple(j for j in range(n) if j != message.sender)
+        key = (message.sender, n)
+        audience = self._broadcast_audiences.get(key)
+        if audience is None:
+            audience = self._broadcast_audiences[key] = tuple(j for j in range(n) if j != message.sender)
+        return audience
 
     def _step_ideal(self, link: LinkState | None, n: int, deliveries: list[list[Delivery]]) -> None:
         for sender in sorted(self._queues):
@@ -515,6 +522,9 @@ class MessageBus:
             return
         sent_s = np.fromiter((frame.message.sent_s for frame in frames), float, total)
         airtime_s = np.fromiter((frame.airtime_s for frame in frames), float, total)
+        error_bits = np.fromiter((frame.payload_bytes for frame in frames), float, total)
+        error_bits *= 8.0
+        error_bits += self.params.header_bits + self.params.mac_overhead_bits
         # A frame's audience is its message's (``_audience``: the robot count does not change within a run).
         audience_start = np.zeros(total, dtype=np.int64)
         audience_count = np.full(total, -1, dtype=np.int64)  # -1: every other robot (a broadcast)
@@ -525,52 +535,62 @@ class MessageBus:
                 audience_start[index] = len(listed)
                 audience_count[index] = len(receivers)
                 listed.extend(receivers)
-        fading, rician_k = self.params.fading_model, self.params.rician_k
-        if fading == "none" or (fading == "rician" and math.isinf(rician_k)):
-            fading_code, gain_scale = _NO_DRAW, 1.0
-        elif fading == "rayleigh" or rician_k == 0:
-            fading_code, gain_scale = _EXPONENTIAL, 1.0
-        elif fading == "rician":
-            if rician_k < 0:
-                raise ValueError("the Rician K-factor must be >= 0")
-            fading_code, gain_scale = _NONCENTRAL_CHISQUARE, 2.0 * (rician_k + 1.0)
-        else:
-            raise ValueError(f"unknown fading model {fading!r}; known: {', '.join(channel.FADING_MODELS)}")
-        sent_frame = np.empty(total, dtype=np.int64)
-        sent_finish = np.empty(total)
-        sent_draws = np.empty(total + 1, dtype=np.int64)
-        most_draws = total * max(n - 1, 0)
-        draw_sender = np.empty(most_draws, dtype=np.int64)
-        draw_receiver = np.empty(most_draws, dtype=np.int64)
-        draw_gain = np.empty(most_draws)
-        draw_uniform = np.empty(most_draws)
+        fading_code, gain_scale = self._fading_draw
+        out = self._scratch(total, total * max(n - 1, 0))
         popped = np.zeros(n, dtype=np.int64)
         sent = _schedule_frames(
-            start_s, end_s, self._EPS_S, sense, first, count, sent_s, airtime_s, audience_start, audience_count,
-            np.array(listed, dtype=np.int64), fading_code, 2.0 * rician_k, gain_scale, self.rng,
-            popped, sent_frame, sent_finish, sent_draws, draw_sender, draw_receiver, draw_gain, draw_uniform)
+            start_s, end_s, self._EPS_S, sense, snr, first, count, sent_s, airtime_s, error_bits, audience_start,
+            audience_count, np.array(listed, dtype=np.int64), fading_code, 2.0 * self.params.rician_k, gain_scale,
+            self.rng, popped, *out)
         if sent == 0:
             return
+        sent_frame, sent_finish, sent_draws, _, draw_snr, draw_bits, draw_gain, draw_uniform = out
         draws = int(sent_draws[sent])
         # Per-packet fading and loss of every (frame, receiver) tried, in one pass of the reference formulas.
-        survived = np.zeros(draws, dtype=bool)
+        survived = np.zeros(0, dtype=bool)
         if draws:
-            if fading_code == _NO_DRAW and fading == "none":
-                fading_db = np.zeros(draws)
-            else:
-                fading_db = 10.0 * np.log10(np.maximum(draw_gain[:draws], np.finfo(float).tiny))
-            payloads = np.repeat(np.array([frames[k].payload_bytes for k in sent_frame[:sent]]),
-                                 np.diff(sent_draws[:sent + 1]))
-            per = self.params.packet_error_rate(snr[draw_sender[:draws], draw_receiver[:draws]] + fading_db,
-                                                payloads)
+            level = draw_snr[:draws]
+            if fading_code != _NO_DRAW or self.params.fading_model != "none":
+                fading_db = np.maximum(draw_gain[:draws], np.finfo(float).tiny)
+                np.log10(fading_db, out=fading_db)
+                fading_db *= 10.0
+                level = level + fading_db
+            per = channel.packet_error_rate_at_snr(self.params.modulation, level, self.params.bandwidth_hz,
+                                                   self.params.bitrate_bps, draw_bits[:draws])
             survived = draw_uniform[:draws] >= per
-        for sender in np.flatnonzero(popped):
-            queue = self._queues[int(sender)]
+        for sender in np.flatnonzero(popped).tolist():
+            queue = self._queues[sender]
             for _ in range(int(popped[sender])):
-                self._popped(int(sender), queue.popleft())
-        for k in range(sent):
-            frame = frames[sent_frame[k]]
-            self._received(frame, float(sent_finish[k]), survived[sent_draws[k]:sent_draws[k + 1]], n, deliveries)
+                self._popped(sender, queue.popleft())
+        bounds = sent_draws[:sent + 1].tolist()
+        finishes = sent_finish[:sent].tolist()
+        for k, index in enumerate(sent_frame[:sent].tolist()):
+            self._received(frames[index], finishes[k], survived[bounds[k]:bounds[k + 1]], n, deliveries)
+
+    @property
+    def _fading_draw(self) -> tuple[int, float]:
+        """How ``_schedule_frames`` draws the fading gain of this bus's model, and the gain's divisor."""
+        fading, rician_k = self.params.fading_model, self.params.rician_k
+        if fading == "none" or (fading == "rician" and math.isinf(rician_k)):
+            return _NO_DRAW, 1.0
+        if fading == "rayleigh" or (fading == "rician" and rician_k == 0):
+            return _EXPONENTIAL, 1.0
+        if fading == "rician":
+            if rician_k < 0:
+                raise ValueError("the Rician K-factor must be >= 0")
+            return _NONCENTRAL_CHISQUARE, 2.0 * (rician_k + 1.0)
+        raise ValueError(f"unknown fading model {fading!r}; known: {', '.join(channel.FADING_MODELS)}")
+
+    def _scratch(self, frames: int, draws: int) -> tuple[np.ndarray, ...]:
+        """Output arrays of ``_schedule_frames`` for up to ``frames`` frames and ``draws`` draws, kept between
+        periods (only the part the kernel fills is read)."""
+        held = getattr(self, "_scratch_arrays", None)
+        if held is None or len(held[0]) < frames or len(held[3]) < draws:
+            frames, draws = max(frames, 64), max(draws, 512)
+            held = self._scratch_arrays = (
+                np.empty(frames, dtype=np.int64), np.empty(frames), np.empty(frames + 1, dtype=np.int64),
+                np.empty(draws, dtype=np.int64), np.empty(draws), np.empty(draws), np.empty(draws), np.empty(draws))
+        return held
 
     def _received(self, frame: _Frame, finish_s: float, survived: np.ndarray, n: int,
                   deliveries: list[list[Delivery]]) -> None:
@@ -582,17 +602,23 @@ class MessageBus:
         flight = self._in_flight.get(message.sequence)
         if flight is None:
             audience = self._audience(message, n)
-            flight = self._in_flight[message.sequence] = _InFlight(audience, np.ones(len(audience), dtype=bool))
-        if flight.audience:
-            flight.alive &= survived
-        if not frame.last:
-            return
-        del self._in_flight[message.sequence]
+            if frame.last:  # a message of one frame: nothing to keep between frames
+                alive = survived if audience else np.zeros(0, dtype=bool)
+            else:
+                flight = self._in_flight[message.sequence] = _InFlight(audience, survived.copy())
+                return
+        else:
+            audience = flight.audience
+            if audience:
+                flight.alive &= survived
+            if not frame.last:
+                return
+            alive = flight.alive
+            del self._in_flight[message.sequence]
         counters.packets_sent += 1
         counters.bytes_sent += message.size_bytes
-        audience = flight.audience
         counters.addressed += len(audience)
-        reached = np.flatnonzero(flight.alive).tolist()
+        reached = np.flatnonzero(alive).tolist()
         if reached:
             counters.delivered += len(reached)
             counters.latencies_s += [finish_s - message.sent_s] * len(reached)
