@@ -92,7 +92,11 @@ class RadioChannel:
                                                              config.shadowing_correlation_s, standard_normal=1.0))
                 self._step = (dt, rho, innovation)
             _, rho, innovation = self._step
-            self._shadowing = rho * self._shadowing + innovation * self.rng.standard_normal(pairs)
+            innovations = self.rng.standard_normal(pairs)
+            innovations *= innovation
+            stepped = rho * self._shadowing
+            stepped += innovations  # rho X + sigma_innovation z, as one expression would round it
+            self._shadowing = stepped
         self._shadowing_time = time_s
         return self._shadowing
 
