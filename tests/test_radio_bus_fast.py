@@ -100,3 +100,16 @@ def test_a_saturated_medium_matches_the_reference_over_many_ticks():
     summaries = [bus.summary() for bus in buses]
     assert summaries[0] == summaries[1]
     assert 0.0 < summaries[0]["radio_delivery_ratio"] < 1.0
+
+
+def test_the_802154_curve_is_exactly_zero_from_the_buses_sure_snr():
+    """The bus skips the PER of frames above this SNR; the reference's PER there is exactly 0."""
+    from sim.radio import bus, channel
+
+    sure = bus._ZERO_BER_SNR_DB["oqpsk_dsss_802154"]
+    snr = np.concatenate([np.linspace(sure, sure + 60.0, 20001), [300.0, 1e300, np.finfo(float).max]])
+    with np.errstate(over="ignore"):  # 10^(SNR / 10) is inf at the top: the BER is then exactly 0 too
+        ber = channel.ber_oqpsk_dsss_802154(snr)
+    assert not np.any(ber)
+    assert not np.any(channel.packet_error_rate(ber, 8 * 127))
+    assert channel.ber_oqpsk_dsss_802154(np.array([sure - 2.0]))[0] > 0.0  # and the margin is not wide

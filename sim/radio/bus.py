@@ -1,6 +1,8 @@
 """The message bus: every message a robot sends, with its real size, over a shared, lossy medium.
 
-Pure Python and numpy, no MuJoCo. Time advances in control periods: the
+numpy and one compiled kernel (the medium's scheduling, ``_schedule_frames``;
+``ReferenceMessageBus`` keeps the plain loop it replaces), no MuJoCo. Time
+advances in control periods: the
 caller ``send``s messages during a tick and calls ``step(time_s, link)``
 once per tick, which puts the queued frames on the air during
 [time_s, time_s + control_period_s) and returns, per receiver, the
@@ -247,13 +249,17 @@ class TickStats:
 # How ``_schedule_frames`` draws each receiver's fading gain: none, Exp(1) (Rayleigh, Rician K = 0), or a
 # noncentral chi-square with 2 degrees of freedom over 2 (K + 1) (Rician), as ``channel.fading_gain_db`` does.
 _NO_DRAW, _EXPONENTIAL, _NONCENTRAL_CHISQUARE = 0, 1, 2
+# SNR (dB) from which a modulation's BER is exactly 0 in floating point, so a frame's PER is 0: for the
+# 802.15.4 curve every term exp(20 SINR (1/k - 1)) underflows to 0 once 10 SINR > 746 (the k = 2 term;
+# SINR > 18.7 dB); 19.5 dB leaves a margin (tests/test_radio_bus_fast.py checks the curve is 0 from it on).
+_ZERO_BER_SNR_DB = {"oqpsk_dsss_802154": 19.5}
 
 
 @kernel
 def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airtime_s, error_bits, audience_start,
-                     audience_count, listed, fading_code, noncentrality, gain_scale, rng,
+                     audience_count, listed, fading_code, noncentrality, gain_scale, sure_snr_db, rng,
                      popped, sent_frame, sent_finish, sent_draws, draw_receiver, draw_snr, draw_bits, draw_gain,
-                     draw_uniform):
+                     draw_uniform, draw_unsure):
     """One period of the shared medium (``ReferenceMessageBus._step_medium``'s loop, step for step).
 
     Sender s offers frames first[s] .. first[s] + count[s] - 1 in order. Each round, every sender whose next
@@ -262,10 +268,13 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airt
     that goes draws, per receiver of its audience (``listed[audience_start:][:audience_count]``, or every
     other robot when the count is -1), its fading gain and then, for all of them, a uniform: the reference's
     draws in its order. Fills ``popped`` (frames gone per sender), the frames gone in order with their end
-    and the range of their draws (each with its receiver, mean SNR and frame bits), and returns how many
-    went.
+    and the range of their draws (each with its receiver, mean SNR as ``numpy.nan_to_num(nan=-inf)`` gives
+    it, frame bits, fading gain and uniform), and returns how many went. ``sense`` counts as True on the
+    diagonal. ``draw_unsure`` marks the draws whose SNR with fading may lie below ``sure_snr_db``, where
+    the PER may differ from 0 (judged here with 0.5 dB to spare, the exact PER is numpy's).
     """
     n = sense.shape[0]
+    largest = 1.7976931348623157e308  # numpy.finfo(float).max, what nan_to_num puts for +inf
     on_air_until = np.full(n, -np.inf)
     medium_free = np.full(n, -np.inf)  # per sender: the latest end of a frame of anyone it senses
     done = np.zeros(n, dtype=np.bool_)
@@ -301,7 +310,7 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airt
         popped[sender] += 1
         on_air_until[sender] = finish
         for s in range(n):
-            if sense[s, sender] and finish > medium_free[s]:
+            if (s == sender or sense[s, sender]) and finish > medium_free[s]:
                 medium_free[s] = finish
         ready[sender] = np.inf
         if popped[sender] < count[sender]:
@@ -322,14 +331,23 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airt
                 draw_receiver[draws] = listed[audience_start[frame] + k]
                 draws += 1
         for d in range(first_draw, draws):
-            draw_snr[d] = snr[sender, draw_receiver[d]]
+            level = snr[sender, draw_receiver[d]]
+            if np.isnan(level):
+                level = -np.inf
+            elif level == np.inf:
+                level = largest
+            elif level == -np.inf:
+                level = -largest
+            draw_snr[d] = level
             draw_bits[d] = error_bits[frame]
             if fading_code == 1:
-                draw_gain[d] = rng.standard_exponential()
+                gain = rng.standard_exponential()
             elif fading_code == 2:
-                draw_gain[d] = rng.noncentral_chisquare(2.0, noncentrality) / gain_scale
+                gain = rng.noncentral_chisquare(2.0, noncentrality) / gain_scale
             else:
-                draw_gain[d] = 1.0
+                gain = 1.0
+            draw_gain[d] = gain
+            draw_unsure[d] = not level + 10.0 * np.log10(max(gain, 1e-300)) >= sure_snr_db + 0.5
         for d in range(first_draw, draws):
             draw_uniform[d] = rng.random()
         sent += 1
@@ -500,8 +518,10 @@ class MessageBus:
         """The medium's period, scheduled by the compiled ``_schedule_frames``: the same frames, instants and
         random draws, in the same order, as ``ReferenceMessageBus``'s loop (tests/test_radio_bus_fast.py)."""
         end_s = start_s + self.control_period_s
-        sense = np.asarray(link.carrier_sense, dtype=bool) | np.eye(n, dtype=bool)
-        snr = np.nan_to_num(np.asarray(link.snr_db, dtype=float), nan=-np.inf)
+        sense = np.asarray(link.carrier_sense, dtype=bool)
+        snr = np.asarray(link.snr_db, dtype=float)
+        if sense.shape != (n, n) or snr.shape != (n, n):
+            raise ValueError(f"the link's arrays must be ({n}, {n})")
         # The head of each queue that can go out in this period: frames while the airtime before them fits,
         # and one more, which cannot (the loop must meet it to stop that sender, drawing as it does).
         reach_s = self.control_period_s + 1e-6
@@ -538,26 +558,29 @@ class MessageBus:
         fading_code, gain_scale = self._fading_draw
         out = self._scratch(total, total * max(n - 1, 0))
         popped = np.zeros(n, dtype=np.int64)
+        sure_snr_db = _ZERO_BER_SNR_DB.get(self.params.modulation, np.inf)
         sent = _schedule_frames(
             start_s, end_s, self._EPS_S, sense, snr, first, count, sent_s, airtime_s, error_bits, audience_start,
             audience_count, np.array(listed, dtype=np.int64), fading_code, 2.0 * self.params.rician_k, gain_scale,
-            self.rng, popped, *out)
+            sure_snr_db, self.rng, popped, *out)
         if sent == 0:
             return
-        sent_frame, sent_finish, sent_draws, _, draw_snr, draw_bits, draw_gain, draw_uniform = out
+        sent_frame, sent_finish, sent_draws, _, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure = out
         draws = int(sent_draws[sent])
-        # Per-packet fading and loss of every (frame, receiver) tried, in one pass of the reference formulas.
-        survived = np.zeros(0, dtype=bool)
-        if draws:
-            level = draw_snr[:draws]
+        # Per-packet fading and loss of every (frame, receiver) tried, with the reference formulas: a frame
+        # whose SNR with fading is above the modulation's zero-BER SNR has PER exactly 0 and always arrives.
+        survived = np.ones(draws, dtype=bool)
+        unsure = np.flatnonzero(draw_unsure[:draws])
+        if len(unsure):
+            level = draw_snr[unsure]
             if fading_code != _NO_DRAW or self.params.fading_model != "none":
-                fading_db = np.maximum(draw_gain[:draws], np.finfo(float).tiny)
+                fading_db = np.maximum(draw_gain[unsure], np.finfo(float).tiny)
                 np.log10(fading_db, out=fading_db)
                 fading_db *= 10.0
                 level = level + fading_db
             per = channel.packet_error_rate_at_snr(self.params.modulation, level, self.params.bandwidth_hz,
-                                                   self.params.bitrate_bps, draw_bits[:draws])
-            survived = draw_uniform[:draws] >= per
+                                                   self.params.bitrate_bps, draw_bits[unsure])
+            survived[unsure] = draw_uniform[unsure] >= per
         for sender in np.flatnonzero(popped).tolist():
             queue = self._queues[sender]
             for _ in range(int(popped[sender])):
@@ -589,7 +612,8 @@ class MessageBus:
             frames, draws = max(frames, 64), max(draws, 512)
             held = self._scratch_arrays = (
                 np.empty(frames, dtype=np.int64), np.empty(frames), np.empty(frames + 1, dtype=np.int64),
-                np.empty(draws, dtype=np.int64), np.empty(draws), np.empty(draws), np.empty(draws), np.empty(draws))
+                np.empty(draws, dtype=np.int64), np.empty(draws), np.empty(draws), np.empty(draws), np.empty(draws),
+                np.empty(draws, dtype=np.bool_))
         return held
 
     def _received(self, frame: _Frame, finish_s: float, survived: np.ndarray, n: int,
