@@ -285,12 +285,14 @@ def main() -> None:
     args = parser.parse_args()
 
     load_average = os.getloadavg()
-    print(f"machine: {os.cpu_count()} cores, load average {load_average[0]:.2f} {load_average[1]:.2f} "
-          f"{load_average[2]:.2f} (uptime); {args.seconds:g} s simulated per row after {args.warmup:g} s")
+    machine = (f"machine: {os.cpu_count()} cores, load average {load_average[0]:.2f} {load_average[1]:.2f} "
+               f"{load_average[2]:.2f} (uptime)")
     if args.radio_only:
+        print(machine)
         print()
         radio_section(args.radio_seconds, args.warmup, args.rows)
         return
+    print(f"{machine}; {args.seconds:g} s simulated per row after {args.warmup:g} s")
     print("ratio = full tick / bare mj_step of the same world (thread CPU time, interleaved blocks)")
     print()
     stages = " | ".join(TIMED_STAGES)
