@@ -231,7 +231,7 @@ class _KindCounters:
     addressed: int = 0  # (message, receiver) pairs tried
     delivered: int = 0
     latencies_s: list[float] = field(default_factory=list)
-    airtime_s: np.ndarray | None = None  # per robot, s
+    airtime_s: list[float] | None = None  # per robot, s (a list: one float added per frame)
 
 
 @dataclass(frozen=True)
@@ -642,7 +642,7 @@ class MessageBus:
         counters.packets_sent += 1
         counters.bytes_sent += message.size_bytes
         counters.addressed += len(audience)
-        reached = np.flatnonzero(alive).tolist()
+        reached = [k for k, got in enumerate(alive.tolist()) if got]
         if reached:
             counters.delivered += len(reached)
             counters.latencies_s += [finish_s - message.sent_s] * len(reached)
@@ -653,9 +653,11 @@ class MessageBus:
     # --- metrics ---------------------------------------------------------------------------------
 
     def _counters(self, kind: str, n: int) -> _KindCounters:
-        counters = self._kinds.setdefault(kind, _KindCounters())
+        counters = self._kinds.get(kind)
+        if counters is None:
+            counters = self._kinds[kind] = _KindCounters()
         if counters.airtime_s is None or len(counters.airtime_s) < n:
-            grown = np.zeros(n)
+            grown = [0.0] * n
             if counters.airtime_s is not None:
                 grown[:len(counters.airtime_s)] = counters.airtime_s
             counters.airtime_s = grown
@@ -698,7 +700,8 @@ class MessageBus:
 
     def _metrics(self, prefix: str, counters: _KindCounters) -> dict[str, float | int]:
         latencies = np.array(counters.latencies_s)
-        airtime = counters.airtime_s if counters.airtime_s is not None and len(counters.airtime_s) else np.zeros(1)
+        airtime = (np.asarray(counters.airtime_s, dtype=float) if counters.airtime_s is not None
+                   and len(counters.airtime_s) else np.zeros(1))
         return {
             f"{prefix}_packets_sent": counters.packets_sent,
             f"{prefix}_frames_sent": counters.frames_sent,
