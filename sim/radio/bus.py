@@ -107,7 +107,7 @@ class Message:
 
 def _stamped(message: Message, sequence: int, sent_s: float) -> Message:
     """``message`` with the bus's stamps: ``dataclasses.replace`` without re-running the checks it passed."""
-    stamped = object.__new__(Message)
+    stamped = object.__new__(type(message))
     stamped.__dict__.update(message.__dict__)
     stamped.__dict__["sequence"] = sequence
     stamped.__dict__["sent_s"] = sent_s
@@ -373,6 +373,7 @@ class MessageBus:
         self._waiting_total = 0
         self._frames_of_size: dict[int, tuple[tuple[int, float], ...]] = {}  # (payload, airtime) of each frame
         self._broadcast_audiences: dict[tuple[int, int], tuple[int, ...]] = {}  # (sender, robots): every other
+        self._scratch_arrays: tuple[np.ndarray, ...] | None = None  # _schedule_frames' outputs, reused
         self._in_flight: dict[int, _InFlight] = {}
         self._kinds: dict[str, _KindCounters] = {}
         self._elapsed_s = 0.0
@@ -565,7 +566,7 @@ class MessageBus:
             sure_snr_db, self.rng, popped, *out)
         if sent == 0:
             return
-        sent_frame, sent_finish, sent_draws, _, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure = out
+        sent_frame, sent_finish, sent_draws, _receivers, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure = out
         draws = int(sent_draws[sent])
         # Per-packet fading and loss of every (frame, receiver) tried, with the reference formulas: a frame
         # whose SNR with fading is above the modulation's zero-BER SNR has PER exactly 0 and always arrives.
@@ -607,7 +608,7 @@ class MessageBus:
     def _scratch(self, frames: int, draws: int) -> tuple[np.ndarray, ...]:
         """Output arrays of ``_schedule_frames`` for up to ``frames`` frames and ``draws`` draws, kept between
         periods (only the part the kernel fills is read)."""
-        held = getattr(self, "_scratch_arrays", None)
+        held = self._scratch_arrays
         if held is None or len(held[0]) < frames or len(held[3]) < draws:
             frames, draws = max(frames, 64), max(draws, 512)
             held = self._scratch_arrays = (
