@@ -300,3 +300,20 @@ def test_graph_lambda2_of_known_graphs():
     split[0, 1] = split[1, 0] = split[2, 3] = split[3, 2] = True
     assert graph_lambda2(split) == pytest.approx(0.0, abs=1e-12)
     assert graph_lambda2(np.zeros((1, 1), bool)) == 0.0
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(1, 12), seed=st.integers(0, 2**32 - 1), density=st.floats(0.0, 1.0))
+def test_lambda2_from_pairs_is_the_matrix_graphs(n, seed, density):
+    """The link metrics read the communication graph from the pairs; the value is the (N, N) graph's."""
+    from sim import observers
+
+    first, second = np.triu_indices(n, 1)
+    edges = np.random.default_rng(seed).random(len(first)) < density
+    adjacency = np.zeros((n, n), bool)
+    adjacency[first, second] = adjacency[second, first] = edges
+    observers._LAMBDA2_SEEN.clear()
+    from_pairs = observers.pairs_graph_lambda2(n, (first, second), edges)
+    observers._LAMBDA2_SEEN.clear()
+    assert from_pairs == observers.graph_lambda2(adjacency)
+    assert observers.pairs_graph_lambda2(n, (first, second), edges) == from_pairs  # remembered
