@@ -540,9 +540,10 @@ def main(argv: list[str] | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         # SIGTERM as Ctrl-C in every command: a run's set-up stops at once, nothing written (its ticks
         # have their own handlers, sim.loop), a sweep's driver stops and writes its table, a listing
-        # or the tuning page ends; also when Python ignored SIGINT (a job started in the background).
+        # or the tuning page ends. A SIGINT ignored from the start (a shell's background job) stays so.
         _interrupted.clear()
-        previous = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+        signals = [signal.SIGTERM] + [signal.SIGINT] * (signal.getsignal(signal.SIGINT) is not signal.SIG_IGN)
+        previous = {sig: signal.signal(sig, _raise_interrupt) for sig in signals}
     try:
         code = handlers[args.command](args)
         sys.stdout.flush()  # here, not at exit: a closed pipe or a full disk is seen by the barrier
