@@ -160,3 +160,87 @@ def test_a_full_disk_in_a_sweep_is_one_line_and_the_rerun_is_accepted(free_kib, 
     again = subprocess.run([sys.executable, "-m", "tether.cli", "sweep", str(sweep), "--out", str(out), "--workers",
                             "1", "--no-report"], cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=WAIT_S)
     assert again.returncode == 0 and "2 finished" in again.stdout, again.stderr
+
+
+# ---------------------------------------------------------------- a port that is not Ray
+
+class _Listener:
+    """A TCP port on 127.0.0.1 that accepts and then does ``answer`` (bytes to send, or None: nothing)."""
+
+    def __init__(self, answer: bytes | None):
+        import socket
+
+        self.sock = socket.socket()
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.listen(16)
+        self.port = self.sock.getsockname()[1]
+        self.answer, self.clients = answer, []
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self) -> None:
+        while True:
+            try:
+                client, _ = self.sock.accept()
+            except OSError:
+                return
+            if self.answer:
+                client.sendall(self.answer)
+            self.clients.append(client)  # held open: a port that says nothing more
+
+    def close(self) -> None:
+        self.sock.close()
+        for client in self.clients:
+            client.close()
+
+
+@pytest.fixture
+def http_port():
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.SimpleHTTPRequestHandler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    yield server.server_address[1]
+    server.shutdown()
+    server.server_close()
+
+
+def _ray_sweep(tmp_path: Path, port: int) -> subprocess.CompletedProcess:
+    pytest.importorskip("ray")
+    sweep = sweep_file(tmp_path, "seeds = 2\n", 0.05)
+    start = time.monotonic()
+    proc = subprocess.run([sys.executable, "-m", "tether.cli", "sweep", str(sweep), "--out", "out", "--ray",
+                           f"127.0.0.1:{port}"], cwd=tmp_path, env=ENV, capture_output=True, text=True,
+                          timeout=WAIT_S)
+    proc.took_s = time.monotonic() - start
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("tether: error:")]
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr and len(errors) == 1, proc.stderr
+    assert not (tmp_path / "out").exists()
+    proc.error = errors[0]
+    return proc
+
+
+def test_an_http_server_on_the_ray_port_is_not_a_ray_cluster(http_port, tmp_path):
+    proc = _ray_sweep(tmp_path, http_port)
+    assert "is not a Ray cluster" in proc.error and "HTTP" in proc.error, proc.error
+    assert proc.took_s < 30 and proc.stderr.strip() == proc.error
+
+
+def test_a_port_that_says_nothing_is_not_a_ray_cluster(tmp_path):
+    listener = _Listener(None)
+    try:
+        proc = _ray_sweep(tmp_path, listener.port)
+    finally:
+        listener.close()
+    assert "is not a Ray cluster: it said nothing" in proc.error and proc.took_s < 30
+
+
+@pytest.mark.slow
+def test_a_grpc_port_that_is_not_ray_ends_in_a_minute(tmp_path):
+    """Answers HTTP/2's SETTINGS, then nothing: ray.init would retry for ever; its timeout ends the sweep."""
+    from tether.sweep import RAY_INIT_TIMEOUT_S
+
+    listener = _Listener(b"\x00\x00\x00\x04\x00\x00\x00\x00\x00")
+    try:
+        proc = _ray_sweep(tmp_path, listener.port)
+    finally:
+        listener.close()
+    assert "ray.init had not connected within" in proc.error
+    assert RAY_INIT_TIMEOUT_S <= proc.took_s < RAY_INIT_TIMEOUT_S + 60

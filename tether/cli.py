@@ -428,7 +428,7 @@ def cmd_init(args: argparse.Namespace) -> int:
 def cmd_sweep(args: argparse.Namespace) -> int:
     import os
 
-    from tether.sweep import ProcessPool, RayCluster, ResultsFolder, load_sweep, run_sweep
+    from tether.sweep import ProcessPool, RayCluster, RayTimeout, ResultsFolder, load_sweep, run_sweep
 
     engine = folder = None
     try:
@@ -460,7 +460,12 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         if folder is not None:
             folder.release()
         if isinstance(err, ConfigError):
-            return _fail(str(err))
+            code = _fail(str(err))
+            if isinstance(err, RayTimeout):  # ray.init's thread retries for ever and blocks the exit
+                sys.stdout.flush()
+                sys.stderr.flush()
+                os._exit(code)
+            return code
         raise
     try:
         outcome = run_sweep(sweep, folder.out, engine, retry_failed=args.retry_failed)

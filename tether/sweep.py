@@ -682,17 +682,41 @@ class RayCluster(Engine):
 
     def __init__(self, address: str):
         self.address = address
+        # Ray's C++ client logs every failed connection attempt to stderr: errors only
+        os.environ.setdefault("RAY_BACKEND_LOG_LEVEL", "error")
         try:
             import ray
         except ImportError:
             raise ConfigError("--ray", "Ray is not installed (pip install -e '.[ray]')") from None
         self.ray = ray
         _probe_ray_address(address)
-        try:
-            # Workers must import tether: it is installed in the cluster's environment (see docs/sweeps.md).
-            ray.init(address=address, log_to_driver=False, logging_level="ERROR")
-        except (ConnectionError, RuntimeError, ValueError) as err:
-            raise ConfigError("--ray", f"cannot connect to Ray at {address!r}: {str(err).splitlines()[0]}") from None
+        # ray.init retries an address that does not answer as Ray for ever: it runs in a thread of
+        # its own, waited for RAY_INIT_TIMEOUT_S. Workers must import tether: it is installed in the
+        # cluster's environment (see docs/sweeps.md).
+        import threading
+
+        outcome: list[BaseException | None] = []
+
+        def connect() -> None:
+            try:
+                ray.init(address=address, log_to_driver=False, logging_level="ERROR")
+                outcome.append(None)
+            except BaseException as err:  # noqa: BLE001  (handed to the main thread)
+                outcome.append(err)
+
+        threading.Thread(target=connect, name="ray-init", daemon=True).start()
+        deadline = time.monotonic() + RAY_INIT_TIMEOUT_S
+        while not outcome and time.monotonic() < deadline:
+            time.sleep(0.05)  # not Thread.join: a signal still interrupts the wait
+        if not outcome:
+            raise RayTimeout("--ray", f"{address} answered like a gRPC server but ray.init had not connected "
+                                      f"within {RAY_INIT_TIMEOUT_S:.0f} s: is it a Ray cluster's GCS port "
+                                      "(ray start --head --port)?")
+        if isinstance(outcome[0], (ConnectionError, RuntimeError, ValueError)):
+            raise ConfigError("--ray", f"cannot connect to Ray at {address!r}: "
+                                       f"{str(outcome[0]).splitlines()[0]}") from None
+        if outcome[0] is not None:
+            raise outcome[0]
 
     def run(self, trials, recordings):
         ray = self.ray
@@ -720,19 +744,50 @@ def _error_row(trial: Trial, error: str) -> dict:
             "finished_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
 
+RAY_INIT_TIMEOUT_S = 60.0  # a Ray head answers within seconds; its own retries go on for ever
+RAY_PROBE_TIMEOUT_S = 3.0
+# HTTP/2's connection preface and an empty SETTINGS frame: a Ray head's GCS (gRPC) answers with a SETTINGS frame.
+HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
+HTTP2_SETTINGS = 0x04
+
+
+class RayTimeout(ConfigError):
+    """ray.init did not return in time; its thread is still retrying (the command must end at once)."""
+
+
 def _probe_ray_address(address: str) -> None:
-    """Fail fast (ConfigError) on a host:port nobody listens on: ray.init
-    itself retries an unreachable address for a long time."""
+    """Fail fast (ConfigError) on a host:port nobody listens on, or one that does not speak
+    gRPC as a Ray head does (an HTTP server, a port that accepts and says nothing): ray.init
+    itself retries such an address for ever."""
     if address == "auto":
         return
     host_port = address.split("://", 1)[-1]
     host, sep, port = host_port.rpartition(":")
-    if not sep or not port.isdigit():
+    if not sep or not (port.isascii() and port.isdigit()) or int(port) > 65535:
         raise ConfigError("--ray", f"expected 'auto' or HOST:PORT, got {address!r}")
     try:
-        socket.create_connection((host, int(port)), timeout=3).close()
+        with socket.create_connection((host, int(port)), timeout=RAY_PROBE_TIMEOUT_S) as probe:
+            probe.sendall(HTTP2_PREFACE)
+            answer = b""
+            while len(answer) < 9:
+                chunk = probe.recv(9 - len(answer))
+                if not chunk:
+                    break
+                answer += chunk
+    except TimeoutError:
+        answer = None
     except OSError as err:
         raise ConfigError("--ray", f"cannot reach Ray at {host}:{port}: {err.strerror or err}") from None
+    if answer is None or not answer:
+        said = "said nothing" if answer is None else "closed the connection"
+        raise ConfigError("--ray", f"{host}:{port} is not a Ray cluster: it {said} to an HTTP/2 (gRPC) greeting "
+                                   "(give the head's GCS port, ray start --head --port)")
+    if len(answer) < 9 or answer[3] != HTTP2_SETTINGS:
+        first = answer.split(b"\r\n", 1)[0][:40].decode("latin-1")
+        what = f"it answers like an HTTP/1 server ({first!r})" if answer.startswith((b"HTTP/", b"<")) else \
+            f"it answered {first!r} to an HTTP/2 (gRPC) greeting"
+        raise ConfigError("--ray", f"{host}:{port} is not a Ray cluster: {what} (give the head's GCS port, "
+                                   "ray start --head --port)")
 
 
 @contextmanager
