@@ -244,3 +244,40 @@ def test_a_grpc_port_that_is_not_ray_ends_in_a_minute(tmp_path):
         listener.close()
     assert "ray.init had not connected within" in proc.error
     assert RAY_INIT_TIMEOUT_S <= proc.took_s < RAY_INIT_TIMEOUT_S + 60
+
+
+# ---------------------------------------------------------------- files cut short, names that clash
+
+def _tether(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "tether.cli", *args], cwd=cwd, env=ENV, capture_output=True,
+                          text=True, timeout=WAIT_S)
+
+
+def test_a_trial_row_cut_short_says_to_delete_it_and_report_uses_the_table(tmp_path):
+    sweep = sweep_file(tmp_path, "seeds = 2\n", 0.05)
+    assert _tether(["sweep", str(sweep), "--out", "out", "--workers", "1", "--no-report"], tmp_path).returncode == 0
+    row = sorted((tmp_path / "out" / "trials").glob("*.parquet"))[0]
+    row.write_bytes(row.read_bytes()[:100])  # as a full disk or an interrupted copy leaves it
+    proc = _tether(["sweep", str(sweep), "--out", "out", "--workers", "1", "--no-report"], tmp_path)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert row.name in lines[0] and "delete it and run the same command again" in lines[0]
+    report = _tether(["report", "out"], tmp_path)  # results.parquet holds every row
+    assert report.returncode == 0 and "Traceback" not in report.stderr, report.stderr
+    assert (tmp_path / "out" / "report.md").is_file()
+    row.unlink()
+    again = _tether(["sweep", str(sweep), "--out", "out", "--workers", "1", "--no-report"], tmp_path)
+    assert again.returncode == 0 and "2 finished" in again.stdout, again.stderr
+
+
+def test_a_scene_body_named_like_a_robot_is_one_line(tmp_path):
+    scene = (REPO / "models" / "scenes" / "empty.xml").read_text().replace(
+        '<camera name="top"', '<body name="quad0/base" pos="40 60 1"><geom type="box" size="0.2 0.2 0.2"/></body>'
+                              '<camera name="top"')
+    (tmp_path / "clash.xml").write_text(scene)
+    proc = _tether(["run", "hover", "--scene", "clash.xml", "--duration", "0.05", "--out", "out", "--quiet"],
+                   tmp_path)
+    errors = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(errors) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert errors[0].startswith("tether: error: scene: clash.xml: repeated name 'quad0/base'"), errors[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clash.xml"]

@@ -64,6 +64,8 @@ FORMAT = "tether-sweep/1"  # sweep.json's format tag: anything else is a foreign
 TRIALS_FOLDER = "trials"
 RESULTS_FILE = "results.parquet"
 MANIFEST_FILE = "sweep.json"
+CUT_SHORT_HINT = ("a file cut short (a full disk, a copy interrupted): delete it and run the same command "
+                  "again; that trial runs again")
 LOCK_FILE = ".sweep.lock"  # flock()ed by the driver that runs the sweep (its pid inside)
 MAX_TRIALS = 100_000  # trials of one sweep (fig9 has 1,800): the expansion and its rows stay in memory
 SWEEP_KEYS = {"description", "scenario", "duration_s", "seeds", "set", "grid", "zip", "record"}
@@ -471,7 +473,8 @@ class ResultsFolder:
             try:
                 table = pq.read_table(path, columns=["trial_id", "attempt", "status"])
             except Exception as err:
-                raise ConfigError("--out", f"{path} is not a readable trial row: {err}") from None
+                raise ConfigError("--out", f"{path} is not a readable trial row ({str(err).splitlines()[0]}): "
+                                           f"{CUT_SHORT_HINT}") from None
             for trial_id, attempt, status in zip(*(table.column(c).to_pylist() for c in table.column_names)):
                 if known_ids is not None and trial_id not in known_ids:
                     raise ConfigError("--out", f"{path} holds trial {trial_id}, which is not in this sweep")
@@ -556,13 +559,21 @@ def read_results(out: str | Path, all_attempts: bool = False):
     files = folder.trial_files()
     try:
         if files:
-            table = pa.concat_tables([pq.read_table(p) for p in files], promote_options="permissive")
+            try:
+                table = pa.concat_tables([pq.read_table(p) for p in files], promote_options="permissive")
+            except Exception as err:  # a row cut short: the consolidated table, when there is one, still holds it
+                if not (folder.out / RESULTS_FILE).is_file():
+                    raise ConfigError("results", f"{out}: a trial row is unreadable ({str(err).splitlines()[0]}): "
+                                                 f"{CUT_SHORT_HINT}") from None
+                table = pq.read_table(folder.out / RESULTS_FILE)
         elif (folder.out / RESULTS_FILE).is_file():
             table = pq.read_table(folder.out / RESULTS_FILE)
         elif folder.out.is_file() and folder.out.suffix == ".parquet":
             table = pq.read_table(folder.out)
         else:
             return None
+    except ConfigError:
+        raise
     except Exception as err:
         raise ConfigError("results", f"{out}: unreadable results: {err}") from None
     missing = [c for c in ("trial_id", "attempt", "status") if c not in table.column_names]
