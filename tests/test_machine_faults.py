@@ -281,3 +281,14 @@ def test_a_scene_body_named_like_a_robot_is_one_line(tmp_path):
     assert proc.returncode == 2 and len(errors) == 1 and "Traceback" not in proc.stderr, proc.stderr
     assert errors[0].startswith("tether: error: scene: clash.xml: repeated name 'quad0/base'"), errors[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["clash.xml"]
+
+
+def test_a_full_disk_under_a_recording_is_one_line(full_disk, tmp_path):
+    """556 KiB free: the recording's segments fill it; the merge fails as an OSError naming run.rrd (not
+    rerun's RuntimeError traceback), exit 1, the staging folder removed."""
+    (full_disk / "filler").write_bytes(b"\0" * 44 * 1024)
+    proc = _tether(["run", "hover", "--duration", "20", "--rrd", "--out", str(full_disk / "r"), "--quiet"], tmp_path)
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("tether: error:")]
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert len(errors) == 1 and "cannot write" in errors[0] and "r.partial-" in errors[0], proc.stderr
+    assert sorted(p.name for p in full_disk.iterdir()) == ["filler"]
