@@ -37,6 +37,8 @@ from typing import Any, get_args, get_origin, get_type_hints
 
 
 MAX_INT = 2**63 - 1  # integers beyond int64 are refused wherever they go
+MAX_TOML_BYTES = 1_000_000  # a scenario or sweep file is a short text
+MAX_NESTING = 32  # lists and tables inside each other: a scenario needs 4, a sweep's grid one more
 
 
 def _number_text(value: float) -> str:
@@ -58,6 +60,62 @@ class ConfigError(ValueError):
         super().__init__(f"{field}: {problem}")
         self.field = field
         self.problem = problem
+
+
+def nesting_depth(value: Any) -> int:
+    """How deeply lists and tables nest in ``value`` (a scalar: 0), without recursion."""
+    deepest, stack = 0, [(value, 0)]
+    while stack:
+        node, depth = stack.pop()
+        if isinstance(node, dict):
+            node = list(node.values())
+        if isinstance(node, (list, tuple)):
+            deepest = max(deepest, depth + 1)
+            if depth + 1 > MAX_NESTING:
+                return depth + 1
+            stack.extend((child, depth + 1) for child in node)
+    return deepest
+
+
+def check_nesting(value: Any, field: str) -> Any:
+    """ConfigError (naming ``field``) for lists or tables nested deeper than ``MAX_NESTING``."""
+    if nesting_depth(value) > MAX_NESTING:
+        raise ConfigError(field, f"lists or tables nested more than {MAX_NESTING} deep")
+    return value
+
+
+def parse_toml(text: str, field: str, what: str) -> dict:
+    """``tomllib.loads`` with its failures (nesting too deep for the parser included) as one
+    ConfigError naming ``field``; ``what`` says what the text is in the message."""
+    import tomllib
+
+    try:
+        table = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(field, f"{what} is not valid TOML: {err}") from None
+    except RecursionError:
+        raise ConfigError(field, f"{what} is not valid TOML: lists or tables nested too deeply") from None
+    return check_nesting(table, field)
+
+
+def read_toml_file(path: Path, field: str) -> dict:
+    """A TOML file's table, its size bounded before it is read (``MAX_TOML_BYTES``): one
+    ConfigError naming ``field`` for a file that cannot be read, is too large, is not UTF-8
+    text, is not TOML or nests too deeply."""
+    try:
+        with open(path, "rb") as f:
+            raw = f.read(MAX_TOML_BYTES + 1)
+    except OSError as err:
+        raise ConfigError(field, f"cannot read {path}: {err.strerror or err}") from None
+    if len(raw) > MAX_TOML_BYTES:
+        raise ConfigError(field, f"{path} is larger than {MAX_TOML_BYTES} bytes; not a {field} file")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ConfigError(field, f"{path} is not a text file (byte {err.start} is not UTF-8)") from None
+    if "\0" in text:
+        raise ConfigError(field, f"{path} is not a text file (it holds NUL bytes)")
+    return parse_toml(text, field, str(path))
 
 
 def builtin_descriptions(folder: Path) -> dict[str, str]:

@@ -17,7 +17,8 @@ from pathlib import Path
 from typing import Any, Literal
 
 from sim.radio.config import RadioConfig
-from sim.config import ConfigError, build, builtin_descriptions, builtin_or_file, require, to_table
+from sim.config import (MAX_INT, MAX_TOML_BYTES, ConfigError, build, builtin_descriptions, builtin_or_file,
+                        check_nesting, read_toml_file, require, to_table)
 from sim.strategy import strategy_kinds, strategy_params_class
 from models import MODELS_DIR
 
@@ -40,9 +41,11 @@ Vec3 = tuple[float, float, float]
 
 MAX_ROBOTS = 200  # robots in one scenario: the per-tick pairwise arrays stay small
 MAX_TARGETS = 200  # moving targets in one scenario
-MAX_SEED = 2**64 - 1  # np.random.default_rng takes seeds in [0, 2**64)
+# np.random.default_rng takes seeds up to 2**64 - 1, but a sweep stores them in an int64 Parquet
+# column (and every integer of a scenario is int64): one range for runs and sweeps.
+MAX_SEED = MAX_INT
 MAX_DURATION_S = 1e6  # simulated seconds (about 11.6 days)
-MAX_SCENARIO_BYTES = 1_000_000  # a scenario file is a short text
+MAX_SCENARIO_BYTES = MAX_TOML_BYTES
 
 
 @dataclass(frozen=True)
@@ -194,7 +197,7 @@ class ScenarioBody:
         require(self.duration_s > 0, "duration_s", f"must be positive, got {self.duration_s}")
         require(self.duration_s <= MAX_DURATION_S, "duration_s",
                 f"must be at most {MAX_DURATION_S:g} s, got {self.duration_s:g}")
-        require(0 <= self.seed <= MAX_SEED, "seed", f"must be in [0, 2**64 - 1], got {self.seed}")
+        require(0 <= self.seed <= MAX_SEED, "seed", f"must be in [0, 2**63 - 1], got {self.seed}")
         require(len(self.robots) >= 1, "robots", "must define at least one robot group")
         n_robots = sum(len(g.positions()) for g in self.robots)
         require(n_robots <= MAX_ROBOTS, "robots", f"has {n_robots} robots, at most {MAX_ROBOTS}")
@@ -240,11 +243,13 @@ def builtin_scenarios() -> dict[str, str]:
     return builtin_descriptions(builtin_scenario_folder())
 
 
-def _parse_value(text: str) -> Any:
+def _parse_value(text: str, key: str) -> Any:
     try:
-        return tomllib.loads(f"v = {text}")["v"]
+        return check_nesting(tomllib.loads(f"v = {text}")["v"], key)
     except tomllib.TOMLDecodeError:
         return text  # a bare word: take it as a string
+    except RecursionError:
+        raise ConfigError(key, "lists or tables nested too deeply") from None
 
 
 def apply_override(table: dict, assignment: str) -> None:
@@ -269,33 +274,15 @@ def apply_override(table: dict, assignment: str) -> None:
     if isinstance(node, list):
         if not last.isdigit() or int(last) >= len(node):
             raise ConfigError(key, f"no list entry {last} (has {len(node)})")
-        node[int(last)] = _parse_value(text.strip())
+        node[int(last)] = _parse_value(text.strip(), key)
     else:
-        node[last] = _parse_value(text.strip())
+        node[last] = _parse_value(text.strip(), key)
 
 
 def read_table(name_or_path: str) -> tuple[dict, str]:
     """The raw TOML table of a built-in name or a file, and its source path."""
     path = builtin_or_file(name_or_path, builtin_scenario_folder(), "scenario")
-    try:
-        with open(path, "rb") as f:
-            raw = f.read(MAX_SCENARIO_BYTES + 1)
-    except OSError as err:
-        raise ConfigError("scenario", f"cannot read {path}: {err.strerror or err}") from None
-    if len(raw) > MAX_SCENARIO_BYTES:
-        raise ConfigError("scenario", f"{path} is larger than {MAX_SCENARIO_BYTES} bytes; not a scenario file")
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as err:
-        raise ConfigError("scenario", f"{path} is not a text file (byte {err.start} is not UTF-8)") from None
-    if "\0" in text:
-        raise ConfigError("scenario", f"{path} is not a text file (it holds NUL bytes)")
-    try:
-        return tomllib.loads(text), str(path)
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError("scenario", f"{path} is not valid TOML: {err}") from None
-    except RecursionError:
-        raise ConfigError("scenario", f"{path} is not valid TOML: nested too deeply") from None
+    return read_toml_file(path, "scenario"), str(path)
 
 
 def from_table(table: dict, source: str = "") -> Scenario:

@@ -244,7 +244,16 @@ def build_world(scenario: Scenario, target_starts: np.ndarray, target_path_sampl
         kinds.append(kind)
     for a, start in enumerate(target_starts):
         _attach(spec, TARGET_FILE, f"target{a}/", start)
-    model = spec.compile()
+    try:
+        model = spec.compile()
+    except ValueError as err:  # the scene compiled alone: a clash is with the robots' or targets' names
+        if "repeated name" not in str(err):
+            raise
+        reason = " ".join(str(err).replace("Error:", "").split())
+        raise ConfigError("scene", f"{scene_path.name}: {reason}: the scene names an element like one of the "
+                                   f"robots or targets tether adds ({', '.join(f'{n}/...' for n in names[:3])}"
+                                   f"{', target0/...' if len(target_starts) else ''}): rename it in the "
+                                   "scene") from None
     data = mujoco.MjData(model)
 
     body_ids = np.array([model.body(f"{n}/base").id for n in names], dtype=int)

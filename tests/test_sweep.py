@@ -143,6 +143,7 @@ def test_time_limited_trials_are_results_and_interrupted_ones_run_again(tmp_path
     for trial, status in ((capped, "time limit"), (interrupted, "interrupted")):
         folder.store({"trial_id": trial.trial_id, "trial_index": trial.index, "attempt": 1, "scenario": "hover",
                       "seed": trial.seed, "status": status, "error": f"stopped: {status}"})
+    folder.release()  # claim() locked the folder for this process: the driver below claims it again
     assert main(["sweep", str(sweep_path), "--out", str(out), "--workers", "1", "--retry-failed"]) == 0
     assert "3 finished, 0 failed, 0 not run of 3" in capsys.readouterr().out
     latest = {r["trial_id"]: (r["attempt"], r["status"]) for r in read_results(out).to_pylist()}

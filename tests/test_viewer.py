@@ -137,3 +137,15 @@ def test_the_viewer_legend_names_every_role_and_team_colour_distinctly():
     assert roles == ["vermillion", "blue", "reddish purple", "sky blue"]
     teams = [colour_name(rgba) for rgba in TEAM_COLORS]
     assert len(set(teams)) == len(teams)
+
+
+def test_a_display_that_does_not_exist_is_one_line_and_leaves_no_log(tmp_path):
+    """DISPLAY names a display nobody serves: one line, exit 2, no GLFW warning, no MUJOCO_LOG.TXT."""
+    env = {**os.environ, "DISPLAY": ":97", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    env.pop("WAYLAND_DISPLAY", None)
+    proc = subprocess.run([sys.executable, "-m", "tether.cli", "view", "hover"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=120)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert "cannot open the display ':97'" in lines[0] and "tether run --video" in lines[0]
+    assert not list(tmp_path.iterdir())

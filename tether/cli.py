@@ -26,6 +26,7 @@ EXIT_CODES = {Status.COMPLETED: 0, Status.TIME_LIMIT: 0, Status.DIVERGED: 1, Sta
               Status.FAILED: 1}
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
+MAX_WORKERS_PER_CORE = 4  # tether sweep --workers: trials are CPU-bound, more processes only take memory
 
 
 class _Parser(argparse.ArgumentParser):
@@ -427,9 +428,9 @@ def cmd_init(args: argparse.Namespace) -> int:
 def cmd_sweep(args: argparse.Namespace) -> int:
     import os
 
-    from tether.sweep import ProcessPool, RayCluster, ResultsFolder, load_sweep, run_sweep
+    from tether.sweep import ProcessPool, RayCluster, RayTimeout, ResultsFolder, load_sweep, run_sweep
 
-    engine = None
+    engine = folder = None
     try:
         sweep = load_sweep(args.sweep, video=args.video, rrd=args.rrd)
         if args.list:
@@ -444,22 +445,38 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         check_out_path(args.out)  # not "", /, the home folder, nor a name too long
         if args.ray is not None and args.workers is not None:
             raise ConfigError("--workers", "sizes the local pool; with --ray the cluster decides")
-        workers = int(_number(args.workers, "--workers", int, minimum=1)) if args.workers else os.cpu_count() or 1
+        cores = os.cpu_count() or 1
+        workers = int(_number(args.workers, "--workers", int, minimum=1)) if args.workers else cores
+        if workers > MAX_WORKERS_PER_CORE * cores:  # each worker is a process of ~200 MB
+            raise ConfigError("--workers", f"must be at most {MAX_WORKERS_PER_CORE * cores} ({MAX_WORKERS_PER_CORE} "
+                                           f"per core of this machine's {cores}), got {workers}")
         folder = ResultsFolder(args.out)
         folder.check(sweep)  # before connecting to anything or creating the folder
         engine = RayCluster(args.ray) if args.ray is not None else ProcessPool(workers)
         folder.claim(sweep)
-    except ConfigError as err:
+    except BaseException as err:
         if engine is not None:
             engine.close()
-        return _fail(str(err))
-    outcome = run_sweep(sweep, folder.out, engine, retry_failed=args.retry_failed)
-    report_note = ""
-    if not args.no_report and outcome.results is not None:
-        from tether.report import write_report
+        if folder is not None:
+            folder.release()
+        if isinstance(err, ConfigError):
+            code = _fail(str(err))
+            if isinstance(err, RayTimeout):  # ray.init's thread retries for ever and blocks the exit
+                sys.stdout.flush()
+                sys.stderr.flush()
+                os._exit(code)
+            return code
+        raise
+    try:
+        outcome = run_sweep(sweep, folder.out, engine, retry_failed=args.retry_failed)
+        report_note = ""
+        if not args.no_report and outcome.results is not None:
+            from tether.report import write_report
 
-        files = write_report(folder.out)
-        report_note = f"; report {files[0].parent / 'report.md'}" if files else ""
+            files = write_report(folder.out)
+            report_note = f"; report {files[0].parent / 'report.md'}" if files else ""
+    finally:
+        folder.release()
     where = f"table {outcome.results}" if outcome.results else "no rows yet"
     print(f"{sweep.name}: {outcome.finished} finished, {outcome.failed} failed, {outcome.not_run} not run "
           f"of {outcome.total}; {where}{report_note}")
@@ -525,11 +542,13 @@ def main(argv: list[str] | None = None) -> int:
                 "init": cmd_init, "radiomap": cmd_radiomap, "sweep": cmd_sweep, "sweeps": cmd_sweeps,
                 "report": cmd_report}
     previous = {}
-    if args.command == "run" and threading.current_thread() is threading.main_thread():
-        # SIGTERM as Ctrl-C until the run's own handlers are in place (sim.loop): set-up stops at once,
-        # nothing written; and after the run (the live viewer's wait) it ends the command the same way.
+    if threading.current_thread() is threading.main_thread():
+        # SIGTERM as Ctrl-C in every command: a run's set-up stops at once, nothing written (its ticks
+        # have their own handlers, sim.loop), a sweep's driver stops and writes its table, a listing
+        # or the tuning page ends. A SIGINT ignored from the start (a shell's background job) stays so.
         _interrupted.clear()
-        previous = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+        signals = [signal.SIGTERM] + [signal.SIGINT] * (signal.getsignal(signal.SIGINT) is not signal.SIG_IGN)
+        previous = {sig: signal.signal(sig, _raise_interrupt) for sig in signals}
     try:
         code = handlers[args.command](args)
         sys.stdout.flush()  # here, not at exit: a closed pipe or a full disk is seen by the barrier

@@ -49,7 +49,6 @@ import socket
 import subprocess
 import sys
 import time
-import tomllib
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -57,7 +56,7 @@ from itertools import product
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from sim.config import ConfigError, builtin_descriptions, builtin_or_file
+from sim.config import ConfigError, builtin_descriptions, builtin_or_file, read_toml_file
 from sim.strategy import Status
 
 SWEEP_DIR = Path(__file__).parent / "sweeps"
@@ -65,6 +64,10 @@ FORMAT = "tether-sweep/1"  # sweep.json's format tag: anything else is a foreign
 TRIALS_FOLDER = "trials"
 RESULTS_FILE = "results.parquet"
 MANIFEST_FILE = "sweep.json"
+CUT_SHORT_HINT = ("a file cut short (a full disk, a copy interrupted): delete it and run the same command "
+                  "again; that trial runs again")
+LOCK_FILE = ".sweep.lock"  # flock()ed by the driver that runs the sweep (its pid inside)
+MAX_TRIALS = 100_000  # trials of one sweep (fig9 has 1,800): the expansion and its rows stay in memory
 SWEEP_KEYS = {"description", "scenario", "duration_s", "seeds", "set", "grid", "zip", "record"}
 # Columns every row has, before the swept keys and the metrics.
 ROW_KEYS = ("trial_id", "trial_index", "attempt", "scenario", "seed", "duration_s", "overrides", "status",
@@ -122,11 +125,7 @@ def builtin_sweeps() -> dict[str, str]:
 
 def _read_sweep_table(name_or_path: str) -> tuple[dict, Path]:
     path = builtin_or_file(name_or_path, SWEEP_DIR, "sweep")
-    try:
-        with open(path, "rb") as f:
-            return tomllib.load(f), path
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
-        raise ConfigError("sweep", f"{path} is not valid TOML: {err}") from None
+    return read_toml_file(path, "sweep"), path
 
 
 def _base_scenario(name: Any, sweep_path: Path, key: str) -> str:
@@ -144,13 +143,18 @@ def _base_scenario(name: Any, sweep_path: Path, key: str) -> str:
 
 
 def _seeds(value: Any) -> list[int]:
+    """The seeds a sweep's ``seeds`` names, every one checked (a run's range), the count
+    bounded before the list is made."""
+    from sim.scenario import MAX_SEED
+
     if isinstance(value, int) and not isinstance(value, bool):
-        if value < 1:
-            raise ConfigError("seeds", f"must be at least 1 (a count) or a list of seeds, got {value}")
+        if not 1 <= value <= MAX_TRIALS:
+            raise ConfigError("seeds", f"must be a count from 1 to {MAX_TRIALS} or a list of seeds, got {value}")
         return list(range(value))
     if isinstance(value, list) and value and all(isinstance(s, int) and not isinstance(s, bool) for s in value):
-        if min(value) < 0:
-            raise ConfigError("seeds", f"must be non-negative, got {min(value)}")
+        wrong = [s for s in value if not 0 <= s <= MAX_SEED]
+        if wrong:
+            raise ConfigError("seeds", f"every seed must be in [0, 2**63 - 1], got {wrong[0]}")
         if len(set(value)) != len(value):
             raise ConfigError("seeds", "lists a seed twice")
         return list(value)
@@ -165,8 +169,25 @@ def _axis(table: Any, where: str) -> list[tuple[str, list]]:
     for key, values in table.items():
         if not isinstance(values, list) or not values:
             raise ConfigError(f"{where}.{key}", f"must be a non-empty list of values, got {values!r}")
+        for value in values:
+            _check_toml_value(value, f"{where}.{key}")
         axes.append((key, values))
     return axes
+
+
+def _check_toml_value(value: Any, where: str) -> None:
+    """ConfigError for a value a scenario cannot hold (TOML's dates and times): numbers,
+    strings, booleans, lists and tables only."""
+    stack = [value]
+    while stack:
+        node = stack.pop()
+        if isinstance(node, dict):
+            stack.extend(node.values())
+        elif isinstance(node, list):
+            stack.extend(node)
+        elif not isinstance(node, (bool, int, float, str)):
+            raise ConfigError(where, f"a scenario value is a number, string, boolean, list or table, got the "
+                                     f"{type(node).__name__} {node}")
 
 
 def load_sweep(name_or_path: str, video: Iterable[str] = (), rrd: Iterable[str] = ()) -> Sweep:
@@ -211,6 +232,11 @@ def load_sweep(name_or_path: str, video: Iterable[str] = (), rrd: Iterable[str] 
         if len(lengths) != 1:
             raise ConfigError(f"zip.{i}", f"lists of different lengths {sorted(lengths)}: tied keys need one value each")
         groups.append([tuple((key, values[j]) for key, values in axes) for j in range(lengths.pop())])
+    n_trials = len(seeds) * math.prod(len(group) for group in groups)  # before a trial is made
+    if n_trials > MAX_TRIALS:
+        sizes = " x ".join(str(n) for n in (len(seeds), *(len(group) for group in groups)))
+        raise ConfigError("grid", f"expands to {n_trials} trials ({sizes}, seeds first), at most {MAX_TRIALS}: "
+                                  "split the sweep")
     keys = [key for group in groups for key, _ in group[0]]
     twice = sorted({k for k in keys if keys.count(k) > 1})
     if twice:
@@ -381,7 +407,7 @@ class ResultsFolder:
             raise ConfigError("--out", f"{self.out} exists and is not a folder")
         manifest = self.read_manifest()
         if manifest is None:
-            if self.out.exists() and any(self.out.iterdir()):
+            if self.out.exists() and any(p.name != LOCK_FILE for p in self.out.iterdir()):
                 raise ConfigError("--out", f"{self.out} is not empty and holds no {MANIFEST_FILE}: "
                                            "choose an empty or new folder")
             return
@@ -392,10 +418,14 @@ class ResultsFolder:
         self.latest_status({t.trial_id for t in sweep.trials})
 
     def claim(self, sweep: Sweep) -> None:
-        """Make DIR this sweep's folder (after :meth:`check`)."""
+        """Make DIR this sweep's folder (after :meth:`check`), locked for this process: a
+        second driver in the same folder is refused (ConfigError) instead of running every
+        trial again beside the first. The lock goes with the process (however it ends)."""
         self.check(sweep)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self._lock()
+        self.check(sweep)  # again, under the lock: another driver may have claimed it meanwhile
         if self.read_manifest() is None:
-            self.out.mkdir(parents=True, exist_ok=True)
             _write_atomic(self.manifest_path, json.dumps({
                 "format": FORMAT, "sweep": sweep.name, "description": sweep.description,
                 "definition_hash": sweep.definition_hash, "definition": sweep.definition,
@@ -403,6 +433,31 @@ class ResultsFolder:
                 "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             }, indent=2).encode() + b"\n")
         self.trials_dir.mkdir(exist_ok=True)
+
+    def _lock(self) -> None:
+        import fcntl
+
+        path = self.out / LOCK_FILE
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            os.close(fd)
+            raise ConfigError("--out", f"{self.out} is in use by another tether sweep (process {holder}): "
+                                       "wait for it to end, or choose another folder") from None
+        try:  # the holder's pid, for the message above; a full disk may leave it empty
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError:
+            pass
+        self._lock_fd = fd  # held until release() or the end of the process
+
+    def release(self) -> None:
+        """Let another driver claim the folder (the lock file stays: it is the sweep's)."""
+        fd, self._lock_fd = getattr(self, "_lock_fd", None), None
+        if fd is not None:
+            os.close(fd)
 
     def trial_files(self) -> list[Path]:
         if not self.trials_dir.is_dir():
@@ -418,7 +473,8 @@ class ResultsFolder:
             try:
                 table = pq.read_table(path, columns=["trial_id", "attempt", "status"])
             except Exception as err:
-                raise ConfigError("--out", f"{path} is not a readable trial row: {err}") from None
+                raise ConfigError("--out", f"{path} is not a readable trial row ({str(err).splitlines()[0]}): "
+                                           f"{CUT_SHORT_HINT}") from None
             for trial_id, attempt, status in zip(*(table.column(c).to_pylist() for c in table.column_names)):
                 if known_ids is not None and trial_id not in known_ids:
                     raise ConfigError("--out", f"{path} holds trial {trial_id}, which is not in this sweep")
@@ -433,8 +489,9 @@ class ResultsFolder:
 
         path = self.trials_dir / f"{row['trial_id']}.a{row['attempt']}.parquet"
         tmp = self.trials_dir / f".{path.name}.{os.getpid()}.tmp"
-        pq.write_table(pa.Table.from_pylist([row]), tmp)
-        _fsync_replace(tmp, path)
+        with _writing(path, tmp):
+            pq.write_table(pa.Table.from_pylist([row]), tmp)
+            _fsync_replace(tmp, path)
         return path
 
     def consolidate(self) -> Path | None:
@@ -446,8 +503,9 @@ class ResultsFolder:
             return None
         path = self.out / RESULTS_FILE
         tmp = self.out / f".{RESULTS_FILE}.{os.getpid()}.tmp"
-        pq.write_table(table, tmp)
-        _fsync_replace(tmp, path)
+        with _writing(path, tmp):
+            pq.write_table(table, tmp)
+            _fsync_replace(tmp, path)
         return path
 
 
@@ -457,10 +515,32 @@ def _fsync_replace(tmp: Path, path: Path) -> None:
     os.replace(tmp, path)
 
 
+@contextmanager
+def _writing(path: Path, tmp: Path):
+    """Around a write of ``path`` through ``tmp``: on any failure (a full disk) no
+    half-written ``tmp`` is left, and an OSError names ``path`` (pyarrow's and the lock's
+    name no file), so the command's one line says where."""
+    import errno as errnos
+    import re
+
+    try:
+        yield
+    except BaseException as err:
+        tmp.unlink(missing_ok=True)
+        if isinstance(err, OSError) and err.filename is None:
+            code = err.errno
+            if code is None:
+                found = re.search(r"\[errno (\d+)\]", str(err))
+                code = int(found.group(1)) if found else errnos.EIO
+            raise OSError(code, os.strerror(code), str(path)) from None
+        raise
+
+
 def _write_atomic(path: Path, data: bytes) -> None:
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(data)
-    _fsync_replace(tmp, path)
+    with _writing(path, tmp):
+        tmp.write_bytes(data)
+        _fsync_replace(tmp, path)
 
 
 def read_results(out: str | Path, all_attempts: bool = False):
@@ -479,13 +559,21 @@ def read_results(out: str | Path, all_attempts: bool = False):
     files = folder.trial_files()
     try:
         if files:
-            table = pa.concat_tables([pq.read_table(p) for p in files], promote_options="permissive")
+            try:
+                table = pa.concat_tables([pq.read_table(p) for p in files], promote_options="permissive")
+            except Exception as err:  # a row cut short: the consolidated table, when there is one, still holds it
+                if not (folder.out / RESULTS_FILE).is_file():
+                    raise ConfigError("results", f"{out}: a trial row is unreadable ({str(err).splitlines()[0]}): "
+                                                 f"{CUT_SHORT_HINT}") from None
+                table = pq.read_table(folder.out / RESULTS_FILE)
         elif (folder.out / RESULTS_FILE).is_file():
             table = pq.read_table(folder.out / RESULTS_FILE)
         elif folder.out.is_file() and folder.out.suffix == ".parquet":
             table = pq.read_table(folder.out)
         else:
             return None
+    except ConfigError:
+        raise
     except Exception as err:
         raise ConfigError("results", f"{out}: unreadable results: {err}") from None
     missing = [c for c in ("trial_id", "attempt", "status") if c not in table.column_names]
@@ -536,8 +624,10 @@ class ProcessPool(Engine):
 
         from concurrent.futures.process import BrokenProcessPool
 
-        self.pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=get_context("forkserver"),
-                                        initializer=_end_with_driver, initargs=(os.getpid(),))
+        # no more processes than trials to run (each is a process of ~200 MB)
+        self.pool = ProcessPoolExecutor(max_workers=max(1, min(self.workers, len(trials))),
+                                        mp_context=get_context("forkserver"), initializer=_end_with_driver,
+                                        initargs=(os.getpid(),))
         futures = [self.pool.submit(run_trial, trial, recordings) for trial in trials]
         try:
             for future in as_completed(futures):
@@ -555,7 +645,7 @@ class ProcessPool(Engine):
         self.pool.shutdown(wait=False, cancel_futures=True)
         for process in workers:
             if process.is_alive():
-                process.terminate()
+                process.kill()  # they ignore SIGTERM (_end_with_driver)
         for process in workers:
             process.join(timeout=10)
 
@@ -568,6 +658,12 @@ def _end_with_driver(driver_pid: int) -> None:
     Without it a worker would finish its trial and take the next queued ones, whose rows nobody
     stores: CPU spent for nothing while the next call runs them again."""
     import threading
+
+    # The group's Ctrl-C or SIGTERM is the driver's to handle (it stores the rows it has, then
+    # stops the workers); a worker that died of it would break the pool first. A trial's ticks
+    # install their own handlers (sim.loop): a signal then ends that trial "interrupted".
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
 
     def watch() -> None:
         while True:
@@ -597,17 +693,41 @@ class RayCluster(Engine):
 
     def __init__(self, address: str):
         self.address = address
+        # Ray's C++ client logs every failed connection attempt to stderr: errors only
+        os.environ.setdefault("RAY_BACKEND_LOG_LEVEL", "error")
         try:
             import ray
         except ImportError:
             raise ConfigError("--ray", "Ray is not installed (pip install -e '.[ray]')") from None
         self.ray = ray
         _probe_ray_address(address)
-        try:
-            # Workers must import tether: it is installed in the cluster's environment (see docs/sweeps.md).
-            ray.init(address=address, log_to_driver=False, logging_level="ERROR")
-        except (ConnectionError, RuntimeError, ValueError) as err:
-            raise ConfigError("--ray", f"cannot connect to Ray at {address!r}: {str(err).splitlines()[0]}") from None
+        # ray.init retries an address that does not answer as Ray for ever: it runs in a thread of
+        # its own, waited for RAY_INIT_TIMEOUT_S. Workers must import tether: it is installed in the
+        # cluster's environment (see docs/sweeps.md).
+        import threading
+
+        outcome: list[BaseException | None] = []
+
+        def connect() -> None:
+            try:
+                ray.init(address=address, log_to_driver=False, logging_level="ERROR")
+                outcome.append(None)
+            except BaseException as err:  # noqa: BLE001  (handed to the main thread)
+                outcome.append(err)
+
+        threading.Thread(target=connect, name="ray-init", daemon=True).start()
+        deadline = time.monotonic() + RAY_INIT_TIMEOUT_S
+        while not outcome and time.monotonic() < deadline:
+            time.sleep(0.05)  # not Thread.join: a signal still interrupts the wait
+        if not outcome:
+            raise RayTimeout("--ray", f"{address} answered like a gRPC server but ray.init had not connected "
+                                      f"within {RAY_INIT_TIMEOUT_S:.0f} s: is it a Ray cluster's GCS port "
+                                      "(ray start --head --port)?")
+        if isinstance(outcome[0], (ConnectionError, RuntimeError, ValueError)):
+            raise ConfigError("--ray", f"cannot connect to Ray at {address!r}: "
+                                       f"{str(outcome[0]).splitlines()[0]}") from None
+        if outcome[0] is not None:
+            raise outcome[0]
 
     def run(self, trials, recordings):
         ray = self.ray
@@ -635,19 +755,50 @@ def _error_row(trial: Trial, error: str) -> dict:
             "finished_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
 
+RAY_INIT_TIMEOUT_S = 60.0  # a Ray head answers within seconds; its own retries go on for ever
+RAY_PROBE_TIMEOUT_S = 3.0
+# HTTP/2's connection preface and an empty SETTINGS frame: a Ray head's GCS (gRPC) answers with a SETTINGS frame.
+HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
+HTTP2_SETTINGS = 0x04
+
+
+class RayTimeout(ConfigError):
+    """ray.init did not return in time; its thread is still retrying (the command must end at once)."""
+
+
 def _probe_ray_address(address: str) -> None:
-    """Fail fast (ConfigError) on a host:port nobody listens on: ray.init
-    itself retries an unreachable address for a long time."""
+    """Fail fast (ConfigError) on a host:port nobody listens on, or one that does not speak
+    gRPC as a Ray head does (an HTTP server, a port that accepts and says nothing): ray.init
+    itself retries such an address for ever."""
     if address == "auto":
         return
     host_port = address.split("://", 1)[-1]
     host, sep, port = host_port.rpartition(":")
-    if not sep or not port.isdigit():
+    if not sep or not (port.isascii() and port.isdigit()) or int(port) > 65535:
         raise ConfigError("--ray", f"expected 'auto' or HOST:PORT, got {address!r}")
     try:
-        socket.create_connection((host, int(port)), timeout=3).close()
+        with socket.create_connection((host, int(port)), timeout=RAY_PROBE_TIMEOUT_S) as probe:
+            probe.sendall(HTTP2_PREFACE)
+            answer = b""
+            while len(answer) < 9:
+                chunk = probe.recv(9 - len(answer))
+                if not chunk:
+                    break
+                answer += chunk
+    except TimeoutError:
+        answer = None
     except OSError as err:
         raise ConfigError("--ray", f"cannot reach Ray at {host}:{port}: {err.strerror or err}") from None
+    if answer is None or not answer:
+        said = "said nothing" if answer is None else "closed the connection"
+        raise ConfigError("--ray", f"{host}:{port} is not a Ray cluster: it {said} to an HTTP/2 (gRPC) greeting "
+                                   "(give the head's GCS port, ray start --head --port)")
+    if len(answer) < 9 or answer[3] != HTTP2_SETTINGS:
+        first = answer.split(b"\r\n", 1)[0][:40].decode("latin-1")
+        what = f"it answers like an HTTP/1 server ({first!r})" if answer.startswith((b"HTTP/", b"<")) else \
+            f"it answered {first!r} to an HTTP/2 (gRPC) greeting"
+        raise ConfigError("--ray", f"{host}:{port} is not a Ray cluster: {what} (give the head's GCS port, "
+                                   "ray start --head --port)")
 
 
 @contextmanager

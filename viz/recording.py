@@ -39,7 +39,11 @@ that connects late still gets the whole run.
 
 from __future__ import annotations
 
+import contextlib
 import datetime
+import errno
+import os
+import re
 import shutil
 import socket
 import subprocess
@@ -91,6 +95,20 @@ def default_blueprint() -> rrb.Blueprint:
         collapse_panels=True,
     )
 
+
+
+@contextlib.contextmanager
+def _rerun_writing(path: Path):
+    """Rerun's writes fail with a RuntimeError ("... (os error 28)"): as the OSError it is,
+    naming ``path``, so the command's barrier says it in one line (a full disk)."""
+    try:
+        yield
+    except RuntimeError as err:  # rerun's writer failing: with its os error, or only "thread shut down"
+        found = re.search(r"os error (\d+)", str(err))
+        if found:
+            code = int(found.group(1))
+            raise OSError(code, os.strerror(code), str(path)) from None
+        raise OSError(errno.EIO, f"Rerun could not write it ({str(err).splitlines()[0]})", str(path)) from None
 
 class LiveViewer:
     """Rerun's gRPC server and web viewer on ``host`` (default 127.0.0.1:
@@ -254,7 +272,9 @@ class RerunRecorder(Observer):
         batching.flush_tick = FILE_FLUSH_PERIOD
         batching.flush_num_bytes = FILE_FLUSH_BYTES
         stream = rr.RecordingStream("tether", recording_id=self.recording_id, batcher_config=batching)
-        stream.save(str(self.segments / f"part-{self._segment_count:05d}.rrd"), default_blueprint=default_blueprint())
+        part = self.segments / f"part-{self._segment_count:05d}.rrd"
+        with _rerun_writing(part):
+            stream.save(str(part), default_blueprint=default_blueprint())
         self._segment_count += 1
         return stream
 
@@ -277,13 +297,14 @@ class RerunRecorder(Observer):
     def _merge(self) -> None:
         """run.rrd: every segment's chunks in one file; the segments go."""
         parts = sorted(self.segments.glob("part-*.rrd"))
-        merged = rr.RecordingStream("tether", recording_id=self.recording_id)
-        merged.save(str(self.path), default_blueprint=default_blueprint())
-        for part in parts:  # each segment carries its own recording properties: the merged file has one set
-            rr.send_chunks((c for c in RrdReader(part).stream() if not str(c.entity_path).startswith(PROPERTIES)),
-                           recording=merged)
-        merged.flush()
-        merged.disconnect()
+        with _rerun_writing(self.path):
+            merged = rr.RecordingStream("tether", recording_id=self.recording_id)
+            merged.save(str(self.path), default_blueprint=default_blueprint())
+            for part in parts:  # each segment carries its own recording properties: the merged file has one set
+                rr.send_chunks((c for c in RrdReader(part).stream()
+                                if not str(c.entity_path).startswith(PROPERTIES)), recording=merged)
+            merged.flush()
+            merged.disconnect()
         shutil.rmtree(self.segments)
 
     def _log_static(self, scenario_name: str) -> None:

@@ -45,7 +45,7 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
-from sim.config import ConfigError, build, field_comments, to_table, unit_from_name
+from sim.config import MAX_NESTING, ConfigError, build, check_nesting, field_comments, to_table, unit_from_name
 from sim.palette import SERIES, hex_code
 from sim.radio.config import RadioConfig
 from sim.loop import Simulation
@@ -58,6 +58,9 @@ from sim.validate import check_scenario
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
 MAX_BODY_BYTES = 1_000_000  # a request body holds a few parameter values
+MAX_JSON_DIGITS = 20  # digits of an integer in a request (int64 has 19)
+MAX_SEQ_DIGITS = 18  # digits of ?since= (a sample count)
+LISTEN_BACKLOG = 128  # connections the kernel queues while every handler thread is busy (http.server: 5)
 REQUEST_TIMEOUT_S = 5.0  # s a request may take to arrive
 SAMPLE_PERIOD_S = 0.1  # plot sampling, s of sim time
 HISTORY_POINTS = 3000  # plot samples kept (5 min of sim time)
@@ -173,9 +176,41 @@ def _css_color(rgba: Any) -> str:
 
 def _parse_toml_value(text: str, field: str) -> Any:
     try:
-        return tomllib.loads(f"v = {text}")["v"]
+        return check_nesting(tomllib.loads(f"v = {text}")["v"], field)
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(field, f"is not a valid TOML value: {err}") from None
+    except RecursionError:
+        raise ConfigError(field, "is not a valid TOML value: lists or tables nested too deeply") from None
+
+
+def strict_count(text: str | None, field: str, max_digits: int) -> int:
+    """A non-negative integer written in at most ``max_digits`` ASCII digits (``str.isdigit``
+    also takes "²" and "٣", ``int`` also takes "+1", " 1" and "1_0"); ConfigError otherwise."""
+    if text is None or not (text.isascii() and text.isdigit()) or len(text) > max_digits:
+        shown = text if text is None or len(text) <= 40 else text[:40] + "..."
+        raise ConfigError(field, f"must be a non-negative integer of at most {max_digits} digits, got {shown!r}")
+    return int(text)
+
+
+def _json_int(text: str) -> int:
+    if len(text.lstrip("-")) > MAX_JSON_DIGITS:
+        raise ValueError(f"an integer of {len(text)} digits (at most {MAX_JSON_DIGITS})")
+    return int(text)
+
+
+def parse_json_body(raw: bytes) -> dict:
+    """A request body as a JSON object; ConfigError (field ``request``) for anything else:
+    not UTF-8, not JSON, an integer longer than ``MAX_JSON_DIGITS``, nesting deeper than
+    sim.config's cap (also where it would exhaust the parser's recursion)."""
+    try:
+        payload = json.loads(raw or b"{}", parse_int=_json_int)
+    except RecursionError:
+        raise ConfigError("request", f"lists or objects nested more than {MAX_NESTING} deep") from None
+    except ValueError as err:  # JSONDecodeError, UnicodeDecodeError, an integer too long
+        raise ConfigError("request", f"not JSON: {err}") from None
+    if not isinstance(payload, dict):
+        raise ConfigError("request", "expected a JSON object")
+    return check_nesting(payload, "request")
 
 
 # --------------------------------------------------------------------------- the running simulation
@@ -571,6 +606,7 @@ class TuningServer(ThreadingHTTPServer):
     """Standard-library HTTP server for one :class:`TuningSession`."""
 
     daemon_threads = True
+    request_queue_size = LISTEN_BACKLOG
 
     def handle_error(self, request, client_address) -> None:
         """A connection that failed outside the handlers (a client gone
@@ -654,11 +690,15 @@ class _Handler(BaseHTTPRequestHandler):
             pass
 
     def _body(self) -> dict:
-        text = self.headers.get("Content-Length") or "0"
-        if not text.strip().isdigit():
+        given = self.headers.get_all("Content-Length") or ["0"]
+        if len(set(given)) > 1:
             self.close_connection = True
-            raise ConfigError("Content-Length", f"must be a non-negative integer, got {text!r}")
-        length = int(text)
+            raise ConfigError("Content-Length", f"given {len(given)} times with different values")
+        try:
+            length = strict_count(given[0].strip(), "Content-Length", len(str(MAX_BODY_BYTES)) + 1)
+        except ConfigError:
+            self.close_connection = True
+            raise
         if length > MAX_BODY_BYTES:
             self.close_connection = True
             raise ConfigError("request", f"body too large ({length} bytes, at most {MAX_BODY_BYTES})")
@@ -669,13 +709,7 @@ class _Handler(BaseHTTPRequestHandler):
         if len(raw) < length:
             self.close_connection = True
             raise ConfigError("request", f"body shorter than its Content-Length ({len(raw)} of {length} bytes)")
-        try:
-            payload = json.loads(raw or b"{}")
-        except json.JSONDecodeError as err:
-            raise ConfigError("request", f"not JSON: {err}") from None
-        if not isinstance(payload, dict):
-            raise ConfigError("request", "expected a JSON object")
-        return payload
+        return parse_json_body(raw)
 
     # ---- routes
 
@@ -688,8 +722,8 @@ class _Handler(BaseHTTPRequestHandler):
             if url.path in ("/", "/index.html"):
                 self._send(200, PAGE.read_bytes(), "text/html; charset=utf-8")
             elif url.path == "/api/status":
-                since = parse_qs(url.query).get("since", ["0"])[0]
-                self._json(session.status(int(since) if since.lstrip("-").isdigit() else 0))
+                since = parse_qs(url.query).get("since", ["0"])[-1]
+                self._json(session.status(strict_count(since, "since", MAX_SEQ_DIGITS)))
             elif url.path == "/api/params":
                 self._json(session.params_schema())
             elif url.path == "/frame.jpg":
@@ -708,6 +742,8 @@ class _Handler(BaseHTTPRequestHandler):
                            {"Content-Disposition": f'attachment; filename="{name}"'})
             else:
                 self._error(HTTPStatus.NOT_FOUND, f"no page {url.path}")
+        except ConfigError as err:
+            self._error(HTTPStatus.BAD_REQUEST, str(err))
         except (BrokenPipeError, ConnectionResetError, TimeoutError):
             pass
         except Exception as err:  # a bug: answer it, never a traceback in the terminal

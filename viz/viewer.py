@@ -165,7 +165,32 @@ def needs_display() -> str | None:
     """Why the viewer cannot open here (no display), or None."""
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         return "MuJoCo's viewer needs a display (DISPLAY is not set); use 'tether run --video' or 'tether tune'"
-    return None
+    return _display_unreachable()
+
+
+def _display_unreachable() -> str | None:
+    """Why GLFW (the viewer's window library) cannot open the display named, or None: asked
+    here, quietly, so that a display that does not exist is one line, not GLFW's warning,
+    MuJoCo's error and its MUJOCO_LOG.TXT."""
+    import warnings
+
+    try:
+        import glfw
+    except ImportError:
+        return None  # mujoco.viewer will say it
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            opened = glfw.init()
+        except Exception:  # noqa: BLE001  (GLFW raises or warns, depending on its error reporting)
+            opened = False
+        if opened:
+            glfw.terminate()
+            return None
+    display = os.environ.get("WAYLAND_DISPLAY") or os.environ.get("DISPLAY")
+    reason = str(caught[-1].message) if caught else "GLFW could not initialise"
+    return (f"MuJoCo's viewer cannot open the display {display!r} ({reason}); use 'tether run --video' "
+            "or 'tether tune'")
 
 
 def view(scenario: Scenario, make_simulation: Callable[[Scenario], Simulation], speed: float = 1.0,

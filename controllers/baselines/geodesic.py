@@ -29,9 +29,13 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from controllers.intermittent.planner_geometry import edges_free, lift
+from sim.config import ConfigError
 from sim.geometry import Boxes, point_clearance
 
 DEFAULT_RESOLUTION_M = 0.05  # grid cell size, m
+# Cells of one grid: the 50 x 70 m outdoor scenes fit at 5 cm (1.4 million, ~0.5 GB while the
+# graph is built); a 1 km scene would need 400 million.
+MAX_CELLS = 2_000_000
 
 
 class GeodesicPlanner:
@@ -56,6 +60,13 @@ class GeodesicPlanner:
         if np.any(hi <= lo):
             raise ValueError("bounds too small for the margin")
         self.shape = tuple(int(v) for v in np.floor((hi - lo) / resolution) + 1)  # (nx, ny)
+        if math.prod(self.shape) > MAX_CELLS:  # before any array of the grid is allocated
+            side = math.sqrt(MAX_CELLS) * resolution
+            raise ConfigError("scene", f"the geodesic planner's grid of {resolution * 100:g} cm cells over the "
+                                       f"{hi[0] - lo[0]:.0f} x {hi[1] - lo[1]:.0f} m floor plan (the scene's "
+                                       f"bounds less the clearance) would have {math.prod(self.shape):,} cells, "
+                                       f"at most {MAX_CELLS:,} (about {side:.0f} x {side:.0f} m): "
+                                       "use a smaller scene")
         self.origin = lo + 0.5 * ((hi - lo) - (np.array(self.shape) - 1) * resolution)
         gx, gy = np.meshgrid(np.arange(self.shape[0]), np.arange(self.shape[1]), indexing="ij")
         self.cells = self.origin + resolution * np.stack([gx.ravel(), gy.ravel()], axis=1)

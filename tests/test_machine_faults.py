@@ -1,0 +1,299 @@
+"""Faults of the machine, made for real against ``tether sweep`` and the Ray
+connection (docs/robustness.md): signals to the driver or its whole process
+group, two drivers in one folder, a full disk (a small tmpfs), a port that
+listens but is not Ray. Each asserts the exit code, one line, no traceback, a
+bounded wait and the files.
+"""
+
+from __future__ import annotations
+
+import http.server
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+
+from tests.test_signals import group_gone, group_members
+
+REPO = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": str(REPO), "OPENBLAS_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
+EXIT_LIMIT_S = 15.0  # a driver stops within 1-2 s; the rest absorbs a loaded machine
+WAIT_S = 180.0
+
+
+def sweep_file(folder: Path, body: str = "seeds = 40\n", duration_s: float = 2.0) -> Path:
+    path = folder / "s.toml"
+    path.write_text(f'scenario = "hover"\nduration_s = {duration_s}\n{body}')
+    return path
+
+
+class Driver:
+    """``tether sweep`` in a process group of its own, its output in files."""
+
+    def __init__(self, folder: Path, *args: str, name: str = "driver"):
+        self.err_path, self.out_path = folder / f"{name}.err", folder / f"{name}.out"
+        with open(self.out_path, "w") as out, open(self.err_path, "w") as err:
+            self.proc = subprocess.Popen([sys.executable, "-m", "tether.cli", "sweep", *args], cwd=folder, env=ENV,
+                                         stdout=out, stderr=err, start_new_session=True)
+
+    def wait(self, timeout: float = WAIT_S) -> int:
+        try:
+            return self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait()
+            raise AssertionError(f"no exit within {timeout:g} s: {self.output()}") from None
+
+    def output(self) -> str:
+        return self.out_path.read_text() + self.err_path.read_text()
+
+    def stored(self, out: Path) -> int:
+        return len(list((out / "trials").glob("*.parquet"))) if (out / "trials").is_dir() else 0
+
+
+def wait_until(ready, driver: Driver, timeout: float = WAIT_S) -> None:
+    deadline = time.monotonic() + timeout
+    while not ready():
+        assert driver.proc.poll() is None, driver.output()
+        assert time.monotonic() < deadline, driver.output()
+        time.sleep(0.1)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["sigterm", "ctrl-c"])
+@pytest.mark.parametrize("to_group", [False, True], ids=["driver", "group"])
+def test_a_signal_stops_the_sweep_with_its_summary_and_table(sig, to_group, tmp_path):
+    driver = Driver(tmp_path, str(sweep_file(tmp_path)), "--out", "out", "--workers", "2", "--no-report")
+    out = tmp_path / "out"
+    wait_until(lambda: driver.stored(out) >= 2, driver)
+    sent = time.monotonic()
+    (os.killpg if to_group else os.kill)(driver.proc.pid, sig)
+    code = driver.wait()
+    took = time.monotonic() - sent
+    text = driver.output()
+    assert code == 130, text
+    assert took < EXIT_LIMIT_S, f"{took:.1f} s to stop"
+    assert "Traceback" not in text and "leaked" not in text, text
+    assert "stopped: interrupted; run the same command again to resume" in text
+    summary = [line for line in driver.out_path.read_text().splitlines() if line.startswith("s: ")]
+    assert len(summary) == 1 and "not run of 40" in summary[0], text
+    rows = pq.read_table(out / "results.parquet")
+    assert rows.num_rows >= 2 and set(rows.column("status").to_pylist()) <= {"completed", "interrupted"}
+    assert group_gone(driver.proc.pid), group_members(driver.proc.pid)
+    assert not list((out / "trials").glob(".*.tmp"))
+
+
+def test_a_signal_early_in_a_sweep_is_an_interrupt(tmp_path):
+    """SIGTERM while the driver imports, loads and checks 100,000 trials (or, on a fast machine, has
+    just claimed the folder) is Ctrl-C there too: exit 130, no traceback, nothing half-written."""
+    driver = Driver(tmp_path, str(sweep_file(tmp_path, 'seeds = 100000\n[grid]\n"strategy.speed_mps" = [0.3]\n')),
+                    "--out", "out")
+    time.sleep(1.5)
+    assert driver.proc.poll() is None, driver.output()
+    os.killpg(driver.proc.pid, signal.SIGTERM)
+    assert driver.wait(timeout=EXIT_LIMIT_S) == 130, driver.output()
+    assert "Traceback" not in driver.output() and "interrupted" in driver.output()
+    out = tmp_path / "out"
+    assert not out.exists() or (out / "sweep.json").is_file(), sorted(p.name for p in out.iterdir())
+    assert group_gone(driver.proc.pid), group_members(driver.proc.pid)
+
+
+def test_a_second_driver_in_the_folder_is_refused(tmp_path):
+    from tether.sweep import ResultsFolder
+
+    first = Driver(tmp_path, str(sweep_file(tmp_path, "seeds = 40\n", 2.0)), "--out", "out", "--workers", "1",
+                   "--no-report")
+    out = tmp_path / "out"
+    wait_until(lambda: (out / "sweep.json").exists(), first)
+    second = subprocess.run([sys.executable, "-m", "tether.cli", "sweep", "s.toml", "--out", "out", "--workers", "1"],
+                            cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=WAIT_S)
+    lines = second.stderr.strip().splitlines()
+    assert second.returncode == 2 and len(lines) == 1 and "Traceback" not in second.stderr, second.stderr
+    assert "in use by another tether sweep" in lines[0] and str(first.proc.pid) in lines[0]
+    assert first.proc.poll() is None, first.output()
+    os.kill(first.proc.pid, signal.SIGTERM)
+    assert first.wait() == 130, first.output()
+    assert not list((out / "trials").glob("*.a2.parquet"))  # no trial ran twice
+    folder = ResultsFolder(out)
+    folder._lock()  # the lock went with the first driver
+    folder.release()
+
+
+def _mount_small_tmpfs(folder: Path) -> bool:
+    folder.mkdir()
+    try:
+        return subprocess.run(["mount", "-t", "tmpfs", "-o", "size=600k", "tmpfs", str(folder)],
+                              capture_output=True, timeout=30).returncode == 0
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+
+
+@pytest.fixture
+def full_disk(tmp_path):
+    """A 600 KiB tmpfs with ``request.param`` KiB left free (skips where mounting is not allowed)."""
+    disk = tmp_path / "disk"
+    if not _mount_small_tmpfs(disk):
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", str(disk)], timeout=30)
+
+
+@pytest.mark.parametrize("free_kib, path", [(0, "sweep.json"), (10, "trials/")], ids=["claim", "store"])
+def test_a_full_disk_in_a_sweep_is_one_line_and_the_rerun_is_accepted(free_kib, path, full_disk, tmp_path):
+    filler = full_disk / "filler"
+    with open(filler, "wb") as f:
+        try:
+            f.write(b"\0" * ((600 - free_kib) * 1024))
+        except OSError:
+            pass
+    sweep = sweep_file(tmp_path, "seeds = 2\n", 0.05)
+    out = full_disk / "sw"
+    proc = subprocess.run([sys.executable, "-m", "tether.cli", "sweep", str(sweep), "--out", str(out), "--workers",
+                           "1", "--no-report"], cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=WAIT_S)
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("tether: error:")]
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert len(errors) == 1 and f"cannot write {out}/{path}" in errors[0] and "No space left" in errors[0], errors
+    assert not [p for p in out.rglob(".*.tmp")]
+    filler.unlink()
+    again = subprocess.run([sys.executable, "-m", "tether.cli", "sweep", str(sweep), "--out", str(out), "--workers",
+                            "1", "--no-report"], cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=WAIT_S)
+    assert again.returncode == 0 and "2 finished" in again.stdout, again.stderr
+
+
+# ---------------------------------------------------------------- a port that is not Ray
+
+class _Listener:
+    """A TCP port on 127.0.0.1 that accepts and then does ``answer`` (bytes to send, or None: nothing)."""
+
+    def __init__(self, answer: bytes | None):
+        import socket
+
+        self.sock = socket.socket()
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.listen(16)
+        self.port = self.sock.getsockname()[1]
+        self.answer, self.clients = answer, []
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self) -> None:
+        while True:
+            try:
+                client, _ = self.sock.accept()
+            except OSError:
+                return
+            if self.answer:
+                client.sendall(self.answer)
+            self.clients.append(client)  # held open: a port that says nothing more
+
+    def close(self) -> None:
+        self.sock.close()
+        for client in self.clients:
+            client.close()
+
+
+@pytest.fixture
+def http_port():
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.SimpleHTTPRequestHandler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    yield server.server_address[1]
+    server.shutdown()
+    server.server_close()
+
+
+def _ray_sweep(tmp_path: Path, port: int) -> subprocess.CompletedProcess:
+    pytest.importorskip("ray")
+    sweep = sweep_file(tmp_path, "seeds = 2\n", 0.05)
+    start = time.monotonic()
+    proc = subprocess.run([sys.executable, "-m", "tether.cli", "sweep", str(sweep), "--out", "out", "--ray",
+                           f"127.0.0.1:{port}"], cwd=tmp_path, env=ENV, capture_output=True, text=True,
+                          timeout=WAIT_S)
+    proc.took_s = time.monotonic() - start
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("tether: error:")]
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr and len(errors) == 1, proc.stderr
+    assert not (tmp_path / "out").exists()
+    proc.error = errors[0]
+    return proc
+
+
+def test_an_http_server_on_the_ray_port_is_not_a_ray_cluster(http_port, tmp_path):
+    proc = _ray_sweep(tmp_path, http_port)
+    assert "is not a Ray cluster" in proc.error and "HTTP" in proc.error, proc.error
+    assert proc.took_s < 30 and proc.stderr.strip() == proc.error
+
+
+def test_a_port_that_says_nothing_is_not_a_ray_cluster(tmp_path):
+    listener = _Listener(None)
+    try:
+        proc = _ray_sweep(tmp_path, listener.port)
+    finally:
+        listener.close()
+    assert "is not a Ray cluster: it said nothing" in proc.error and proc.took_s < 30
+
+
+@pytest.mark.slow
+def test_a_grpc_port_that_is_not_ray_ends_in_a_minute(tmp_path):
+    """Answers HTTP/2's SETTINGS, then nothing: ray.init would retry for ever; its timeout ends the sweep."""
+    from tether.sweep import RAY_INIT_TIMEOUT_S
+
+    listener = _Listener(b"\x00\x00\x00\x04\x00\x00\x00\x00\x00")
+    try:
+        proc = _ray_sweep(tmp_path, listener.port)
+    finally:
+        listener.close()
+    assert "ray.init had not connected within" in proc.error
+    assert RAY_INIT_TIMEOUT_S <= proc.took_s < RAY_INIT_TIMEOUT_S + 60
+
+
+# ---------------------------------------------------------------- files cut short, names that clash
+
+def _tether(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "tether.cli", *args], cwd=cwd, env=ENV, capture_output=True,
+                          text=True, timeout=WAIT_S)
+
+
+def test_a_trial_row_cut_short_says_to_delete_it_and_report_uses_the_table(tmp_path):
+    sweep = sweep_file(tmp_path, "seeds = 2\n", 0.05)
+    assert _tether(["sweep", str(sweep), "--out", "out", "--workers", "1", "--no-report"], tmp_path).returncode == 0
+    row = sorted((tmp_path / "out" / "trials").glob("*.parquet"))[0]
+    row.write_bytes(row.read_bytes()[:100])  # as a full disk or an interrupted copy leaves it
+    proc = _tether(["sweep", str(sweep), "--out", "out", "--workers", "1", "--no-report"], tmp_path)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert row.name in lines[0] and "delete it and run the same command again" in lines[0]
+    report = _tether(["report", "out"], tmp_path)  # results.parquet holds every row
+    assert report.returncode == 0 and "Traceback" not in report.stderr, report.stderr
+    assert (tmp_path / "out" / "report.md").is_file()
+    row.unlink()
+    again = _tether(["sweep", str(sweep), "--out", "out", "--workers", "1", "--no-report"], tmp_path)
+    assert again.returncode == 0 and "2 finished" in again.stdout, again.stderr
+
+
+def test_a_scene_body_named_like_a_robot_is_one_line(tmp_path):
+    scene = (REPO / "models" / "scenes" / "empty.xml").read_text().replace(
+        '<camera name="top"', '<body name="quad0/base" pos="40 60 1"><geom type="box" size="0.2 0.2 0.2"/></body>'
+                              '<camera name="top"')
+    (tmp_path / "clash.xml").write_text(scene)
+    proc = _tether(["run", "hover", "--scene", "clash.xml", "--duration", "0.05", "--out", "out", "--quiet"],
+                   tmp_path)
+    errors = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(errors) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert errors[0].startswith("tether: error: scene: clash.xml: repeated name 'quad0/base'"), errors[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clash.xml"]
+
+
+def test_a_full_disk_under_a_recording_is_one_line(full_disk, tmp_path):
+    """556 KiB free: the recording's segments fill it; the merge fails as an OSError naming run.rrd (not
+    rerun's RuntimeError traceback), exit 1, the staging folder removed."""
+    (full_disk / "filler").write_bytes(b"\0" * 44 * 1024)
+    proc = _tether(["run", "hover", "--duration", "20", "--rrd", "--out", str(full_disk / "r"), "--quiet"], tmp_path)
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("tether: error:")]
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert len(errors) == 1 and "cannot write" in errors[0] and "r.partial-" in errors[0], proc.stderr
+    assert sorted(p.name for p in full_disk.iterdir()) == ["filler"]
