@@ -71,7 +71,7 @@ def test_bad_input_through_the_installed_command(tmp_path):
 def test_table1_sweep_refuses_bad_input(capsys, tmp_path):
     """A Table I sweep with a bad method, scenario, override or seed count: exit 2, one line, nothing written."""
     base = 'scenario = "intermittent-8"\nduration_s = 30.0\n'
-    for body, expected in (('seeds = 0\n', "seeds: must be at least 1"),
+    for body, expected in (('seeds = 0\n', "seeds: must be a count from 1 to 100000"),
                            ('seeds = 1\n[grid]\n"strategy.kind" = ["intermittent", "magic"]\n',
                             "strategy.kind: unknown strategy 'magic'"),
                            ('seeds = 1\n[grid]\nscenario = ["intermittent-8", "nope"]\n', "' is neither a built-in"),
