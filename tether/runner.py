@@ -168,6 +168,7 @@ def _metrics(scenario: Scenario, sim: Simulation, status: Status, message: str, 
         **named["links"].summary(),
         **named["estimation"].summary(),
         **sim.radio_summary(),
+        **sim.fault_summary(),
         **sim.strategy.summary(),
     }
     missing = non_finite_fields(metrics)

@@ -95,8 +95,14 @@ class RadioChannel:
         self._shadowing_time = time_s
         return self._shadowing
 
-    def state(self, time_s: float, positions: np.ndarray, links: Links) -> RadioState:
-        """The channel of every pair of robots at ``positions`` ((N, 3), m) at ``time_s`` (s)."""
+    def state(self, time_s: float, positions: np.ndarray, links: Links, extra_loss_db: np.ndarray | None = None,
+              silent: np.ndarray | None = None) -> RadioState:
+        """The channel of every pair of robots at ``positions`` ((N, 3), m) at ``time_s`` (s).
+
+        Faults (``sim.faults``), real radios only: ``extra_loss_db`` ((P,) dB over the pairs, or None) adds
+        to each pair's path loss (a blackout); the pairs with an end in ``silent`` ((N,) bool, or None: a
+        failed robot) are dead: no power received, SNR -inf, delivery 0. Under ``ideal`` the caller cuts
+        the links' adjacency instead."""
         n = len(positions)
         first, second = self._pairs(n)
         positions = np.array(positions, dtype=float)  # the closures keep this tick's
@@ -124,7 +130,11 @@ class RadioChannel:
             path_loss = channel.log_distance_path_loss_db(
                 distance[first, second], config.path_loss_exponent, config.reference_loss_db,
                 total_wall_loss_db=state.wall_pairs["loss_db"])
+            if extra_loss_db is not None:
+                path_loss = path_loss + extra_loss_db
             rx = channel.received_power_dbm(config.tx_power_dbm, path_loss, shadowing)
+            if silent is not None:
+                rx = np.where(silent[first] | silent[second], -np.inf, rx)
             snr = channel.snr_db(rx, config.noise_floor_dbm)
             below, above = self._certain
             delivery = np.where(snr >= above, 1.0, 0.0)
