@@ -210,7 +210,6 @@ def test_same_seed_same_run_with_faults():
     assert first.radio_summary() == second.radio_summary()
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("scenario, radio", [("connected-office", []), ("connected-office", IEEE[:1]),
                                              ("intermittent-8", []), ("intermittent-8", IEEE[:1])])
 def test_a_fault_never_crashes_a_run(tmp_path, scenario, radio):
