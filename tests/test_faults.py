@@ -16,7 +16,8 @@ from controllers.lowlevel.actuation import LowLevelControl
 from sim.config import ConfigError
 from sim.faults import IDEAL_BLACKOUT_CUT_DB, FaultState, PositionNoise
 from sim.loop import Simulation
-from sim.radio.bus import Message
+from sim.radio.bus import Delivery, Message
+from sim.radio.protocols import HeartbeatMonitor
 from sim.scenario import load
 from sim.strategy import Strategy, build_strategy
 from sim.types import Commands
@@ -226,3 +227,40 @@ def test_a_fault_never_crashes_a_run(tmp_path, scenario, radio):
                                                       "radio_blackout"]
     assert all(f["happened"] for f in metrics["faults"])
     assert result.status.value == metrics["status"]
+
+
+def _deliveries(n, time_s, senders_to_receivers):
+    rows = [[] for _ in range(n)]
+    for sender, receiver in senders_to_receivers:
+        rows[receiver].append(Delivery(Message("beat", sender, None, None, 8, 0, time_s), receiver, time_s))
+    return tuple(tuple(row) for row in rows)
+
+
+def test_heartbeats_declare_a_neighbour_silent_after_the_timeout_and_not_before():
+    n, dt, timeout = 3, 0.01, 0.5
+    monitor = HeartbeatMonitor(n, timeout)
+    declared = {}
+    for tick in range(200):
+        t = tick * dt
+        talking = [s for s in range(n) if not (s == 2 and t >= 0.5)]  # robot 2 falls silent at 0.5 s
+        pairs = [(s, r) for s in talking for r in range(n) if r != s and not (r == 2 and t >= 0.5)]
+        for receiver, sender in monitor.step(t, _deliveries(n, t, pairs)):
+            declared.setdefault((receiver, sender), t)
+    last = 0.49  # robot 2's last heartbeat
+    assert declared[(0, 2)] == declared[(1, 2)] == pytest.approx(last + timeout + dt)  # the first tick past it
+    assert monitor.silence_detected_s[2] == [pytest.approx(last + timeout + dt)]
+    assert not any(sender != 2 and receiver != 2 for receiver, sender in declared)  # the others still talk
+    monitor.step(2.0, _deliveries(n, 2.0, [(2, 0)]))  # heard again: withdrawn
+    assert not monitor.silent[0, 2] and monitor.withdrawn == [(2.0, 0, 2)]
+
+
+def test_the_connected_method_detects_a_failed_robot_over_the_radio(tmp_path):
+    from tether.runner import run
+
+    scenario = load("connected-office", ['radio.preset="ieee802154"', "strategy.heartbeat_timeout_s=0.5",
+                                         'faults=[{kind="robot_failure", robot=4, at_s=1.0}]'], duration_s=3.0)
+    result = run(scenario, tmp_path / "out")
+    fault = result.metrics["faults"][0]
+    assert 0.5 <= fault["detected_after_s"] <= 0.5 + 0.1, fault  # the timeout, plus the last message's age
+    assert result.metrics["silent_neighbour_detections"] >= 1
+    assert "robot 4's silence noticed by a team mate 0.5" in result.metrics["message"], result.metrics["message"]
