@@ -265,7 +265,7 @@ class Simulation:
         faults = self.faults
         if faults is None or self.scenario.radio.is_ideal:
             return self.radio.state(self.time_s, position, links)
-        first, second = self.radio._pairs(len(position))
+        first, second = self.radio.pairs(len(position))
         extra = faults.extra_loss_pairs_db(self.time_s, position, first, second)
         silent = faults.failed if faults.any_failed else None
         return self.radio.state(self.time_s, position, links, extra_loss_db=extra, silent=silent)

@@ -4,6 +4,7 @@ faults end with a status and a message, and the same seed gives the same run."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass
@@ -91,6 +92,9 @@ def test_faults_are_set_key_by_key_and_read_back():
     failure, noise = scenario.faults
     assert (failure.robot, failure.at_s, failure.mode) == (3, 6.0, "stop")
     assert (noise.sigma_m, noise.bias_m, noise.period_s) == (0.1, 0.0, math.inf)
+    # In any order (a sweep sorts its overrides), and the list is made when the scenario has none.
+    overrides = sorted(["faults.0.kind=robot_failure", "faults.0.robot=3", "faults.0.at_s=5.0"])
+    assert load("connected-office", overrides).faults == (dataclasses.replace(failure, at_s=5.0),)
     with pytest.raises(ConfigError) as err:
         load("connected-office", ["faults.2.kind=robot_failure"])  # not the next index
     assert err.value.field == "faults.2"

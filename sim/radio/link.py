@@ -69,6 +69,11 @@ class RadioChannel:
 
         return edge(0.0, -200.0, 200.0), edge(1.0, -200.0, 200.0)
 
+    def pairs(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The index arrays (first, second) of the pairs i < j of ``n`` robots, row-major: the order of every
+        per-pair array (``RadioState.pairs``)."""
+        return self._pairs(n)
+
     def _pairs(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         if self._pairs_n != n:
             self._upper = np.triu_indices(n, 1)
