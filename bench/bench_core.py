@@ -22,6 +22,15 @@ the closing (the end-of-run plots and files), in wall seconds.
 
 ``--radio ieee802154`` measures each row again with that radio preset and prints
 the per-tick CPU time of each preset over the ideal radio's.
+
+The radio section (in every run, ``--no-radio`` skips it) measures the
+``ieee802154`` preset against ``ideal`` directly: two simulations of the same
+scenario, one per preset, stepped in alternating blocks of ``BLOCK_TICKS``
+ticks (the order swapped every block), each block timed with this thread's CPU
+time; the median over the pairs of blocks of radio CPU / ideal CPU is the real
+radio's cost per tick (``--radio-seconds`` simulated per row, default 4). Once
+without extra messages (the methods' own traffic only), once with
+``SyntheticLoad`` on both buses, so that the bus itself is measured.
 """
 
 from __future__ import annotations
@@ -40,11 +49,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import sim  # noqa: E402,F401  (GL backend before mujoco)
 import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
 
 from sim.estimation_observer import EstimationMetrics  # noqa: E402
 from sim.loop import TIMED_STAGES, frozen_heap
 from tether.runner import build_simulation, run  # noqa: E402
+from sim import observers as observers_module  # noqa: E402
 from sim.observers import LinkMetrics, TrackingMetrics  # noqa: E402
+from sim.radio.bus import Message  # noqa: E402
 from sim.scenario import load  # noqa: E402
 
 BLOCK_TICKS = 20  # ticks per interleaved block (the open-loop bare copy is reset to the world each block)
@@ -110,6 +122,108 @@ def _measure_ticks(simulation, observers, scenario_name, overrides, seconds, war
     }
 
 
+RADIO_PRESET = "ieee802154"
+RADIO_TARGET = 1.15  # at most 15 % more per tick than the ideal radio (issue 20)
+# (label, scenario, overrides) of the rows the radio's cost is held to
+RADIO_ROWS = (
+    ("connected-office 10", "connected-office", ["robots.0.count=10"]),
+    ("connected-office 35", "connected-office", ["robots.0.count=35"]),
+    ("intermittent-8", "intermittent-8", []),
+)
+
+
+class SyntheticLoad:
+    """The traffic the methods will send, before they all do: every robot broadcasts a 40-byte message each
+    tick (the lambda2 estimator's state) and, once a second at its own tick, 300 bytes to the next robot
+    (15 range records, three 802.15.4 frames). A 40-byte 802.15.4 frame takes 2.1 ms of air, so robots in
+    one another's carrier sense get 4-5 of them through a 10 ms tick: in connected-office the medium
+    saturates and the queues grow, as they would; intermittent-8's 20 ms ticks carry its 8 robots'."""
+
+    STATE_BYTES = 40
+    RECORDS_BYTES = 300
+
+    def __init__(self, n_robots: int, control_period_s: float):
+        self.n = n_robots
+        self.ticks_per_s = max(1, int(round(1.0 / control_period_s)))
+
+    def send(self, simulation) -> None:
+        """This tick's messages onto ``simulation``'s bus, at the tick's time (as ``Commands.outbox`` would)."""
+        bus, time_s, tick = simulation.bus, simulation.time_s, simulation.tick_count
+        for robot in range(self.n):
+            bus.send(Message("bench_state", robot, None, None, self.STATE_BYTES), time_s)
+            if self.n > 1 and (tick + robot * self.ticks_per_s // self.n) % self.ticks_per_s == 0:
+                bus.send(Message("bench_records", robot, ((robot + 1) % self.n,), None, self.RECORDS_BYTES), time_s)
+
+
+def radio_cost(scenario_name: str, overrides: list[str], seconds: float, warmup_s: float,
+               synthetic: bool) -> dict:
+    """CPU time per tick of ``RADIO_PRESET`` over ``ideal``, paired: both simulations in alternating blocks."""
+    runs = []
+    for preset in ("ideal", RADIO_PRESET):
+        simulation = build_simulation(load(scenario_name, overrides + [f'radio.preset="{preset}"']))
+        observers = [EstimationMetrics(), TrackingMetrics(simulation.world.robot_kinds), LinkMetrics()]
+        traffic = SyntheticLoad(simulation.world.n_robots, simulation.dt) if synthetic else None
+        runs.append((simulation, observers, traffic, {}))
+
+    def ticks(run_, count: int) -> float:
+        simulation, observers, traffic, lambda2_seen = run_
+        # Each simulation keeps its own graphs' lambda2 memo, as it would alone in its process: the two
+        # runs share their sensing graphs, and one must not compute the other's.
+        observers_module._LAMBDA2_SEEN = lambda2_seen
+        start = time.thread_time()
+        for _ in range(count):
+            if traffic is not None:
+                traffic.send(simulation)
+            frame, healthy = simulation.tick(decorations_wanted=False)
+            for observer in observers:
+                observer.on_tick(frame)
+            if not healthy:
+                raise RuntimeError(f"{scenario_name} {overrides}: physics diverged")
+        return time.thread_time() - start
+
+    with frozen_heap():
+        for run_ in runs:
+            ticks(run_, int(round(warmup_s / run_[0].dt)))
+        total = max(BLOCK_TICKS, int(round(seconds / runs[0][0].dt)))
+        cpu = [0.0, 0.0]
+        pairs = []  # per pair of blocks, the two runs over the same ticks: radio CPU / ideal CPU
+        done = 0
+        while done < total:
+            block = min(BLOCK_TICKS, total - done)
+            order = (0, 1) if (done // BLOCK_TICKS) % 2 == 0 else (1, 0)
+            spent = [0.0, 0.0]
+            for index in order:
+                spent[index] = ticks(runs[index], block)
+                cpu[index] += spent[index]
+            pairs.append(spent[1] / spent[0])
+            done += block
+    bus = runs[1][0].bus.summary()
+    # The median over the pairs: a block that another process's burst slowed (its caches, its core) moves
+    # the sums but not the median.
+    return {"ideal_ms": 1e3 * cpu[0] / total, "radio_ms": 1e3 * cpu[1] / total, "ratio": float(np.median(pairs)),
+            "ratio_of_sums": cpu[1] / cpu[0], "pairs": len(pairs), "frames": bus["radio_frames_sent"],
+            "delivery": bus["radio_delivery_ratio"], "queued": bus["radio_packets_queued"]}
+
+
+def radio_section(seconds: float, warmup_s: float, rows: list[str] | None) -> None:
+    print(f"radio: {RADIO_PRESET} / ideal CPU time per tick, {seconds:g} s simulated after {warmup_s:g} s; ratio = "
+          f"median over pairs of blocks of {BLOCK_TICKS} ticks, one per preset, alternating (target <= "
+          f"{RADIO_TARGET:.2f}); ratio of sums beside it")
+    print(f"| row | messages | ideal ms/tick | {RADIO_PRESET} ms/tick | ratio | ratio of sums | pairs | "
+          f"{RADIO_PRESET} frames sent | delivery ratio | queued at the end |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for label, name, overrides in RADIO_ROWS:
+        if rows and not any(key in label for key in rows):
+            continue
+        for synthetic in (False, True):
+            cost = radio_cost(name, overrides, seconds, warmup_s, synthetic)
+            load_name = "synthetic load" if synthetic else "the methods'"
+            delivery = "-" if cost["delivery"] != cost["delivery"] else f"{cost['delivery']:.2f}"
+            print(f"| {label} | {load_name} | {cost['ideal_ms']:.2f} | {cost['radio_ms']:.2f} | "
+                  f"{cost['ratio']:.3f} | {cost['ratio_of_sums']:.3f} | {cost['pairs']} | {cost['frames']} | "
+                  f"{delivery} | {cost['queued']} |", flush=True)
+
+
 def plan_times(plans: int) -> list[str]:
     """The intermittent paper's plan time per team size at the strategy's own samples (n_sample for 2 robots,
     n_sample * n / 2 for n > 2), from bench/bench_intermittent.py's own measurement."""
@@ -162,13 +276,23 @@ def main() -> None:
     parser.add_argument("--rows", nargs="*", help="only rows whose label contains one of these")
     parser.add_argument("--radio", nargs="*", default=[], metavar="PRESET",
                         help="also measure each chosen row with radio.preset=PRESET (e.g. ieee802154)")
+    parser.add_argument("--radio-seconds", type=float, default=4.0,
+                        help="simulated seconds measured per row of the radio section")
+    parser.add_argument("--no-radio", action="store_true", help="skip the radio section")
+    parser.add_argument("--radio-only", action="store_true", help="only the radio section")
     parser.add_argument("--quick", action="store_true", help="core rows only: no planner, no video, no fixed costs")
     parser.add_argument("--fixed-duration", type=float, default=20.0, help="simulated seconds of the fixed-cost runs")
     args = parser.parse_args()
 
     load_average = os.getloadavg()
-    print(f"machine: {os.cpu_count()} cores, load average {load_average[0]:.2f} {load_average[1]:.2f} "
-          f"{load_average[2]:.2f} (uptime); {args.seconds:g} s simulated per row after {args.warmup:g} s")
+    machine = (f"machine: {os.cpu_count()} cores, load average {load_average[0]:.2f} {load_average[1]:.2f} "
+               f"{load_average[2]:.2f} (uptime)")
+    if args.radio_only:
+        print(machine)
+        print()
+        radio_section(args.radio_seconds, args.warmup, args.rows)
+        return
+    print(f"{machine}; {args.seconds:g} s simulated per row after {args.warmup:g} s")
     print("ratio = full tick / bare mj_step of the same world (thread CPU time, interleaved blocks)")
     print()
     stages = " | ".join(TIMED_STAGES)
@@ -194,6 +318,9 @@ def main() -> None:
     if radio_ratios:
         print()
         print("\n".join(radio_ratios))
+    if not args.no_radio:
+        print()
+        radio_section(args.radio_seconds, args.warmup, args.rows)
     if args.quick:
         return
     print()

@@ -33,6 +33,7 @@ from sim.config import ConfigError
 from sim.faults import FaultState
 from sim.observers import EstimationError, Frame, Observer, PhysicsState, estimation_error
 from sim.radio.bus import LinkConditions, MessageBus, link_conditions
+from sim.radio.config import RadioConfig
 from sim.radio.link import RadioChannel
 from sim.scenario import Scenario, StrategyConfig
 from sim.sensing import RaySensors
@@ -213,6 +214,17 @@ class Simulation:
             raise ConfigError("strategy", str(err)) from None
         self.scenario = dataclasses.replace(self.scenario, strategy=StrategyConfig(kind, params))
         return how
+
+    def set_radio(self, config: RadioConfig) -> str:
+        """Retune the radio between ticks (the tuning page): the channel takes ``config`` at
+        once, with its own random stream continued, and the message bus its new parameters
+        (messages in flight keep their schedule). ``config`` must already be validated.
+        Returns "updated"."""
+        self.radio = RadioChannel(config, self.world.obstacles, self.world.wall_loss_db,
+                                  self.scenario.sensing.comm_range_m, self.radio.rng)
+        self.bus.params = config.bus_parameters
+        self.scenario = dataclasses.replace(self.scenario, radio=config)
+        return "updated"
 
     def _warning_count(self) -> int:
         # A live view of the counters, indexed with plain ints: a few hundred ns a tick.

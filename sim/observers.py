@@ -183,21 +183,41 @@ def graph_lambda2(adjacency: np.ndarray) -> float:
     key = (adjacency.shape[0], np.packbits(adjacency).tobytes())
     value = _LAMBDA2_SEEN.get(key)
     if value is None:
-        n = adjacency.shape[0]
-        if n < 2:
-            value = 0.0
-        else:
-            weights = adjacency.astype(float)
-            np.fill_diagonal(weights, 0.0)
-            laplacian = np.diag(weights.sum(axis=1)) - weights
-            value = max(float(np.linalg.eigvalsh(laplacian)[1]), 0.0)
-        if len(_LAMBDA2_SEEN) >= 8:
-            _LAMBDA2_SEEN.pop(next(iter(_LAMBDA2_SEEN)))
-        _LAMBDA2_SEEN[key] = value
+        value = _remembered(key, _laplacian_lambda2(adjacency))
     return value
 
 
-_LAMBDA2_SEEN: dict[tuple[int, bytes], float] = {}
+def pairs_graph_lambda2(n: int, pairs: tuple[np.ndarray, np.ndarray], edges: np.ndarray) -> float:
+    """``graph_lambda2`` of the graph on ``n`` robots whose pair ``(pairs[0][p], pairs[1][p])`` is linked
+    where ``edges[p]`` (bool, (P,)), without building the (N, N) adjacency unless the graph is new."""
+    key = (n, "pairs", np.packbits(edges).tobytes())
+    value = _LAMBDA2_SEEN.get(key)
+    if value is None:
+        adjacency = np.zeros((n, n), dtype=bool)
+        adjacency[pairs[0], pairs[1]] = edges
+        adjacency[pairs[1], pairs[0]] = edges
+        value = _remembered(key, _laplacian_lambda2(adjacency))
+    return value
+
+
+def _laplacian_lambda2(adjacency: np.ndarray) -> float:
+    n = adjacency.shape[0]
+    if n < 2:
+        return 0.0
+    weights = adjacency.astype(float)
+    np.fill_diagonal(weights, 0.0)
+    laplacian = np.diag(weights.sum(axis=1)) - weights
+    return max(float(np.linalg.eigvalsh(laplacian)[1]), 0.0)
+
+
+def _remembered(key: tuple, value: float) -> float:
+    if len(_LAMBDA2_SEEN) >= 8:
+        _LAMBDA2_SEEN.pop(next(iter(_LAMBDA2_SEEN)))
+    _LAMBDA2_SEEN[key] = value
+    return value
+
+
+_LAMBDA2_SEEN: dict[tuple, float] = {}  # by graph: (n, packed adjacency) or (n, "pairs", packed pairs)
 
 
 @dataclass(frozen=True)
@@ -223,10 +243,14 @@ def link_figures(observation: Observation) -> LinkFigures:
         n = adjacency.shape[0]
         near_pairs = (int(np.count_nonzero(radio.distance <= radio.comm_range_m)) - n) // 2
         return LinkFigures(edges, sensing, sensing, edges / near_pairs if near_pairs else float("nan"))
-    comm = graph_lambda2(radio.comm_adjacency)
     first, second = radio.pairs
+    pair_delivery = radio.channel_pairs["delivery"]
+    # The graph of radio.comm_adjacency, read from the pairs (this runs every tick under a real radio).
+    comm = pairs_graph_lambda2(adjacency.shape[0], radio.pairs, pair_delivery >= radio.delivery_threshold)
     near = radio.distance[first, second] <= radio.comm_range_m
-    delivery = float(radio.channel_pairs["delivery"][near].mean()) if near.any() else float("nan")
+    near_delivery = pair_delivery[near]
+    # ndarray.mean's own sum and division, without its wrapper (this runs every tick under a real radio).
+    delivery = float(np.add.reduce(near_delivery) / near_delivery.size) if near_delivery.size else float("nan")
     return LinkFigures(edges, sensing, comm, delivery)
 
 

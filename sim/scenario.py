@@ -149,8 +149,8 @@ class TargetMotionConfig:
 
 @dataclass(frozen=True)
 class VideoConfig:
-    width: int = 640  # frame width, px (even)
-    height: int = 480  # frame height, px (even)
+    width: int = 960  # frame width, px (even): 16:9, the scene at the left, the legend panel at the right
+    height: int = 540  # frame height, px (even)
     fps: float = 30.0  # frames per second of sim time
     # "top" (top-down), "overview" (perspective), "follow:ROBOT" (tracks one robot, e.g. follow:quad0),
     # another camera named in the scene, "free" (default view), or "auto" ("top")

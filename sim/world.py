@@ -73,6 +73,25 @@ def _attach(spec: mujoco.MjSpec, path: Path, prefix: str, pos) -> None:
     spec.attach(child, prefix=prefix, frame=frame)
 
 
+DEFAULT_HEADLIGHT = {"ambient": (0.3, 0.3, 0.3), "diffuse": (0.3, 0.3, 0.3), "specular": (0.0, 0.0, 0.0)}
+DEFAULT_SUN_DIFFUSE = (0.35, 0.35, 0.35)
+
+
+def add_default_light(spec: mujoco.MjSpec, bounds) -> None:
+    """A scene that sets no light gets a default one (docs/models.md): a soft headlight and a
+    directional sun straight down from above the scene, summing to about full light on a floor
+    seen from above, so its colours show as set (MuJoCo's own default washes a pale floor out
+    to white). Pictures only: lights change no physics, sensing or radio."""
+    headlight = spec.visual.headlight
+    headlight.ambient, headlight.diffuse, headlight.specular = (DEFAULT_HEADLIGHT[k]
+                                                                 for k in ("ambient", "diffuse", "specular"))
+    lo, hi = (np.asarray(b, dtype=float) for b in bounds)
+    centre = (lo + hi) / 2
+    spec.worldbody.add_light(name="tether_default_sun", pos=(centre[0], centre[1], hi[2] + float(np.ptp((lo, hi), axis=0).max())),
+                             dir=(0.0, 0.0, -1.0), type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, castshadow=False,
+                             diffuse=DEFAULT_SUN_DIFFUSE)
+
+
 def load_scene_spec(scene_path: Path) -> mujoco.MjSpec:
     try:
         spec = mujoco.MjSpec.from_file(str(scene_path))
@@ -212,6 +231,8 @@ def build_world(scenario: Scenario, target_starts: np.ndarray, target_path_sampl
     wall_losses = obstacle_wall_losses(scene_model)
     bounds = scene_bounds(scene_model, obstacles)
     validate_placements(scenario, obstacles, bounds, target_path_samples)
+    if scene_model.nlight == 0:
+        add_default_light(spec, bounds)
 
     names, kinds = [], []
     counters = {kind: 0 for kind in ROBOT_FILES}

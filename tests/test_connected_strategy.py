@@ -295,9 +295,15 @@ def test_video_shows_the_team(small_mission):
     assert len(frames) == int(np.ceil(metrics["sim_time_s"] * 10 - 1e-9)) > 30
     middle = frames[len(frames) // 2].astype(float)
     assert middle.std() > 10
-    # The prime traveler's marker (turquoise) and the planned path are drawn in some frame.
-    turquoise = [(np.abs(f[..., 0].astype(int) - 0) < 60) & (f[..., 1] > 180) & (f[..., 2] > 160) for f in frames]
-    assert max(int(t.sum()) for t in turquoise) > 8
+    # The prime traveler's marker and its planned path (the palette's vermillion) are drawn in some
+    # frame's scene (left of the legend panel, whose swatch has that colour too).
+    from sim.palette import PRIME_TRAVELER, rgb8
+
+    scene_width = frames[0].shape[0]  # the office is square: the scene is as wide as the frame is tall
+    red, green, blue = rgb8(PRIME_TRAVELER)
+    vermillion = [(np.abs(f[:, :scene_width, 0].astype(int) - red) < 40) & (np.abs(f[:, :scene_width, 1].astype(int)
+                  - green) < 40) & (f[:, :scene_width, 2] < 60) for f in frames]
+    assert max(int(t.sum()) for t in vermillion) > 8
 
 
 RECORDING_PERIOD_TICKS = 5  # the recorder's 0.05 s at the office's 0.01 s control period
@@ -365,13 +371,15 @@ def test_recording_entity_tree_colours_events_and_static_data(small_mission):
         assert [i for i, c in enumerate(rgb) if c == prime_rgb] == ([prime] if prime >= 0 else []), tick
         prime_ticks += prime >= 0
     assert prime_ticks > len(expected) / 2
-    # Links: one segment per communication link, coloured by weight (green 1 ... red 0).
+    # Links: one segment per communication link, coloured by weight on the palette's ramp (grey 0 ... charcoal 1).
+    from sim.palette import LINK_STRONG, LINK_WEAK
+
     seen = set()
     for tick, strips in rrd_column(chunks["/world/links"], "LineStrips3D:strips"):
         assert len(strips) == log.links[tick], tick
     for _, colors in rrd_column(chunks["/world/links"], "LineStrips3D:colors"):
         for r, g, b, _ in map(unpack_rgba, colors):
-            weight = 1.0 - r / 255
+            weight = (LINK_WEAK[0] - r / 255) / (LINK_WEAK[0] - LINK_STRONG[0])
             assert np.allclose((r, g, b), np.round(255 * link_color(weight)[:3]), atol=1), (r, g, b)
             seen.add((r, g, b))
     assert len(seen) > 5  # weights vary
@@ -401,7 +409,9 @@ def test_plots_draw_every_series_with_the_fig_14_panels(small_mission):
     assert fig_14 <= set(log.scalars[-1])
     assert {"role", "prime_efficiency_estimate", "alignment", "gain"} <= log.robot_scalar_names
     # + tracking error, links, the communication graph's lambda2 and the radio's delivery
-    panels = 4 + len(log.scalars[-1]) + len(log.robot_scalar_names)
+    # (less the foundation's link count, which the strategy's edges repeat, and series never defined)
+    defined = [name for name in log.scalars[-1] if np.isfinite(log.series(name)).any()]
+    panels = 4 - 1 + len(defined) + len(log.robot_scalar_names)
     pngs = sorted((out / "plots").glob("timeseries*.png"))
     assert len(pngs) == math.ceil(panels / PANELS_PER_FIGURE)
     assert all(png_is_a_drawn_figure(p) for p in pngs)

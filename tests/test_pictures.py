@@ -1,7 +1,9 @@
-"""Pictures that explain themselves: the overlay scales with the frame, the
-colours have a legend, a scene without cameras gets an orthographic top view
-that walls do not hide the floor in, and robots stay visible at any scene size.
-Real EGL frames read back; skipped cleanly without OpenGL."""
+"""Pictures that explain themselves: the scene fills the frame's height with a
+legend panel beside it (never over it) whose text scales with the frame and
+stays at least 1/30 of its height, a scene without cameras gets an
+orthographic top view that walls do not hide the floor in, and robots stay
+visible at any scene size. Real EGL frames read back; skipped cleanly
+without OpenGL."""
 
 from __future__ import annotations
 
@@ -13,9 +15,7 @@ import pytest
 from helpers import write_scenario, write_scene
 from tether.runner import build_simulation
 from sim.scenario import load
-from viz.video import FrameRenderer, burn_overlay, overlay_font_px
-
-BAND_RGB = (20, 20, 28)
+from viz.video import PANEL_RGB, FrameRenderer, min_font_px, overlay_font_px, side_panel
 
 # A user's 10 x 10 m room: 5 m walls, a floor of its own colour, no cameras, no tether_bounds.
 ROOM = """
@@ -59,51 +59,61 @@ def _render(scenario, ticks: int = 1):
         view.close()
 
 
-def _band_rows(image: np.ndarray) -> int:
-    """Height of the overlay band: rows from the top whose first pixels are the band colour."""
-    is_band = np.all(np.abs(image[:, :3] - BAND_RGB) <= 2, axis=(1, 2))
-    return int(np.argmin(is_band)) if not is_band.all() else len(is_band)
+def _text_rows(panel: np.ndarray) -> list[tuple[int, int]]:
+    """(first, last) rows of each run of rows holding bright text pixels in the panel."""
+    bright = (panel.min(axis=2) > 150).any(axis=1)
+    runs, start = [], None
+    for row, on in enumerate(list(bright) + [False]):
+        if on and start is None:
+            start = row
+        elif not on and start is not None:
+            runs.append((start, row - 1))
+            start = None
+    return runs
 
 
-def _glyph_rows(image: np.ndarray, band: int) -> int:
-    """Rows of the band that hold text pixels (bright), first to last."""
-    bright = np.flatnonzero((image[:band].min(axis=2) > 150).any(axis=1))
-    return int(bright[-1] - bright[0] + 1)
-
-
-def test_overlay_glyphs_scale_with_the_frame_and_are_legible_at_720p(tmp_path):
+def test_the_scene_fills_the_height_and_the_legend_panel_beside_it_scales_with_the_frame(tmp_path):
     write_scene(tmp_path, ROOM)
-    sizes = {}
-    for width, height in ((640, 360), (1280, 720)):
+    glyphs = {}
+    for width, height in ((960, 540), (1920, 1080)):
         path = write_scenario(tmp_path, ROOM_SCENARIO.format(width=width, height=height), f"s{height}.toml")
-        _, _, image = _render(load(str(path)))
-        band = _band_rows(image)
-        sizes[height] = (band, _glyph_rows(image, band))
-    (band_small, glyph_small), (band_large, glyph_large) = sizes[360], sizes[720]
-    # Twice the frame height, twice the band and the glyphs (within rounding of font sizes).
-    assert band_large / band_small == pytest.approx(2.0, rel=0.15)
-    assert glyph_large / glyph_small == pytest.approx(2.0, rel=0.2)
-    # Legible at 1280 x 720: capitals and digits about 2 % of the frame height (14 px and more).
-    assert glyph_large >= 14 and overlay_font_px(720) >= 18
+        frame, view, image = _render(load(str(path)))
+        assert image.shape == (height, width, 3)
+        # The square room fills the height at the left; the panel takes the rest of the 16:9 frame.
+        assert view.scene_width == height
+        scene, panel = image[:, : view.scene_width], image[:, view.scene_width:]
+        assert np.all(np.abs(panel[:, :, :3] - PANEL_RGB).max(axis=2) <= 2, axis=0).any()  # the panel's colour
+        assert not np.all(np.abs(scene - PANEL_RGB).max(axis=2) <= 2, axis=1).any()  # no band over the scene
+        # The first line ("t = 0.0 s"): its capitals and digits at least 1/30 of the frame's height less
+        # the font's leading (a glyph of a font of size s is about 0.7 s tall).
+        first, last = _text_rows(panel)[0]
+        glyphs[height] = last - first + 1
+        assert overlay_font_px(height) >= min_font_px(height) >= height / 30
+        assert glyphs[height] >= 0.65 * height / 30
+    assert glyphs[1080] / glyphs[540] == pytest.approx(2.0, rel=0.2)
 
 
-def test_a_long_overlay_shrinks_to_fit_and_the_legend_band_names_the_colours():
-    image = np.full((240, 320, 3), 200, np.uint8)
-    out = burn_overlay(image, "t = 12.0 s   links 9   " + "x" * 80,
-                       [("prime traveler", (0.0, 0.95, 0.85, 1.0)), ("anchor", (1.0, 0.6, 0.1, 1.0))])
-    top = np.asarray(out[:4], dtype=int)
-    assert np.all(np.abs(top[:, :300] - BAND_RGB) <= 2, axis=2).mean() > 0.5  # the band spans the width
-    bottom = np.asarray(out[-30:], dtype=int)
-    # Both swatches are drawn in their colours at the bottom-left.
-    assert np.any(np.all(np.abs(bottom - (0, 242, 217)) <= 3, axis=2))
-    assert np.any(np.all(np.abs(bottom - (255, 153, 26)) <= 3, axis=2))
+def test_the_panel_names_every_colour_and_wraps_into_columns_when_long():
+    legend = [("prime traveler", (0.84, 0.37, 0.0, 1.0)), ("anchor", (0.8, 0.47, 0.65, 1.0))]
+    panel = side_panel(540, 420, ["t = 12.0 s", "links 9", "x" * 80], legend).astype(int)
+    assert panel.shape == (540, 420, 3)
+    # Both swatches are drawn in their colours.
+    assert np.any(np.all(np.abs(panel - (214, 94, 0)) <= 3, axis=2))
+    assert np.any(np.all(np.abs(panel - (204, 120, 166)) <= 3, axis=2))
+    # Thirty entries do not fit one column at 540 px: two columns, text never below 1/30 of the height.
+    many = [(f"team {k}", (k / 30, 0.5, 1 - k / 30, 1.0)) for k in range(30)]
+    panel = side_panel(540, 420, ["t = 1.0 s"], many).astype(int)
+    swatch_columns = np.flatnonzero(np.any(np.all(np.abs(panel - (0, 127, 255)) <= 3, axis=2), axis=0))
+    assert swatch_columns.size and swatch_columns.min() < 40  # team 0's swatch in the first column
+    late = np.flatnonzero(np.any(np.all(np.abs(panel - (247, 127, 8)) <= 3, axis=2), axis=0))  # team 29
+    assert late.size and late.min() > 180  # in the second
 
 
 def test_a_scene_without_cameras_gets_an_orthographic_top_view_walls_hide_no_floor(tmp_path):
     write_scene(tmp_path, ROOM)
-    path = write_scenario(tmp_path, ROOM_SCENARIO.format(width=480, height=480))
+    path = write_scenario(tmp_path, ROOM_SCENARIO.format(width=800, height=480))
     _, view, image = _render(load(str(path)))
-    assert view.camera_name == "top" and view.camera.orthographic
+    assert view.camera_name == "top" and view.camera.orthographic and view.scene_width == 480
     # The floor (blue) fills the room right up to the walls: sample a ring 0.3 m inside them.
     lo_px, hi_px = 240 - 240 / 1.05, 240 + 240 / 1.05  # the floor spans the view, 5 % margin
     per_m = (hi_px - lo_px) / 10.0
@@ -117,15 +127,16 @@ def test_a_scene_without_cameras_gets_an_orthographic_top_view_walls_hide_no_flo
 
 def test_robots_stay_visible_in_a_large_scene():
     scenario = load("connected-town", ["robots.0.count=10"])
-    scenario = dataclasses.replace(scenario, video=dataclasses.replace(scenario.video, width=640, height=480))
+    scenario = dataclasses.replace(scenario, video=dataclasses.replace(scenario.video, width=854, height=480))
     frame, view, image = _render(scenario)
+    image = image[:, : view.scene_width]
     # Each quadrotor covers a disc of at least ~4 px radius in its role colour or halo.
     assert view.at_least(0.12, 5.0) > 0.4  # 50 x 70 m in 480 px: 5 px are ~0.77 m
     scale = view.world.model.camera("top").fovy[0] / 480  # the town's orthographic top camera: m per px
     centre = view.world.model.camera("top").pos[:2]
     colors = np.asarray(frame.commands.decorations.robot_colors)[:, :3] * 255
     for p, rgb in zip(frame.observation.position, colors):
-        col = int(round(320 + (p[0] - centre[0]) / scale))
+        col = int(round(view.scene_width / 2 + (p[0] - centre[0]) / scale))
         row = int(round(240 - (p[1] - centre[1]) / scale))
         patch = image[row - 2 : row + 3, col - 2 : col + 3]
         # The robot's own colour (its role) shows around it, shaded by the light.
@@ -158,3 +169,33 @@ def test_drawn_paths_start_at_their_robot_and_never_serve_a_stale_path():
     other = _Line()
     strategy._drawn_paths[id(other)] = [object(), np.zeros((2, 3)), 0]
     assert draw(other, (0.0, 0.0, 1.0))[-1, 0] == pytest.approx(10.0)
+
+
+def test_a_user_scene_without_a_light_gets_a_default_light_that_does_not_wash_it_out(tmp_path):
+    unlit = ROOM.replace('    <light pos="5 5 8" dir="0 0 -1" directional="true"/>\n', "")
+    unlit = unlit.replace('rgba="0.2 0.5 0.9 1"', 'rgba="0.8 0.8 0.8 1"')
+    write_scene(tmp_path, unlit)
+    path = write_scenario(tmp_path, ROOM_SCENARIO.format(width=800, height=480))
+    frame, view, image = _render(load(str(path)))
+    model = view.world.model
+    assert model.nlight == 1 and model.light(0).name == "tether_default_sun"
+    assert np.allclose(model.vis.headlight.ambient, 0.3)
+    # The light-grey floor stays grey, not washed out to white; the walls' tops stay darker than it.
+    floor = image[200:280, 200:280].reshape(-1, 3)
+    assert 120 < np.median(floor) < 235, np.median(floor)
+    # A scene with its own light keeps it alone.
+    write_scene(tmp_path, ROOM, name="lit.xml")
+    lit = write_scenario(tmp_path, ROOM_SCENARIO.replace("scene.xml", "lit.xml").format(width=800, height=480),
+                         "lit.toml")
+    _, lit_view, _ = _render(load(str(lit)))
+    assert lit_view.world.model.nlight == 1 and lit_view.world.model.light(0).name != "tether_default_sun"
+
+
+def test_the_panel_drawn_from_its_cached_legend_is_the_panel_drawn_afresh():
+    from viz import video
+
+    legend = [("prime traveler", (0.84, 0.37, 0.0, 1.0)), ("anchor", (0.8, 0.47, 0.65, 1.0))]
+    side_panel(540, 420, ["t = 1.0 s", "links 9"], legend)  # lays out and keeps the legend
+    cached = side_panel(540, 420, ["t = 2.0 s", "links 8"], legend)
+    video._PANELS.clear()
+    np.testing.assert_array_equal(cached, side_panel(540, 420, ["t = 2.0 s", "links 8"], legend))

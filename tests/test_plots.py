@@ -129,3 +129,41 @@ def test_per_robot_lines_are_named_by_robot(robot_names):
     assert (page.axes[0].get_legend() is not None) == (robot_names is not None)
     assert [t.get_text() for t in page.axes[0].get_yticklabels()] == ["prime\ntraveler", "secondary\ntraveler",
                                                                        "anchor"]
+
+
+def test_panels_put_the_headline_first_drop_repeats_and_empty_series_and_label_units(tmp_path):
+    from viz.plots import COMM_LAMBDA2, LINKS, PlotRecorder, axis_label, per_robot, run_title
+
+    recorder = PlotRecorder(("quadrotor",) * 3, tmp_path, robot_names=ROBOTS)
+    try:
+        for k in range(5):
+            t = 0.1 * k
+            recorder.series[LINKS].append((t, 3.0))
+            recorder.series[COMM_LAMBDA2].append((t, 1.0))
+            recorder.series["edges"].append((t, 3.0))
+            recorder.series["t_star_s"].append((t, float("nan")))  # never agreed: no panel
+            recorder.series["stretch_m"].append((t, 1.5 + 0.3 * k))
+            recorder.series["lambda2"].append((t, 0.5))
+            recorder.series["prime_traveler"].append((t, float(k % 3)))
+        panels = recorder.panels()
+        assert panels[:2] == ["lambda2", "stretch_m"]  # the continuous-connectivity paper's headline first
+        assert LINKS not in panels and "edges" in panels and "t_star_s" not in panels
+        (path, page), = recorder._pages()
+        labels = [panel[0] for panel in page]
+        assert all(label.endswith(")") and " (" in label for label in labels), labels
+        integer = {panel[0]: panel[4] for panel in page}
+        assert integer["prime traveler (robot index)"] and integer["graph edges (count)"]
+        assert not integer["stretch (m)"]
+        title = run_title("connected-office", "connected", 3)
+        assert "connected-office" in title and "Nestmeyer" in title and "seed 3" in title
+        assert axis_label("closing_s") == "closing (s)" and axis_label("plans", integer=True) == "plans (count)"
+        assert per_robot("gain (1)") == "gain, per robot (1)"
+        # Integer panels get whole-number ticks.
+        page_figure = build_page(page_layout(page), ROBOTS)
+        fill_page(page_figure, page, title)
+        page_figure.figure.canvas.draw()
+        index = labels.index("prime traveler (robot index)")
+        ticks = page_figure.axes[index].get_yticks()
+        assert np.allclose(ticks, np.round(ticks))
+    finally:
+        recorder._painters.finish()

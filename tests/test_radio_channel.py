@@ -337,3 +337,15 @@ def test_radio_modules_import_no_mujoco():
     import pathlib
     for path in pathlib.Path(channel.__file__).parent.glob("*.py"):
         assert "mujoco" not in path.read_text()
+
+
+@settings(max_examples=200, deadline=None)
+@given(snr=st.lists(st.one_of(st.floats(-40.0, 40.0), st.just(-math.inf)), min_size=1, max_size=50),
+       bits=st.integers(1, 12000), modulation=st.sampled_from(list(channel.MODULATIONS)))
+def test_packet_error_rate_at_snr_is_the_chain_to_the_bit(snr, bits, modulation):
+    """The bus's per-frame PER against bit_error_rate -> packet_error_rate, the reference it shortens."""
+    snr = np.array(snr)
+    lengths = np.full(len(snr), float(bits))
+    lengths[::3] += 8.0
+    expected = channel.packet_error_rate(channel.bit_error_rate(modulation, snr, 2e6, 250e3), lengths)
+    np.testing.assert_array_equal(channel.packet_error_rate_at_snr(modulation, snr, 2e6, 250e3, lengths), expected)

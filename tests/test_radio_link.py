@@ -114,6 +114,19 @@ def test_walls_are_symmetric_and_never_fewer_on_a_longer_segment(boxes, start, e
     assert longer.loss_db[0] >= forward.loss_db[0] - 1e-12
 
 
+def test_walls_of_pairs_are_the_walls_of_their_segments():
+    from sim.radio.walls import SceneWalls
+
+    boxes, losses = _scene()
+    walls = SceneWalls(boxes, np.where(np.isnan(losses), 3.4, losses))
+    positions = np.random.default_rng(2).uniform([0.0, 0.0, 0.0], [10.0, 10.0, 4.5], (25, 3))
+    first, second = np.triu_indices(25, 1)
+    pairs, segments = walls.crossed_pairs(positions, first, second), walls.crossed(positions[first], positions[second])
+    assert pairs.count.max() >= 3
+    np.testing.assert_array_equal(pairs.count, segments.count)
+    np.testing.assert_array_equal(pairs.loss_db, segments.loss_db)
+
+
 def test_the_preset_fills_the_keys_and_every_key_overrides():
     ideal = RadioConfig()
     assert ideal.is_ideal and ideal.delivery_threshold == 0.5
@@ -214,6 +227,35 @@ def test_the_channel_is_the_formulas_chain_exactly():
     np.testing.assert_array_equal(state.shadowing_db[np.triu_indices(30, 1)], expected)
 
 
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), exponent=st.floats(1.0, 8.0), reference_loss_db=st.floats(0.0, 200.0),
+       tx_power_dbm=st.floats(-60.0, 40.0), noise_floor_dbm=st.floats(-200.0, 0.0),
+       preset=st.sampled_from(["ieee802154", "nrf24", "wifi"]))
+def test_pair_figures_are_the_formulas_chain_to_the_bit(seed, exponent, reference_loss_db, tx_power_dbm,
+                                                         noise_floor_dbm, preset):
+    """The compiled pass over the pairs against channel.py's functions, the reference they replace."""
+    from sim.radio import channel as formulas
+
+    overrides = {"path_loss_exponent": exponent, "reference_loss_db": reference_loss_db,
+                 "tx_power_dbm": tx_power_dbm, "noise_floor_dbm": noise_floor_dbm}
+    config = build(RadioConfig, {"preset": preset, **overrides}, "radio")
+    boxes, _ = _scene()
+    channel = RadioChannel(config, boxes, None, 10.0, np.random.default_rng(0))
+    rng = np.random.default_rng(seed)
+    pairs = 300
+    distance = np.concatenate([rng.uniform(0.0, 200.0, pairs - 3), [0.0, 0.5, 1.0]])
+    walls = rng.integers(0, 5, pairs) * rng.uniform(0.0, 10.0, pairs)
+    shadowing = rng.normal(0.0, 8.0, pairs)
+    path_loss = formulas.log_distance_path_loss_db(distance, exponent, reference_loss_db, total_wall_loss_db=walls)
+    rx = formulas.received_power_dbm(tx_power_dbm, path_loss, shadowing)
+    snr = formulas.snr_db(rx, noise_floor_dbm)
+    got = channel.pair_figures(distance, walls, shadowing)
+    np.testing.assert_array_equal(got["rx_power_dbm"], rx)
+    np.testing.assert_array_equal(got["snr_db"], snr)
+    np.testing.assert_array_equal(got["shadowing_db"], shadowing)
+    np.testing.assert_array_equal(got["delivery"], channel.delivery_at_snr(snr))
+
+
 def _radio_run(preset: str, seed: int, ticks: int = 40):
     scenario = load("connected-office", ["robots.0.count=6", f'radio.preset="{preset}"'], seed=seed, duration_s=1.0)
     return _ticks(scenario, ticks)
@@ -221,13 +263,15 @@ def _radio_run(preset: str, seed: int, ticks: int = 40):
 
 def test_same_seed_same_delivery_and_the_radio_never_moves_the_robots():
     first, second = _radio_run("ieee802154", 3), _radio_run("ieee802154", 3)
-    other_seed, ideal = _radio_run("ieee802154", 4), _radio_run("ideal", 3)
+    other_seed = _radio_run("ieee802154", 4)
     for a, b in zip(first, second):
         np.testing.assert_array_equal(a.observation.radio.delivery, b.observation.radio.delivery)
         np.testing.assert_array_equal(a.observation.radio.shadowing_db, b.observation.radio.shadowing_db)
     assert not np.array_equal(first[-1].observation.radio.shadowing_db, other_seed[-1].observation.radio.shadowing_db)
-    # Nothing uses the radio yet: with its stream spawned, the run moves exactly as under ideal.
-    for a, b in zip(first, ideal):
+    # A strategy that sends nothing moves exactly as under ideal: the radio's stream is spawned, not shared.
+    silent = _ticks(load("hover", ['radio.preset="ieee802154"'], seed=3, duration_s=1.0), 40)
+    silent_ideal = _ticks(load("hover", [], seed=3, duration_s=1.0), 40)
+    for a, b in zip(silent, silent_ideal):
         np.testing.assert_array_equal(a.observation.position, b.observation.position)
         np.testing.assert_array_equal(a.commands.position, b.commands.position)
     # Shadowing is an AR(1) with correlation exp(-dt / tau): successive ticks stay close.
@@ -258,3 +302,20 @@ def test_graph_lambda2_of_known_graphs():
     split[0, 1] = split[1, 0] = split[2, 3] = split[3, 2] = True
     assert graph_lambda2(split) == pytest.approx(0.0, abs=1e-12)
     assert graph_lambda2(np.zeros((1, 1), bool)) == 0.0
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(1, 12), seed=st.integers(0, 2**32 - 1), density=st.floats(0.0, 1.0))
+def test_lambda2_from_pairs_is_the_matrix_graphs(n, seed, density):
+    """The link metrics read the communication graph from the pairs; the value is the (N, N) graph's."""
+    from sim import observers
+
+    first, second = np.triu_indices(n, 1)
+    edges = np.random.default_rng(seed).random(len(first)) < density
+    adjacency = np.zeros((n, n), bool)
+    adjacency[first, second] = adjacency[second, first] = edges
+    observers._LAMBDA2_SEEN.clear()
+    from_pairs = observers.pairs_graph_lambda2(n, (first, second), edges)
+    observers._LAMBDA2_SEEN.clear()
+    assert from_pairs == observers.graph_lambda2(adjacency)
+    assert observers.pairs_graph_lambda2(n, (first, second), edges) == from_pairs  # remembered

@@ -264,7 +264,8 @@ def fixture_table(folder: Path) -> Path:
     for scenario, targets in (("intermittent-4", 4), ("intermittent-8", 8)):
         for method in ("all_time", "random_meeting", "intermittent"):
             for seed in range(3):
-                row(scenario=scenario, strategy=method, n_moving_targets=targets, seed=seed,
+                row(scenario=scenario, strategy=method, n_moving_targets=targets, seed=seed, duration_s=300.0,
+                    overrides=json.dumps([f'strategy.kind="{method}"']),
                     e_g_mean_m=1 + rng.random(), e_g_std_m=0.4, lambda_bar_mean_m2=0.2 + rng.random() / 5,
                     lambda_bar_std_m2=0.1, delay_bound_epochs=5, max_delay_epochs_observed=4,
                     t_star_lag_mean_s=10.0, t_star_lag_max_s=20.0)
@@ -304,6 +305,40 @@ def test_report_on_a_fixture_table_writes_figures_and_tables(tmp_path, capsys):
     assert "0.929 ± 0.561" in report and "2.517 ± 0.810" in report and "n=3)" in report
     # Team graphs beside the paper's figures.
     assert "G_T^1" in report and "G_T^2" in report and "1.127" in report and "0.532" in report
+
+
+def test_a_users_own_sweep_of_the_meeting_methods_is_not_set_beside_the_papers(tmp_path):
+    """The paper's numbers stand only beside its set-up: another scenario, another duration or an
+    extra override gets ours alone, under a heading that does not name the paper's table."""
+    import matplotlib.image
+
+    from tether.report import write_report
+
+    rng = np.random.default_rng(1)
+    rows = []
+    for scenario, duration, extra in (("my-room", 300.0, []), ("intermittent-8", 60.0, []),
+                                      ("intermittent-4", 300.0, ["sensing.comm_noise=0.1"])):
+        rows = []
+        for method in ("all_time", "random_meeting", "intermittent"):
+            for seed in range(2):
+                rows.append({"trial_id": f"t{len(rows)}", "trial_index": len(rows), "attempt": 1, "error": "",
+                             "status": "completed", "scenario": scenario,
+                             "strategy": method, "seed": seed, "duration_s": duration,
+                             "overrides": json.dumps([f'strategy.kind="{method}"', *extra]),
+                             "n_moving_targets": 8 if scenario == "intermittent-8" else 4,
+                             "e_g_mean_m": 1 + rng.random(), "e_g_std_m": 0.3,
+                             "lambda_bar_mean_m2": 0.2 + rng.random() / 5, "lambda_bar_std_m2": 0.1})
+        folder = tmp_path / scenario
+        folder.mkdir()
+        pq.write_table(pa.Table.from_pylist(rows), folder / "results.parquet")
+        files = write_report(folder)
+        report = (folder / "report.md").read_text()
+        assert "## The meeting methods compared" in report and "Table I is not shown" in report, scenario
+        for paper_value in ("0.929 ± 0.561", "2.517 ± 0.810", "0.879 ± 0.461", "1.030 ± 0.466"):
+            assert paper_value not in report, (scenario, paper_value)
+        assert "(paper)" not in report
+        assert any(p.name == "table1.png" for p in files)
+        assert matplotlib.image.imread(folder / "table1.png").std() > 0.05
 
 
 def test_report_reads_the_target_count_of_tables_written_before_its_rename():

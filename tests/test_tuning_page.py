@@ -114,6 +114,7 @@ def test_every_field_of_the_connected_strategy_is_offered_in_groups():
 
 
 def test_the_strategy_legend_reaches_the_page_status():
+    from sim import palette
     from viz.tuning import TuningSession
 
     session = TuningSession(load("hover"), build_simulation)
@@ -121,10 +122,46 @@ def test_the_strategy_legend_reaches_the_page_status():
     legend = Decorations(legend=[("anchor", (1.0, 0.6, 0.1, 1.0)), ("team 0", np.array([0.2, 0.4, 1.0, 1.0]))])
     frame = dataclasses.replace(frame, commands=dataclasses.replace(frame.commands, decorations=legend))
     session._sample(frame)
-    # The strategy's entries, then the true targets (hover has 8) in their model colour.
+    # The pictures' one legend: the strategy's entries, the robots' kinds (hover flies and drives; the strategy colours none),
+    # the references, the links, then the true targets (hover has 8), in the palette's colours.
     assert session.status()["legend"] == [{"label": "anchor", "color": "#ff991a"},
                                           {"label": "team 0", "color": "#3366ff"},
-                                          {"label": "target (true)", "color": "#f2bf1a"}]
+                                          {"label": "quadrotor robot", "color": palette.hex_code(palette.KIND["quadrotor"])},
+                                          {"label": "ground robot", "color": palette.hex_code(palette.KIND["ground"])},
+                                          {"label": "reference (point steered to)", "color": "#000000"},
+                                          {"label": "communication link", "color": palette.hex_code(palette.LINK_STRONG)},
+                                          {"label": "target (true)", "color": palette.hex_code(palette.TARGET_TRUE)}]
+    assert session.status()["overlay"].startswith("t = ")
+
+
+def test_the_radio_keys_are_controls_and_retune_the_running_channel():
+    from viz.tuning import TuningSession
+
+    scenario = load("connected-office", ["robots.0.count=6", 'radio.preset="ieee802154"'], duration_s=5.0)
+    session = TuningSession(scenario, build_simulation)
+    fields = {f["name"]: f for f in session.params_schema()["fields"]}
+    power = fields["radio.tx_power_dbm"]
+    assert (power["kind"], power["unit"], power["min"], power["max"]) == ("float", "dBm", -60.0, 40.0)
+    assert power["group"].startswith("radio") and power["value"] == 0.0
+    assert fields["radio.preset"]["kind"] == "choice" and "wifi" in fields["radio.preset"]["choices"]
+    assert fields["radio.bitrate_bps"]["restarts"]
+    for _ in range(5):
+        session.sim.tick()
+    before = session.sim.radio
+    tick = session.sim.tick_count
+    result = session.set_params({"radio.tx_power_dbm": -50.0})
+    # Live: the same run goes on (no reset), its channel now at -50 dBm.
+    assert result["how"] == "updated" and session.sim.tick_count == tick and not session._reset_requested
+    assert session.sim.radio is not before and session.sim.radio.config.tx_power_dbm == -50.0
+    assert session.status()["params"]["radio.tx_power_dbm"] == -50.0
+    frame, healthy = session.sim.tick()
+    assert healthy and np.nanmax(frame.observation.radio.rx_power_dbm) < -40.0
+    with pytest.raises(ConfigError, match=r"radio\.path_loss_exponent: must be in \[1, 8\]"):
+        session.set_params({"radio.path_loss_exponent": 0.5})
+    # A new preset takes its own figures, and the run restarts from t = 0 with it.
+    assert session.set_params({"radio.preset": "wifi"})["how"] == "restarted from t = 0"
+    assert session._reset_requested and session.sim.scenario.radio.preset == "wifi"
+    assert session.sim.scenario.radio.tx_power_dbm != -50.0
 
 
 # --------------------------------------------------------------------------- in a real browser
@@ -205,8 +242,8 @@ def test_page_shows_live_view_parameters_and_plots(page, server):
     assert page.get_attribute("#range-speed_mps", "min") == "0.05"
     assert page.get_attribute("#range-speed_mps", "max") == "3"
     assert "m/s" in page.inner_text('.param[data-name="speed_mps"]')
-    # Live view: the MJPEG stream shows frames of the requested size.
-    page.wait_for_function("document.getElementById('view').naturalWidth === 320", timeout=15000)
+    # Live view: the MJPEG stream shows frames of the requested height (the scene at its aspect).
+    page.wait_for_function("document.getElementById('view').naturalHeight === 240", timeout=15000)
     # Live plots of the foundation's figures and the strategy's scalars.
     for name in ("tracking_error_mean_m", "links", "reference_speed_max_mps"):
         page.wait_for_selector(f'.plot[data-name="{name}"] canvas', timeout=15000)
@@ -215,18 +252,56 @@ def test_page_shows_live_view_parameters_and_plots(page, server):
     assert not page.errors
 
 
-def test_plots_sit_beside_the_live_view_and_every_field_has_a_control_in_its_group(page, server):
+@pytest.mark.parametrize("size", [(1600, 1000), (1280, 800)])
+def test_sliders_sit_in_the_first_screen_beside_the_view_and_every_field_has_a_control(page, server, size, tmp_path):
+    width, height = size
+    page.set_viewport_size({"width": width, "height": height})
     page.wait_for_selector('.plot[data-name="links"] canvas', timeout=15000)
+    page.screenshot(path=str(tmp_path / f"tune-{width}x{height}.png"))
     view = page.locator("#view").bounding_box()
+    slider = page.locator("#range-speed_mps").bounding_box()
     plot = page.locator('.plot[data-name="links"]').bounding_box()
-    # Beside the view (to its right, overlapping its rows), not below it.
-    assert plot["x"] >= view["x"] + view["width"] - 1
-    assert plot["y"] < view["y"] + view["height"]
+    # The page's purpose, the sliders, within the first screen, at the right of the view; the figures under it.
+    assert slider["y"] + slider["height"] <= height and slider["x"] >= view["x"] + view["width"] - 1
+    assert plot["y"] >= view["y"] + view["height"] - 1
+    # Wide enough to pick a value to 1 % of its range: at least 3 px per percent.
+    assert slider["width"] >= 300
+    # One legend: the page's, under the view; the image is the scene alone (no panel burned in).
+    assert page.locator("#legend .item").count() >= 3
+    assert page.evaluate("document.getElementById('view').naturalHeight") == 240
+    assert page.evaluate("document.getElementById('view').naturalWidth") < 320
+    # The real-time factor, in the header.
+    _wait_for(lambda: page.inner_text("#rtf").startswith("x"), what="the real-time factor")
     schema = _get(server.url + "api/params")
     for field in schema["fields"]:
         control = page.locator(f'fieldset.group[data-group="{field["group"]}"] .param[data-name="{field["name"]}"]')
         assert control.count() == 1, field["name"]
         assert control.locator("input, select, textarea").count() >= 1, field["name"]
+    assert any(f["name"] == "radio.tx_power_dbm" for f in schema["fields"])
+    page.set_viewport_size({"width": 1300, "height": 1000})
+
+
+def test_plot_ticks_are_1_2_5_steps_from_0_for_non_negative_figures(page, server):
+    page.wait_for_selector('.plot[data-name="links"] canvas', timeout=15000)
+    axes = page.evaluate("""[[0.03, 1.47], [2, 38], [-0.4, 0.9], [0, 0], [0.25, 0.26]].map(([lo, hi]) => niceAxis(lo, hi))""")
+    for axis, (lo, hi) in zip(axes, [(0.03, 1.47), (2, 38), (-0.4, 0.9), (0, 0), (0.25, 0.26)]):
+        ticks = axis["ticks"]
+        step = ticks[1] - ticks[0]
+        mantissa = step / 10 ** np.floor(np.log10(step))
+        assert min(abs(mantissa - m) for m in (1, 2, 5)) < 1e-6, (lo, hi, ticks)
+        assert 3 <= len(ticks) <= 6 and ticks[0] <= lo + 1e-12 and ticks[-1] >= hi - 1e-12, (lo, hi, ticks)
+        if lo >= 0:
+            assert ticks[0] == 0, (lo, hi, ticks)  # a non-negative quantity's axis starts at 0
+    assert axes[0]["ticks"] == [0, 0.5, 1, 1.5]
+
+
+def test_a_radio_slider_retunes_the_channel_live(page, server):
+    page.wait_for_selector('[id="range-radio.tx_power_dbm"]')
+    epoch = server.status()["epoch"]
+    page.fill('[id="range-radio.tx_power_dbm"]', "-10")
+    _wait_for(lambda: server.status()["params"]["radio.tx_power_dbm"] == -10.0, what="radio.tx_power_dbm = -10")
+    page.wait_for_function("document.getElementById('message').textContent.includes('updated')")
+    assert server.status()["epoch"] == epoch and ticks_advance(server)  # live, not a restart
 
 
 def test_slider_changes_the_running_strategy(page, server):

@@ -26,13 +26,14 @@ OPEN_FLOOR = """
   </worldbody>
 </mujoco>
 """
-# Two quadrotors 2 m apart, centred under an orthographic top camera 4 m tall: 60 px per metre at
-# 320 x 240, the robots at columns 100 and 220 of row 120.
+# Two quadrotors 2 m apart, centred under an orthographic top camera 4 m tall: 60 px per metre in
+# the 240 x 240 scene of a 400 x 240 frame (the legend panel to its right), the robots at columns 60
+# and 180 of row 120.
 TWO_QUADS = """
 scene = "scene.xml"
 duration_s = 1.0
 [video]
-width = 320
+width = 400
 height = 240
 camera = "top"
 [strategy]
@@ -41,7 +42,7 @@ kind = "waypoints"
 kind = "quadrotor"
 starts = [[4.0, 5.0, 1.0], [6.0, 5.0, 1.0]]
 """
-BAND_ROWS = 20  # the overlay band's height, px (text at y = 4 in PIL's default font)
+SCENE_COLUMNS = 240  # the scene's width in the frame; the panel starts here
 
 
 def first_frame(path, comm_range_m: float):
@@ -64,18 +65,18 @@ def test_a_link_appearing_changes_its_pixels_and_the_overlay_count(tmp_path):
     np.testing.assert_array_equal(apart.observation.position, linked.observation.position)
     assert len(apart.observation.links.edges) == 0 and len(linked.observation.links.edges) == 1
     changed = np.abs(with_link - without).sum(axis=2) > 0
-    # Between the robots (clear of their bodies), every column shows the line in the link's green.
-    between = with_link[114:127, 130:191]
-    greenness = between[..., 1] - np.maximum(between[..., 0], between[..., 2])
-    assert np.all(greenness.max(axis=0) > 80)
-    before = without[114:127, 130:191]
-    assert np.all(before[..., 1] - np.maximum(before[..., 0], before[..., 2]) < 10)  # bare floor before
-    # The overlay's "links 0" became "links 1".
-    assert changed[:BAND_ROWS].sum() > 5
-    # Nothing else changed: below the band, only pixels on the segment between the two robots.
-    rows, cols = np.nonzero(changed[BAND_ROWS:])
-    assert rows.min() + BAND_ROWS >= 116 and rows.max() + BAND_ROWS <= 124
-    assert cols.min() >= 95 and cols.max() <= 225
+    # Between the robots (clear of their bodies), every column shows the line, darker than the floor
+    # (the palette's link ramp at full value is charcoal).
+    between = with_link[114:127, 75:166].sum(axis=2)
+    before = without[114:127, 75:166].sum(axis=2)
+    assert np.all(before.min(axis=0) - between.min(axis=0) > 150)
+    assert np.ptp(before, axis=0).max() < 60  # bare floor before
+    # The panel's "links 0" became "links 1".
+    assert changed[:, SCENE_COLUMNS:].sum() > 5
+    # Nothing else changed: in the scene, only pixels on the segment between the two robots.
+    rows, cols = np.nonzero(changed[:, :SCENE_COLUMNS])
+    assert rows.min() >= 116 and rows.max() <= 124
+    assert cols.min() >= 55 and cols.max() <= 185
 
 
 def count_frames(path) -> int:

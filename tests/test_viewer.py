@@ -1,7 +1,7 @@
 """`tether view`: MuJoCo's own viewer on a running simulation, under a real
 X server (Debian's Xvfb, started here on a free display; skipped without it).
 A few ticks, then the screen is read back: not blank, and the user geometry
-(communication links in their green) is drawn."""
+(the ground robots' halos in the palette's bluish green) is drawn."""
 
 from __future__ import annotations
 
@@ -90,9 +90,9 @@ def test_tether_view_draws_the_running_simulation_with_its_links(display, tmp_pa
             proc.kill()
     assert image.shape[:2] == (SCREEN[1], SCREEN[0])
     assert image.std() > 20  # not blank
-    # The communication links are user geometry in LINK_RGBA's green (lit: shades of it).
+    # The ground robots' halos are user geometry in the palette's bluish green (lit: shades of it).
     r, g, b = image[..., 0], image[..., 1], image[..., 2]
-    green = (g > 120) & (g > r + 60) & (g > b + 60)
+    green = (g > 100) & (g > r + 60) & (b > r + 30) & (g > b)
     assert green.sum() > 30
     # ... and the scene itself: the office's walls and floor fill much of the window.
     assert (image.sum(axis=2) > 60).mean() > 0.15
@@ -111,12 +111,29 @@ def test_bad_input_and_no_display_exit_2_with_one_line(monkeypatch, capsys):
     assert len(err) == 1 and "needs a display" in err[0] and "tether run --video" in err[0]
 
 
+def test_the_default_camera_looks_down_on_the_floor_and_leaves_the_right_to_the_legend():
+    from types import SimpleNamespace
+
+    from viz.viewer import FLOOR_SHARE, default_camera, pace_text
+
+    cam = SimpleNamespace(lookat=np.zeros(3), distance=0.0, elevation=0.0, azimuth=0.0, type=None)
+    default_camera(cam, ((0, 0, 0), (10, 10, 5)), 45.0, 16 / 9)
+    assert cam.elevation == -90.0 and cam.azimuth == 90.0  # straight down: walls hide no room
+    visible_depth = 2 * cam.distance * np.tan(np.radians(22.5))
+    visible_width = visible_depth * 16 / 9
+    left = cam.lookat[0] - visible_width / 2
+    assert left <= 0.0 and 10.0 <= left + FLOOR_SHARE * visible_width * 1.07  # the floor in the left share
+    assert visible_depth >= 10.0
+    assert pace_text(0.04, 1.0).startswith("x0.04 of real time (asked x1")
+    assert pace_text(1.0, 1.0) == "x1.00 of real time"
+
+
 def test_the_viewer_legend_names_every_role_and_team_colour_distinctly():
     from controllers.connectivity.strategy import LEGEND
     from controllers.intermittent.runtime import TEAM_COLORS
     from viz.viewer import colour_name
 
     roles = [colour_name(rgba) for _, rgba in LEGEND[:4]]
-    assert roles == ["turquoise", "blue", "orange", "grey"]
+    assert roles == ["vermillion", "blue", "reddish purple", "sky blue"]
     teams = [colour_name(rgba) for rgba in TEAM_COLORS]
     assert len(set(teams)) == len(teams)

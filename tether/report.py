@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from sim.config import ConfigError
+from sim.palette import METHOD, PAPER, hex_code
 from tether.sweep import FINISHED
 
 # Nestmeyer et al. 2017, Fig. 9: rows (column, axis label).
@@ -55,12 +56,18 @@ PAPER_TABLE_I = {
         "intermittent": ((0.929, 0.561), (0.177, 0.068))},
 }
 METHOD_ORDER = ("all_time", "random_meeting", "intermittent")  # Table I's column order
+# The paper's set-up as tether reproduces it (sweep table1, and teams for Sec. IV-A): the scenario of
+# each target count, the duration, and the only override a trial may carry. A paper's numbers stand
+# beside a sweep's only when its rows match (a user's own sweep of these methods gets ours alone).
+TABLE_I_SCENARIOS = {4: "intermittent-4", 8: "intermittent-8"}
+PAPER_DURATION_S = 300.0  # tether/sweeps/table1.toml and teams.toml (the built-ins' own duration too)
 METHOD_LABELS = {"all_time": "all-time", "random_meeting": "heuristic", "intermittent": "intermittent",
                  "connected_tracking": "connected (Nestmeyer et al. 2017)"}
 # Both paradigms on one task: the methods in plotting order, and the swept range column.
 PARADIGM_METHODS = ("all_time", "random_meeting", "intermittent", "connected_tracking")
-PARADIGM_COLORS = {"all_time": "#8c8c8c", "random_meeting": "#d98c3a", "intermittent": "#3a78d9",
-                   "connected_tracking": "#2ca05a"}
+PARADIGM_COLORS = {m: hex_code(METHOD[m]) for m in PARADIGM_METHODS}
+OURS_COLOR = hex_code(METHOD["intermittent"])  # a figure with one series of ours
+PAPER_COLOR = hex_code(PAPER)
 RANGE_COLUMN = "sensing.comm_range_m"
 
 # Khodayi-mehr et al. 2019, Sec. IV-A (8 targets): team graph -> (e_g-bar m, lambda-bar m^2, delay bound D_G epochs).
@@ -68,6 +75,33 @@ PAPER_TEAMS = {
     "intermittent-8": ("G_T^1 (ring, 8 teams of 2)", 0.929, 0.177, 5),
     "intermittent-8-dense": ("G_T^2 (5 teams)", 1.127, 0.532, 4),
 }
+
+
+def _overridden_keys(row: dict) -> set[str]:
+    """The keys a trial's ``--set`` overrides changed (the row's JSON list of "key=value")."""
+    text = row.get("overrides")
+    if not text:
+        return set()
+    try:
+        items = json.loads(text) if isinstance(text, str) else list(text)
+    except ValueError:
+        return {"?"}
+    return {str(item).split("=", 1)[0] for item in items}
+
+
+def reproduces_paper(rows: list[dict], scenario: str, methods: set[str] | None, allowed: set[str]) -> bool:
+    """Whether ``rows`` are the paper's set-up as tether reproduces it: every row of the
+    built-in ``scenario`` at :data:`PAPER_DURATION_S` (or the scenario's own, which is it),
+    with no override beyond the keys in ``allowed``, and (``methods``) exactly those methods."""
+    if not rows:
+        return False
+    for r in rows:
+        duration = _number(r.get("duration_s"))
+        if str(r.get("scenario")) != scenario or (duration is not None and duration != PAPER_DURATION_S):
+            return False
+        if _overridden_keys(r) - allowed:
+            return False
+    return methods is None or {r.get("strategy") for r in rows} == methods
 
 
 def _label(scenario: Any) -> str:
@@ -152,9 +186,9 @@ def fig9_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
             xs = [c for c in counts if values[metric][scene][c]]
             if xs:
                 p = np.array([np.percentile(values[metric][scene][c], FIG9_PERCENTILES) for c in xs])
-                ax.fill_between(xs, p[:, 0], p[:, 4], color="#3a78d9", alpha=0.18, lw=0, label="10-90 %")
-                ax.fill_between(xs, p[:, 1], p[:, 3], color="#3a78d9", alpha=0.35, lw=0, label="25-75 %")
-                ax.plot(xs, p[:, 2], "o-", color="#1f4e99", ms=3, label="median")
+                ax.fill_between(xs, p[:, 0], p[:, 4], color=OURS_COLOR, alpha=0.18, lw=0, label="10-90 %")
+                ax.fill_between(xs, p[:, 1], p[:, 3], color=OURS_COLOR, alpha=0.35, lw=0, label="25-75 %")
+                ax.plot(xs, p[:, 2], "o-", color=OURS_COLOR, ms=3, label="median")
                 for x in xs:
                     ax.annotate(f"{len(values[metric][scene][x])}", (x, p[xs.index(x), 2]), fontsize=6,
                                 textcoords="offset points", xytext=(0, 4), ha="center", color="#555")
@@ -277,12 +311,22 @@ def table1_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
     cells = _table1_cells(with_e_g)
     targets = sorted({_moving_targets(r) for r in with_e_g})
     methods = [m for m in METHOD_ORDER if any(r.get("strategy") == m for r in with_e_g)]
-    lines = ["## Khodayi-mehr et al. 2019, Table I", "",
+    # Per target count: the paper's Table I beside ours only for its set-up (TABLE_I_SCENARIOS).
+    papers = {n: PAPER_TABLE_I.get(n, {}) if reproduces_paper(
+        [r for r in with_e_g if _moving_targets(r) == n], TABLE_I_SCENARIOS.get(n, ""), set(METHOD_ORDER),
+        {"strategy.kind"}) else {} for n in targets}
+    reproduced = any(papers.values())
+    lines = ["## Khodayi-mehr et al. 2019, Table I" if reproduced else "## The meeting methods compared", "",
              "Ours: mean over trials of each run's time average, +- the mean over trials of each run's std "
              "over time (how the paper reports a run), then the std of the run averages across seeds, and n. "
-             "Paper: Table I.", ""]
+             + ("Paper: Table I, beside the target counts run in its set-up (sweep table1: "
+                + ", ".join(f"{n} targets in {TABLE_I_SCENARIOS[n]}" for n in TABLE_I_SCENARIOS)
+                + f", {PAPER_DURATION_S:g} s, all three methods)." if reproduced else
+                "The intermittent paper's Table I is not shown: these trials are not its set-up (sweep table1: "
+                + ", ".join(f"{TABLE_I_SCENARIOS[n]}" for n in TABLE_I_SCENARIOS)
+                + f", {PAPER_DURATION_S:g} s, all three methods, no other overrides)."), ""]
     for n_targets in targets:
-        paper = PAPER_TABLE_I.get(n_targets, {})
+        paper = papers[n_targets]
         lines += [f"**{n_targets} targets**", "",
                   "| | " + " | ".join(f"{METHOD_LABELS[m]} (ours)" for m in methods) + " | "
                   + " | ".join(f"{METHOD_LABELS[m]} (paper)" for m in methods if m in paper) + " |",
@@ -305,30 +349,37 @@ def table1_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
         lines.append("")
 
     plt = _plt()
-    fig, axes = plt.subplots(2, len(targets), figsize=(4.2 * len(targets), 6), squeeze=False)
-    colors = {"all_time": "#8c8c8c", "random_meeting": "#d98c3a", "intermittent": "#3a78d9"}
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    fig, axes = plt.subplots(2, len(targets), figsize=(4.6 * len(targets), 6.4), squeeze=False)
     for col, n_targets in enumerate(targets):
-        paper = PAPER_TABLE_I.get(n_targets, {})
-        for row_i, (key, label, index) in enumerate((("e_g", "e_g-bar (m)", 0), ("lam", "lambda-bar (m^2)", 1))):
+        paper = papers[n_targets]
+        for row_i, (key, label, index) in enumerate((("e_g", "e_g-bar, time average (m)", 0),
+                                                     ("lam", "lambda-bar (m²)", 1))):
             ax = axes[row_i, col]
             x = np.arange(len(methods))
             c = [cells.get((n_targets, m)) for m in methods]
             ax.bar(x, [v[key] if v else math.nan for v in c], yerr=[v[key + "_seed_std"] if v else 0 for v in c],
-                   color=[colors[m] for m in methods], capsize=4, label="ours (mean, std over seeds)")
-            ax.plot(x, [paper[m][index][0] if m in paper else math.nan for m in methods], "k_", ms=22, mew=2,
-                    label="paper, Table I")
-            for xi, v in zip(x, c):
-                if v:
-                    ax.annotate(f"n={v['n']}", (xi, 0), textcoords="offset points", xytext=(0, 3), ha="center",
-                                fontsize=7)
-            ax.set_xticks(x, [METHOD_LABELS[m] for m in methods])
-            ax.set_ylabel(label)
-            ax.set_title(f"{n_targets} targets", fontsize=9)
+                   color=[PARADIGM_COLORS[m] for m in methods], capsize=4, width=0.6)
+            if paper:  # beside the bar, not over it: the bar's top and its error bar stay readable
+                ax.plot(x + 0.38, [paper[m][index][0] if m in paper else math.nan for m in methods], "_",
+                        color=PAPER_COLOR, ms=14, mew=3)
+            # n in the tick label: a label drawn in the plot can sit under a marker.
+            ax.set_xticks(x, [f"{METHOD_LABELS[m]}\nn={v['n'] if v else 0}" for m, v in zip(methods, c)],
+                          fontsize=9)
+            ax.set_ylabel(label, fontsize=9)
+            ax.set_ylim(bottom=0)
+            ax.set_title(f"{n_targets} targets", fontsize=10)
             ax.grid(axis="y", alpha=0.3)
-            if row_i == 0 and col == 0:
-                ax.legend(fontsize=7)
-    fig.tight_layout()
-    return _with_figure(lines, fig, out / "table1.png", "Table I")
+    handles = [Patch(color=PARADIGM_COLORS[m], label=f"{METHOD_LABELS[m]} (ours: mean, std over seeds)")
+               for m in methods]
+    if reproduced:
+        handles.append(Line2D([], [], color=PAPER_COLOR, marker="_", ls="", ms=14, mew=3,
+                              label="Khodayi-mehr et al. 2019, Table I"))
+    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 2), fontsize=9, frameon=False)
+    fig.tight_layout(rect=(0, 0.06 * (1 + (len(handles) > 2)), 1, 1))
+    return _with_figure(lines, fig, out / "table1.png", "Table I" if reproduced else "meeting methods")
 
 
 def _with_figure(lines: list[str], fig, png: Path, alt: str) -> tuple[list[str], list[Path]]:
@@ -405,7 +456,8 @@ def teams_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
                ("max_delay_epochs_observed", "max observed delay (epochs)"),
                ("t_star_lag_mean_s", "t - t*(t) mean (s)"), ("t_star_lag_max_s", "t - t*(t) max (s)"))
     lines = ["## Khodayi-mehr et al. 2019, Sec. IV-A: team graphs", "",
-             "Ours: mean ± std over finished trials (n). Paper: 8 targets, one run each.", "",
+             "Ours: mean ± std over finished trials (n). Paper: 8 targets, one run each, beside the scenarios "
+             f"run in its set-up (sweep teams: {PAPER_DURATION_S:g} s, no other overrides).", "",
              "| scenario | team graph | n | " + " | ".join(label for _, label in columns)
              + " | paper e_g-bar (m) | paper lambda-bar (m^2) | paper D_G |",
              "|" + " --- |" * (3 + len(columns) + 3)]
@@ -420,28 +472,41 @@ def teams_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
                 stats[scenario][key] = (float(np.mean(v)), float(np.std(v))) if v else None
                 cell.append(f"{np.mean(v):.3f} ± {np.std(v):.3f}" if v else "-")
             graph, e_g, lam, bound = PAPER_TEAMS.get(scenario, ("?", None, None, None))
+            if not reproduces_paper([r for r in mine if _label(r["scenario"]) == scenario], scenario, None,
+                                    {"strategy.kind"}):
+                e_g = lam = bound = None  # not the paper's set-up: its figures would compare unlike runs
             paper = [f"{e_g:.3f}" if e_g else "-", f"{lam:.3f}" if lam else "-", str(bound) if bound else "-"]
             lines.append(f"| {scenario} | {graph} | {len(chosen)} | " + " | ".join(cell) + " | " + " | ".join(paper)
                          + " |")
     lines.append("")
 
     plt = _plt()
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
     scenarios = list(stats)
-    fig, axes = plt.subplots(1, 3, figsize=(11, 3.4))
+    paper_of = {s: PAPER_TEAMS[s] for s in scenarios if s in PAPER_TEAMS and reproduces_paper(
+        [r for r in mine if _label(r["scenario"]) == s], s, None, {"strategy.kind"})}
+    fig, axes = plt.subplots(1, 3, figsize=(11, 3.8))
     for ax, (key, label, paper_index) in zip(axes, (("e_g_mean_m", "e_g-bar (m)", 1),
-                                                    ("lambda_bar_mean_m2", "lambda-bar (m^2)", 2),
+                                                    ("lambda_bar_mean_m2", "lambda-bar (m²)", 2),
                                                     ("t_star_lag_mean_s", "mean t - t*(t) (s)", None))):
         x = np.arange(len(scenarios))
         v = [stats[s][key] or (math.nan, 0.0) for s in scenarios]
-        ax.bar(x, [a for a, _ in v], yerr=[b for _, b in v], color="#3a78d9", capsize=4, label="ours")
-        if paper_index is not None:
-            ax.plot(x, [PAPER_TEAMS.get(s, (None,) * 4)[paper_index] or math.nan for s in scenarios], "k_", ms=22,
-                    mew=2, label="paper")
-            ax.legend(fontsize=7)
-        ax.set_xticks(x, scenarios, fontsize=7)
-        ax.set_ylabel(label)
+        ax.bar(x, [a for a, _ in v], yerr=[b for _, b in v], color=OURS_COLOR, capsize=4, width=0.6)
+        if paper_index is not None and paper_of:
+            ax.plot(x + 0.38, [paper_of[s][paper_index] if s in paper_of else math.nan for s in scenarios], "_",
+                    color=PAPER_COLOR, ms=14, mew=3)
+        ax.set_xticks(x, scenarios, fontsize=8)
+        ax.set_ylabel(label, fontsize=9)
+        ax.set_ylim(bottom=0)
         ax.grid(axis="y", alpha=0.3)
-    fig.tight_layout()
+    handles = [Patch(color=OURS_COLOR, label="ours: mean, std over seeds")]
+    if paper_of:
+        handles.append(Line2D([], [], color=PAPER_COLOR, marker="_", ls="", ms=14, mew=3,
+                              label="Khodayi-mehr et al. 2019, Sec. IV-A"))
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=9, frameon=False)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
     return _with_figure(lines, fig, out / "teams.png", "team graphs")
 
 

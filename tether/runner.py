@@ -53,9 +53,10 @@ def _observers(sim: Simulation, folder: Path | None, video: bool, rrd: bool, liv
     files: dict[str, str] = {}
     if folder is None:
         return observers, named, files
-    from viz.plots import PlotRecorder
+    from viz.plots import PlotRecorder, run_title
 
-    named["plots"] = PlotRecorder(sim.world.robot_kinds, folder / "plots", robot_names=sim.world.robot_names)
+    named["plots"] = PlotRecorder(sim.world.robot_kinds, folder / "plots", robot_names=sim.world.robot_names,
+                                  title=run_title(scenario.name, scenario.strategy.kind, scenario.seed))
     named["progress"] = ProgressFile(folder / "progress.json")
     observers += [named["plots"], named["progress"]]
     if video:

@@ -4,15 +4,20 @@ What a strategy draws is :class:`sim.types.Decorations` (``commands.decorations`
 robot colours, paths, meeting points, markers, legend, overlay, events;
 every field optional, empty draws nothing) and its target estimate
 ``commands.estimate`` (:class:`sim.types.TargetEstimate`: spheres in the
-video, points and 2-sigma covariance ellipsoids in the recording). With
-``robot_colors``, quadrotors also get a small marker sphere of their colour
-on top (e.g. the prime traveler highlighted).
+video, points and 2-sigma covariance ellipsoids in the recording).
+Quadrotors get a small marker sphere on top: their ``robot_colors`` entry
+(e.g. the prime traveler highlighted), else their kind's colour, so what
+the legend names is what is drawn.
 
-Links under a radio preset other than ``ideal`` are coloured by the pair's
-delivery probability (``Observation.radio.delivery``) on viridis, a
-colour-blind-safe sequential ramp from 0 to 1 (:func:`link_delivery_colors`),
-and the legend shows that scale; under ``ideal`` the links keep their colours
-(the strategy's ``link_weights``, else plain green).
+Colours come from :mod:`sim.palette`. Links under a radio preset other
+than ``ideal`` are coloured by the pair's delivery probability
+(``Observation.radio.delivery``) on the palette's link ramp, pale grey (0)
+to charcoal (1), and drawn thinner the lower it is
+(:func:`link_delivery_colors`); under ``ideal`` the connected strategy's
+links take the same ramp by their weight (``link_weights``), other links
+the ramp's full value. :func:`frame_legend` lists every kind of thing drawn,
+the link scale with its meaning included: the video's side panel, the
+tuning page, the viewer and the recording all show that one list.
 
 Pure drawing helpers: they only read the frame.
 """
@@ -21,12 +26,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from sim import palette
+
 PATH_WIDTH_M = 0.012  # video: planned-path capsule width, m
-PATH_MIN_PX = 0.6  # ... and at least this many pixels (large scenes)
+PATH_MIN_PX = 1.2  # ... and at least this many pixels: thinner, a path breaks into dots
 MARKER_MIN_PX = 4.0  # video: meeting points, estimates, markers: at least this radius, px
 MEETING_RADIUS_M = 0.05  # video: meeting-point sphere radius, m
 ESTIMATE_RADIUS_M = 0.07  # video: estimated-target sphere radius, m
-ESTIMATE_RGBA = np.array([1.0, 0.45, 0.0, 0.55], dtype=np.float32)
+ESTIMATE_RGBA = palette.TARGET_ESTIMATE
 HALO_ALPHA = 0.45
 MARKER_RADIUS_M = 0.12  # video: ``markers`` sphere radius, m
 QUAD_MARK_RADIUS_M = 0.12  # video: the ``robot_colors`` sphere on top of a quadrotor, m
@@ -34,18 +41,12 @@ QUAD_MARK_HEIGHT_M = 0.12  # ... and its height above the body origin, m
 ELLIPSOID_SIGMAS = 2.0  # recording: covariance ellipsoid half-axes in standard deviations
 
 
-TARGET_RGBA = np.array([0.95, 0.75, 0.1, 1.0], dtype=np.float32)  # models/robots/target.xml's marker
-LINK_DELIVERY_ALPHA = 0.9
-LINK_DELIVERY_SCALE = (0.0, 0.5, 1.0)  # the legend's swatches of the delivery ramp
+TARGET_RGBA = palette.TARGET_TRUE  # models/robots/target.xml's marker
 
 
 def delivery_rgba(delivery) -> np.ndarray:
-    """RGBA (0..1, float32; shape (..., 4)) of delivery probabilities on viridis: dark purple at 0, yellow at 1."""
-    from matplotlib import colormaps
-
-    rgba = np.asarray(colormaps["viridis"](np.clip(np.asarray(delivery, dtype=float), 0.0, 1.0)), dtype=np.float32)
-    rgba[..., 3] = LINK_DELIVERY_ALPHA
-    return rgba
+    """RGBA (0..1, float32; shape (..., 4)) of delivery probabilities on the palette's link ramp."""
+    return palette.link_rgba(delivery)
 
 
 def radio_of(frame):
@@ -74,23 +75,52 @@ def link_delivery_colors(frame) -> np.ndarray | None:
     return delivery_rgba(np.asarray(radio.delivery)[edges[:, 0], edges[:, 1]])
 
 
-def link_delivery_legend() -> list[tuple[str, np.ndarray]]:
-    """The legend's entries of the delivery ramp: "link delivery 0", "link delivery 0.5", "link delivery 1"."""
-    return [(f"link delivery {value:g}", delivery_rgba(value)) for value in LINK_DELIVERY_SCALE]
+def link_values(frame) -> np.ndarray | None:
+    """(E,) link quality in [0, 1] of ``frame.observation.links.edges``: the pair's delivery
+    probability under a non-ideal radio, else the strategy's ``link_weights``; None when neither."""
+    edges = np.asarray(frame.observation.links.edges, dtype=int).reshape(-1, 2)
+    radio = radio_of(frame)
+    if radio is not None:
+        return np.asarray(radio.delivery, dtype=float)[edges[:, 0], edges[:, 1]]
+    weights = frame.commands.decorations.link_weights
+    if weights is None:
+        return None
+    return np.asarray(weights, dtype=float)[edges[:, 0], edges[:, 1]]
 
 
-def frame_legend(frame) -> list[tuple[str, np.ndarray]]:
-    """What the colours of ``frame``'s picture mean: the strategy's
-    ``legend``, the link delivery scale under a non-ideal radio, then the
-    true targets and their estimates when shown."""
-    legend = list(frame.commands.decorations.legend)
+def link_legend(frame) -> list[tuple[str, np.ndarray]]:
+    """The legend's entries of the links: the ramp's swatches and what it measures."""
     if radio_of(frame) is not None:
-        legend += link_delivery_legend()
+        return [(f"link delivery {v:g}" + {0.0: " (packets lost)", 1.0: " (all delivered)"}.get(v, ""),
+                 palette.link_rgba(v)) for v in palette.LINK_SCALE[::-1]]
+    if frame.commands.decorations.link_weights is not None:
+        return [(f"link weight {v:g}" + {0.0: " (about to break)", 1.0: " (strong)"}.get(v, ""),
+                 palette.link_rgba(v)) for v in palette.LINK_SCALE[::-1]]
+    return [("communication link", palette.link_rgba(1.0))]
+
+
+def link_delivery_legend() -> list[tuple[str, np.ndarray]]:
+    """The legend's entries of the delivery ramp, 1 first."""
+    return [(f"link delivery {v:g}", palette.link_rgba(v)) for v in palette.LINK_SCALE[::-1]]
+
+
+def frame_legend(frame, robot_kinds=()) -> list[tuple[str, np.ndarray]]:
+    """What the colours of ``frame``'s picture mean, every kind of thing drawn: the
+    strategy's ``legend`` (roles, teams, paths), the robots' kinds when the strategy
+    colours none (``robot_kinds``: the world's, in robot order), the references, the
+    links' scale, then the true targets and their estimates when shown."""
+    decorations = frame.commands.decorations
+    legend = list(decorations.legend)
+    if decorations.robot_colors is None:
+        legend += [(f"{kind} robot", palette.KIND[kind]) for kind in dict.fromkeys(robot_kinds)]
+    if len(frame.commands.position):
+        legend.append(("reference (point steered to)", palette.REFERENCE))
+    legend += link_legend(frame)
     if len(frame.target_positions):
         legend.append(("target (true)", TARGET_RGBA))
     estimate = frame.commands.estimate
     if estimate is not None and len(estimate.mean):
-        legend.append(("target estimate", ESTIMATE_RGBA))
+        legend.append(("target estimate (EKF)", ESTIMATE_RGBA))
     return legend
 
 
@@ -126,14 +156,13 @@ def draw_video_decorations(renderer, frame) -> None:
     _draw_spheres(renderer, decorations.markers, decorations.marker_colors,
                   renderer.at_least(MARKER_RADIUS_M, MARKER_MIN_PX),
                   np.array([1, 1, 1, 0.8], np.float32))
+    # Every quadrotor gets a mark on top: its role or team colour, else its kind's (the legend's entry).
     robot_colors = decorations.robot_colors
-    if robot_colors is not None:
-        positions = frame.observation.position
-        for i in renderer.world.kind_index["quadrotor"]:
-            if i < len(robot_colors):
-                top = positions[i] + np.array([0.0, 0.0, QUAD_MARK_HEIGHT_M])
-                renderer._add_sphere(top, renderer.at_least(QUAD_MARK_RADIUS_M, MARKER_MIN_PX),
-                                     np.asarray(robot_colors[i], dtype=np.float32))
+    positions = frame.observation.position
+    for i in renderer.world.kind_index["quadrotor"]:
+        rgba = robot_colors[i] if robot_colors is not None and i < len(robot_colors) else palette.KIND["quadrotor"]
+        top = positions[i] + np.array([0.0, 0.0, QUAD_MARK_HEIGHT_M])
+        renderer._add_sphere(top, renderer.at_least(QUAD_MARK_RADIUS_M, MARKER_MIN_PX), np.asarray(rgba, np.float32))
 
 
 def _draw_spheres(renderer, points, colors, radius: float, default_rgba: np.ndarray) -> None:
@@ -150,19 +179,9 @@ def _rgb8(rgba: np.ndarray) -> np.ndarray:
 
 
 def colour_name(rgb) -> str:
-    """A plain name for an RGB colour (0..255): the recording's legend is text,
+    """The palette's plain name for an RGB colour (0..255): the recording's legend is text,
     so it says "blue" beside the hex code."""
-    import colorsys
-
-    hue, lightness, saturation = colorsys.rgb_to_hls(*(c / 255 for c in rgb[:3]))
-    if saturation < 0.2 or lightness < 0.12 or lightness > 0.92:
-        return "black" if lightness < 0.15 else "white" if lightness > 0.9 else "grey"
-    degrees = hue * 360
-    for limit, name in ((15, "red"), (40, "orange"), (70, "yellow"), (165, "green"), (195, "cyan"),
-                        (255, "blue"), (290, "purple"), (340, "pink"), (360, "red")):
-        if degrees < limit:
-            return name
-    return "red"
+    return palette.colour_name(np.asarray(rgb[:3], dtype=float) / 255)
 
 
 def robot_colors_rgb8(decorations, default: np.ndarray) -> np.ndarray:

@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import textwrap
 import threading
 import time
 from typing import Any, NamedTuple
@@ -39,6 +40,7 @@ SAVE_DPI = 110
 LEGEND_MAX_ROBOTS = 12  # per-robot panels name their lines up to this many robots
 LEFT, RIGHT = 0.11, 0.98  # the axes' edges, as fractions of the page's width
 LABEL_OFFSET_IN = 0.55  # a panel's title (its y label) from the axes' left edge
+LABEL_WRAP_CHARS = 28  # a panel's title wraps onto a second line beyond this many characters
 LEVELS_LABEL_OFFSET_IN = 0.74  # ... beyond coded levels' names ("secondary" at 7 pt)
 MAX_PAINTERS = 4  # beyond this, another process's import costs more than the pages it would draw
 PAINTER_TIMEOUT_S = 20.0  # a painter that has not sent its pages by then is stopped; they are drawn here
@@ -125,17 +127,19 @@ def exit_reason(exitcode: int | None) -> str:
             pass
     return f"exit {exitcode}"
 
-# A panel's data: (title, data, values, levels). data is (T, 2) [time, value] for
+# A panel's data: (title, data, values, levels[, integer]). data is (T, 2) [time, value] for
 # a series (values None), or times (T,) with values (T, N) for a per-robot series,
-# whose codes ``levels`` [(value, label)] (or None) are named on the axis.
-Panel = tuple[str, np.ndarray, "np.ndarray | None", "list[tuple[float, str]] | None"]
-# A panel's layout: (title, lines per robot or None for one series, levels or None).
-PanelLayout = tuple[str, "int | None", "tuple[tuple[float, str], ...] | None"]
+# whose codes ``levels`` [(value, label)] (or None) are named on the axis; ``integer``
+# (optional, False): the values are counts or indices, on an integer axis, drawn as steps.
+Panel = tuple
+# A panel's layout: (title, lines per robot or None for one series, levels or None[, integer]).
+PanelLayout = tuple
 
 
 def panel_layout(panel: Panel) -> PanelLayout:
-    title, _, values, levels = panel
-    return title, None if values is None else int(values.shape[1]), tuple(levels) if levels else None
+    title, _, values, levels = panel[:4]
+    integer = bool(panel[4]) if len(panel) > 4 else False
+    return title, None if values is None else int(values.shape[1]), tuple(levels) if levels else None, integer
 
 
 class Page(NamedTuple):
@@ -151,6 +155,8 @@ def build_page(layout: tuple[PanelLayout, ...], robot_names: tuple[str, ...] | N
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator
 
+    from sim.palette import SERIES
+
     height = 1.9 * len(layout) + 0.6
     # The Figure API (no pyplot state) and fixed margins: tight_layout took a fifth of the drawing.
     figure = Figure(figsize=(8, height), dpi=SAVE_DPI)  # drawn at the dpi it is saved at: caches stay valid
@@ -159,12 +165,15 @@ def build_page(layout: tuple[PanelLayout, ...], robot_names: tuple[str, ...] | N
     figure.subplots_adjust(left=LEFT, right=RIGHT, top=1.0 - 0.35 / height, bottom=0.45 / height, hspace=0.12)
     lines = []
     legend = True  # on the first per-robot panel of a page
-    for ax, (panel_title, n_lines, levels) in zip(axes, layout):
+    for ax, (panel_title, n_lines, levels, *flags) in zip(axes, layout):
+        integer = bool(flags and flags[0])
+        drawstyle = "steps-post" if integer else "default"  # a count changes in steps, never in between
+        ax.set_prop_cycle(color=[tuple(c) for c in SERIES])
         if n_lines is None:
-            lines.append(ax.plot([], [], lw=1.2))
+            lines.append(ax.plot([], [], lw=1.2, drawstyle=drawstyle))
         else:
             names = robot_names if robot_names is not None else [f"robot {i}" for i in range(n_lines)]
-            lines.append([ax.plot([], [], lw=1.0, label=names[i])[0] for i in range(n_lines)])
+            lines.append([ax.plot([], [], lw=1.0, label=names[i], drawstyle=drawstyle)[0] for i in range(n_lines)])
             if legend and robot_names is not None and n_lines <= LEGEND_MAX_ROBOTS:
                 ax.legend(fontsize=6, ncol=min(n_lines, 6), loc="upper right")
             legend = False
@@ -173,8 +182,8 @@ def build_page(layout: tuple[PanelLayout, ...], robot_names: tuple[str, ...] | N
                 ax.set_yticks([v for v, _ in levels], [label.replace(" ", "\n") for _, label in levels], fontsize=7)
                 ax.set_ylim(levels[0][0] - 0.5, levels[-1][0] + 0.5)
         if not levels:
-            ax.yaxis.set_major_locator(MaxNLocator(nbins=4, steps=[1, 2, 2.5, 5, 10]))
-        ax.set_ylabel(panel_title, fontsize=8)
+            ax.yaxis.set_major_locator(MaxNLocator(nbins=4, steps=[1, 2, 5, 10], integer=integer))
+        ax.set_ylabel(textwrap.fill(panel_title, LABEL_WRAP_CHARS), fontsize=8)
         # At a fixed distance left of the axes, beyond 8 pt tick labels: placing it after the tick labels'
         # extents (matplotlib's default) took a third of a page's drawing.
         offset_in = LEVELS_LABEL_OFFSET_IN if levels else LABEL_OFFSET_IN
@@ -184,7 +193,7 @@ def build_page(layout: tuple[PanelLayout, ...], robot_names: tuple[str, ...] | N
     axes[-1].set_xlabel("sim time (s)")
     # Six time ticks, not nine (and four on each panel's value axis): ticks and their labels are most of a
     # page's drawing.
-    axes[0].xaxis.set_major_locator(MaxNLocator(nbins=6, steps=[1, 2, 2.5, 5, 10]))
+    axes[0].xaxis.set_major_locator(MaxNLocator(nbins=6, steps=[1, 2, 5, 10]))
     # 0.1 in below the page's top: at matplotlib's 2 % of a tall page it touched the first panel.
     title_text = figure.suptitle("run", fontsize=9, y=1.0 - 0.1 / height)
     return Page(figure, axes, lines, title_text)
@@ -192,7 +201,8 @@ def build_page(layout: tuple[PanelLayout, ...], robot_names: tuple[str, ...] | N
 
 def fill_page(page: Page, panels: list[Panel], title: str) -> None:
     """Give the page's lines their data (NaN is a gap) and its axes their limits."""
-    for ax, lines, (_, data, values, _) in zip(page.axes, page.lines, panels):
+    for ax, lines, panel in zip(page.axes, page.lines, panels):
+        _, data, values, levels = panel[:4]
         if values is None:
             lines[0].set_data(data[:, 0], data[:, 1])
         else:
@@ -200,6 +210,11 @@ def fill_page(page: Page, panels: list[Panel], title: str) -> None:
                 line.set_data(data, values[:, robot])
         ax.relim()
         ax.autoscale_view()
+        if len(panel) > 4 and panel[4] and not levels:  # counts: whole numbers, a flat one not padded by 0.05
+            shown = (data[:, 1] if values is None else values).astype(float)
+            shown = shown[np.isfinite(shown)]
+            if shown.size and shown.max() - shown.min() < 2:
+                ax.set_ylim(shown.min() - 0.5, shown.max() + 0.5)
     page.title.set_text(title)
 
 

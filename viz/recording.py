@@ -56,17 +56,15 @@ from rerun.chunk import RrdReader
 from sim.observers import Frame, Observer, link_figures, tracking_errors
 from sim.strategy import Status
 from sim.world import INFINITE_PLANE_HALF_SIZE, World
-from viz.decorations import (colour_name, frame_legend, link_delivery_colors, log_events, log_recording_decorations,
-                             radio_of, robot_colors_rgb8)
-from viz.video import link_color
+from sim import palette
+from viz.decorations import (colour_name, frame_legend, link_values, log_events, log_recording_decorations,
+                             robot_colors_rgb8)
 
-KIND_COLORS = {"quadrotor": (230, 120, 40), "ground": (60, 160, 80)}
+KIND_COLORS = {kind: palette.rgb8(rgba) for kind, rgba in palette.KIND.items()}
 ROBOT_RADIUS_M = 0.08
-TARGET_COLOR = (240, 200, 30)
-LINK_COLOR = (40, 190, 60)
-REFERENCE_COLOR = (60, 110, 255)
-LINK_FULL_RGB = tuple(int(round(255 * c)) for c in link_color(1.0)[:3])
-LINK_EMPTY_RGB = tuple(int(round(255 * c)) for c in link_color(0.0)[:3])
+TARGET_COLOR = palette.rgb8(palette.TARGET_TRUE)
+LINK_COLOR = palette.rgb8(palette.link_rgba(1.0))
+REFERENCE_COLOR = palette.rgb8(palette.REFERENCE)
 FILE_FLUSH_PERIOD = datetime.timedelta(seconds=2)  # run.rrd: rows are batched this long (wall time)
 FILE_FLUSH_BYTES = 8 * 1024 * 1024  # ... or up to this many bytes
 # The recording is written as complete segment files, the first after SEGMENT_FIRST_S of wall time, each
@@ -340,12 +338,9 @@ class RerunRecorder(Observer):
             self.rec.log("world/targets/true", rr.Points3D(frame.target_positions, colors=TARGET_COLOR, radii=0.06))
         edges = obs.links.edges
         strips = obs.position[edges] if len(edges) else np.zeros((0, 2, 3))
-        weights = decorations.link_weights  # optional (N, N): green (1) to red (0)
-        colors = LINK_COLOR if weights is None or not len(edges) else [
-            tuple(int(round(255 * c)) for c in link_color(weights[i, j])[:3]) for i, j in edges]
-        delivery = link_delivery_colors(frame)  # a non-ideal radio: by the pair's delivery probability
-        if delivery is not None and len(edges):
-            colors = np.clip(np.round(delivery[:, :3] * 255), 0, 255).astype(np.uint8)
+        values = link_values(frame)  # delivery (non-ideal radio) or weight, on the palette's link ramp
+        colors = LINK_COLOR if values is None or not len(edges) else \
+            np.clip(np.round(palette.link_rgba(values)[:, :3] * 255), 0, 255).astype(np.uint8)
         self.rec.log("world/links", rr.LineStrips3D(strips, colors=colors, radii=0.01))
         error = tracking_errors(self.world.robot_kinds, obs.position, frame.commands.position)
         figures = link_figures(obs)
@@ -370,20 +365,9 @@ class RerunRecorder(Observer):
         self.rows += 1
 
     def legend(self, frame: Frame) -> str:
-        """What the colours of ``frame`` mean, as Markdown: the strategy's legend (roles, teams,
-        paths), the robots' kind colours when the strategy colours none, and the recorder's own."""
-        entries = [(label, tuple(int(round(255 * c)) for c in rgba[:3])) for label, rgba in frame_legend(frame)]
-        if frame.commands.decorations.robot_colors is None:
-            entries += [(f"{kind} robot", KIND_COLORS[kind]) for kind in dict.fromkeys(self.world.robot_kinds)]
-        entries.append(("reference (the point a robot is steered to)", REFERENCE_COLOR))
-        if radio_of(frame) is not None:
-            pass  # frame_legend's link delivery scale
-        elif frame.commands.decorations.link_weights is None:
-            entries.append(("communication link", LINK_COLOR))
-        else:
-            entries += [("link of full weight (1)", LINK_FULL_RGB), ("link of weight near 0", LINK_EMPTY_RGB)]
-        if len(frame.target_positions) and not any(label == "target (true)" for label, _ in entries):
-            entries.append(("target (true)", TARGET_COLOR))
+        """What the colours of ``frame`` mean, as Markdown: the pictures' one legend
+        (:func:`viz.decorations.frame_legend`) with each colour's name and code."""
+        entries = [(label, palette.rgb8(rgba)) for label, rgba in frame_legend(frame, self.world.robot_kinds)]
         lines = [f"- **{colour_name(rgb)}** `#{rgb[0]:02x}{rgb[1]:02x}{rgb[2]:02x}`: {label}" for label, rgb in entries]
         if self._radio_map_note:
             lines.append(f"- {self._radio_map_note}")

@@ -46,6 +46,8 @@ from urllib.parse import parse_qs, urlparse
 import numpy as np
 
 from sim.config import ConfigError, build, field_comments, to_table, unit_from_name
+from sim.palette import SERIES, hex_code
+from sim.radio.config import RadioConfig
 from sim.loop import Simulation
 from sim.observers import Frame, tracking_errors
 from sim.scenario import Scenario, dumps_toml, to_scenario_table, toml_value
@@ -64,7 +66,24 @@ MAX_LAG_S = 0.5  # further behind real time than this: stop catching up
 PAGE = Path(__file__).parent / "static" / "tune.html"
 GROUP_MARK = "--"  # a comment line "# -- NAME, ..." in a parameter class starts the group NAME
 GENERAL_GROUP = "general"
-FIGURE_LABELS = {"tracking_error_mean_m": "tracking error, mean over robots (m)", "links": "communication links"}
+RADIO_PREFIX = "radio."  # the page's names of the radio's keys (the scenario's [radio] table)
+RADIO_GROUP = "radio"  # ... their group on the page; a sub-group's name follows it ("radio: propagation")
+
+
+def axis_label(name: str) -> str:
+    from viz.plots import axis_label as plots_label
+
+    return plots_label(name)
+
+
+def figure_labels() -> dict[str, str]:
+    """The plots' axis labels (words and a unit) of the figures the page draws."""
+    from viz.plots import LABELS, TRACKING_ERROR
+
+    return {**LABELS, "tracking_error_mean_m": LABELS[TRACKING_ERROR]}
+
+
+FIGURE_LABELS = figure_labels()
 
 
 # --------------------------------------------------------------------------- parameter fields
@@ -199,6 +218,7 @@ class TuningSession:
         self._seq = 0
         self._next_sample = 0.0
         self.figures: dict[str, float] = {}
+        self.overlay = ""  # the video's overlay line (time, links, the strategy's figures)
         self.legend: list[dict[str, str]] = []  # the strategy's decorations' legend: what the view's colours mean
         self.real_time_factor: float | None = None
         self._jpeg: bytes | None = None
@@ -310,8 +330,8 @@ class TuningSession:
             return None
 
     def _render(self, renderer, frame: Frame) -> None:
-        if renderer is not None:
-            self._publish(renderer.render(frame))
+        if renderer is not None:  # the scene alone: the page shows the legend and the figures itself
+            self._publish(renderer.render_scene(frame))
 
     def _still_frame(self) -> Frame:
         """A frame of the current state for the first image (no strategy step:
@@ -345,8 +365,11 @@ class TuningSession:
         for name, value in frame.scalars.items():
             values[str(name)] = float(value)
         from viz.decorations import frame_legend
+        from viz.video import overlay_text
 
-        self.legend = [{"label": str(label), "color": _css_color(rgba)} for label, rgba in frame_legend(frame)]
+        self.legend = [{"label": str(label), "color": _css_color(rgba)}
+                       for label, rgba in frame_legend(frame, self.sim.world.robot_kinds)]
+        self.overlay = overlay_text(frame)
         self._seq += 1
         self._series.append((self._seq, t, values))
         self.figures = values
@@ -391,12 +414,14 @@ class TuningSession:
                 "real_time_factor": self.real_time_factor,
                 "speed": self.speed,
                 "message": self.message,
-                "params": to_table(self.sim.scenario.strategy.params),
+                "params": {**to_table(self.sim.scenario.strategy.params), **self._radio_values()},
                 "params_tick": self.params_tick,
                 "camera": self.camera,
                 "figures": dict(self.figures),
                 "legend": list(self.legend),
-                "labels": FIGURE_LABELS,
+                "overlay": self.overlay,
+                "labels": {**{name: axis_label(name) for name in self.figures}, **FIGURE_LABELS},
+                "series_colors": [hex_code(c) for c in SERIES],
                 "last_seq": self._seq,
                 "series": series,
                 "frame_seq": self.frame_seq,
@@ -405,8 +430,45 @@ class TuningSession:
     def params_schema(self) -> dict[str, Any]:
         with self._lock:
             params = self.sim.scenario.strategy.params
-            return {"strategy": self.kind, "fields": describe_params(self.params_cls, params),
+            return {"strategy": self.kind,
+                    "fields": describe_params(self.params_cls, params) + self.radio_fields(),
                     "cameras": self.camera_choices()}
+
+    def radio_fields(self) -> list[dict[str, Any]]:
+        """The radio's keys as the page's controls, named ``radio.KEY`` in group "radio ..."; the
+        preset a choice of the presets (a new preset takes its own figures)."""
+        from sim.radio.presets import PRESETS
+
+        fields = describe_params(RadioConfig, self.sim.scenario.radio)
+        for f in fields:
+            f["name"] = RADIO_PREFIX + f["name"]
+            sub = f["group"]
+            f["group"] = RADIO_GROUP if sub == GENERAL_GROUP else f"{RADIO_GROUP}: {sub}"
+            if f["name"] == RADIO_PREFIX + "preset":
+                f["kind"], f["choices"] = "choice", list(PRESETS)
+                f["help"] = "a new preset takes its own figures for every key below"
+            elif f["restarts"]:
+                f["help"] = (f["help"] + "; " if f["help"] else "") + "the channel restarts from t = 0"
+        return fields
+
+    def _radio_values(self) -> dict[str, Any]:
+        return {RADIO_PREFIX + k: v for k, v in to_table(self.sim.scenario.radio).items()}
+
+    def _set_radio(self, changes: dict[str, Any]) -> str:
+        """Apply ``radio.KEY`` changes: a new preset with its own figures, else the keys over the
+        current table; keys that shape the channel's set-up (the bit rate) restart the run."""
+        keys = {name[len(RADIO_PREFIX):]: value for name, value in changes.items()}
+        if "preset" in keys:
+            table = {"preset": keys.pop("preset"), **keys}
+        else:
+            table = {**to_table(self.sim.scenario.radio), **keys}
+        config = build(RadioConfig, table, "radio")
+        restart = {f.name for f in dataclasses.fields(RadioConfig) if not f.metadata.get("tunable", True)}
+        if "preset" in table and table["preset"] != self.sim.scenario.radio.preset or restart & set(keys):
+            self.sim.scenario = dataclasses.replace(self.sim.scenario, radio=config)
+            self._reset_requested = True
+            return "restarted from t = 0"
+        return self.sim.set_radio(config)
 
     def camera_choices(self) -> list[str]:
         from viz.video import PRESET_CAMERAS
@@ -422,6 +484,17 @@ class TuningSession:
         if not isinstance(changes, dict) or not changes:
             raise ConfigError("changes", "expected a table of parameter values")
         with self._lock:
+            radio = {name: value for name, value in changes.items() if str(name).startswith(RADIO_PREFIX)}
+            if radio:
+                if len(radio) != len(changes):
+                    raise ConfigError("changes", "change the radio's keys and the strategy's apart")
+                how = self._set_radio(radio)
+                self.params_tick = self.sim.tick_count
+                shown = ", ".join(f"{k} = {v}" for k, v in changes.items())
+                self.message = f"{shown}: applied from tick {self.params_tick} ({how})"
+                self._wake.set()
+                return {"ok": True, "how": how, "tick": self.params_tick, "message": self.message,
+                        "params": {**to_table(self.sim.scenario.strategy.params), **self._radio_values()}}
             kinds = {f["name"]: f["kind"] for f in describe_params(self.params_cls, self.sim.scenario.strategy.params)}
             table = to_table(self.sim.scenario.strategy.params)
             for name, value in changes.items():
@@ -435,7 +508,7 @@ class TuningSession:
             self.message = f"{shown}: applied from tick {self.params_tick} ({how})"
             self._wake.set()
             return {"ok": True, "how": how, "tick": self.params_tick, "message": self.message,
-                    "params": to_table(params)}
+                    "params": {**to_table(params), **self._radio_values()}}
 
     def control(self, action: str, camera: str | None = None) -> None:
         with self._lock:

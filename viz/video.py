@@ -19,8 +19,11 @@ camera the scene names; ``free``; ``auto`` is ``top``.
 
 Markers, links and paths have a minimum size in pixels of a view of the
 whole floor (:meth:`FrameRenderer.at_least`), so robots stay visible in a
-70 m scene. The overlay's glyphs scale with the frame height; the legend
-band at the bottom says what the colours mean (``Decorations.legend``).
+70 m scene. The frame is the scene at the floor's aspect, full height, at the left
+and a panel beside it (never over it) with sim time, link count, the
+strategy's figures and the legend of every kind of thing drawn
+(:func:`viz.decorations.frame_legend`), glyphs at least 1/30 of the frame
+height.
 """
 
 from __future__ import annotations
@@ -40,12 +43,13 @@ from sim.observers import Frame, Observer, PhysicsState
 from sim.types import Decorations, TargetEstimate
 from sim.scenario import VideoConfig
 from sim.world import World
-from viz.decorations import draw_video_decorations, frame_legend, halo_color, link_delivery_colors, observation_radio
+from sim import palette
+from viz.decorations import draw_video_decorations, frame_legend, halo_color, link_values, observation_radio
 
-LINK_RGBA = np.array([0.1, 0.75, 0.2, 0.9], dtype=np.float32)
-REFERENCE_RGBA = np.array([0.2, 0.4, 1.0, 0.6], dtype=np.float32)
+LINK_RGBA = palette.link_rgba(1.0)  # a link with no weight (and an ideal radio)
+REFERENCE_RGBA = palette.REFERENCE
 LINK_WIDTH_M = 0.02
-GROUND_HALO_RGBA = np.array([0.2, 0.8, 0.3, 0.35], dtype=np.float32)
+GROUND_HALO_RGBA = palette.KIND["ground"] * np.array([1, 1, 1, 0.35], dtype=np.float32)
 GROUND_HALO_RADIUS_M = 0.12
 REFERENCE_RADIUS_M = 0.03
 # Minimum on-screen sizes, px (at the scale of a view of the whole floor): robots stay visible at
@@ -63,9 +67,8 @@ MESH_STACKS = 4  # rendering: stacks of a sphere / capsule (MuJoCo's default 16)
 
 
 def link_color(weight: float) -> np.ndarray:
-    """Green (strong, weight 1) to red (about to break, weight 0)."""
-    w = float(np.clip(weight, 0.0, 1.0))
-    return np.array([1.0 - w, 0.2 + 0.6 * w, 0.15, 0.9], dtype=np.float32)
+    """The palette's link ramp: pale grey (about to break, weight 0) to charcoal (strong, weight 1)."""
+    return palette.link_rgba(float(weight))
 
 
 PRESET_CAMERAS = ("top", "overview")  # computed from the scene bounds when the scene lacks them
@@ -95,18 +98,27 @@ def resolve_camera(model: mujoco.MjModel, name: str) -> str:
     return name
 
 
-def overlay_text(frame: Frame) -> str:
-    """Sim time, link count and the strategy's own line (``Decorations.overlay``)."""
-    parts = [f"t = {frame.observation.time_s:6.1f} s", f"links {len(frame.observation.links.edges)}"]
+def overlay_lines(frame: Frame) -> list[str]:
+    """Sim time, link count and the strategy's own figures (``Decorations.overlay``, one line
+    per group of figures it separates by two spaces)."""
+    lines = [f"t = {frame.observation.time_s:.1f} s", f"links {len(frame.observation.links.edges)}"]
     extra = frame.commands.decorations.overlay
     if extra:
-        parts.append(str(extra))
-    return "   ".join(parts)
+        lines += [part.strip() for part in str(extra).split("  ") if part.strip()]
+    return lines
 
 
-OVERLAY_TEXT_SHARE = 1 / 36  # overlay glyph size (font size, px) as a share of the frame height: 20 px at 720
-OVERLAY_MIN_FONT_PX = 9  # never smaller than this, even when shrunk to fit the width
-LEGEND_TEXT_RATIO = 0.8  # the legend band's glyphs against the top band's
+def overlay_text(frame: Frame) -> str:
+    """:func:`overlay_lines` on one line (the viewer's band, the tuning page)."""
+    return "   ".join(overlay_lines(frame))
+
+
+TEXT_SHARE = 1 / 28  # the panel's glyph size (font size, px) as a share of the frame height: 19 px at 540
+MIN_TEXT_SHARE = 1 / 30  # ... never below this (a talk's slide must read it), shrunk or not
+PANEL_MIN_SHARE = 0.3  # the legend panel takes at least this share of the width
+PANEL_RGB = (24, 26, 34)
+PANEL_TEXT_RGB = (236, 236, 236)
+PANEL_DIM_RGB = (170, 175, 185)
 
 
 @functools.lru_cache(maxsize=16)
@@ -117,57 +129,149 @@ def _font(size_px: int):
 
 
 def overlay_font_px(height: int) -> int:
-    """Font size of the overlay for a frame ``height`` px tall."""
-    return max(OVERLAY_MIN_FONT_PX, round(height * OVERLAY_TEXT_SHARE))
+    """Font size of the panel's text for a frame ``height`` px tall."""
+    return round(height * TEXT_SHARE)
 
 
-def burn_overlay(image: np.ndarray, text: str, legend: Sequence[tuple[str, Any]] = ()) -> np.ndarray:
-    """Draw ``text`` on a dark band at the top-left of the frame and the
-    ``legend`` ((label, rgba in 0..1) pairs: role or team colours) on a band
-    at the bottom-left; glyphs scale with the frame height (shrunk to fit the
-    width)."""
+def min_font_px(height: int) -> int:
+    return int(np.ceil(height * MIN_TEXT_SHARE))
+
+
+def scene_width(bounds, width: int, height: int) -> int:
+    """Width (px, even) of the scene's part of a ``width`` x ``height`` frame: the floor's
+    aspect at full height, leaving the legend panel at least ``PANEL_MIN_SHARE`` of the width."""
+    lo, hi = bounds
+    aspect = float(hi[0] - lo[0]) / max(float(hi[1] - lo[1]), 1e-9)
+    fit = int(round(height * aspect))
+    return max(2, min(fit, int(width * (1.0 - PANEL_MIN_SHARE))) // 2 * 2)
+
+
+def _wrap(draw, text: str, font, width: float) -> list[str]:
+    """``text`` broken at spaces into lines no wider than ``width`` px (a long word stays whole)."""
+    lines, line = [], ""
+    for word in text.split(" "):
+        trial = f"{line} {word}" if line else word
+        if line and draw.textlength(trial, font=font) > width:
+            lines.append(line)
+            line = word
+        else:
+            line = trial
+    return lines + [line]
+
+
+_PANELS: dict = {}  # (height, width, line lengths, legend) -> (the panel without its lines, font, line slots)
+PANEL_CACHE_SIZE = 32
+
+
+def side_panel(height: int, width: int, lines: Sequence[str], legend: Sequence[tuple[str, Any]]) -> np.ndarray:
+    """The (height, width, 3) legend panel beside the scene: the overlay's ``lines`` (time,
+    links, the strategy's figures) above the ``legend`` ((label, rgba in 0..1) pairs), each
+    entry a swatch and its label. Glyphs are ``TEXT_SHARE`` of the height; when the entries
+    do not fit they go into two columns, then the text shrinks, never below ``MIN_TEXT_SHARE``.
+    The legend changes rarely and the lines' layout with their lengths: the panel without its
+    lines is kept and only the lines are drawn each frame (laying it out cost 20 ms a frame)."""
     from PIL import Image, ImageDraw
 
-    canvas = Image.fromarray(image)
+    key = (height, width, tuple(len(line) for line in lines),
+           tuple((str(label), tuple(np.round(np.asarray(rgba, dtype=float)[:3], 4))) for label, rgba in legend))
+    cached = _PANELS.get(key)
+    if cached is not None:
+        base, font, slots = cached
+        canvas = Image.fromarray(base)
+        draw = ImageDraw.Draw(canvas)
+        parts = [part for text in lines for part in _wrap(draw, text, font, width - 2 * max(4, font.size // 2))]
+        if len(parts) == len(slots):
+            for xy, part in zip(slots, parts):
+                draw.text(xy, part, fill=PANEL_TEXT_RGB, font=font)
+            return np.asarray(canvas)
+    canvas = Image.new("RGB", (width, height), PANEL_RGB)
     draw = ImageDraw.Draw(canvas)
-    height, width = image.shape[:2]
-    size = overlay_font_px(height)
-    while size > OVERLAY_MIN_FONT_PX and draw.textlength(text, font=_font(size)) > width - size:
-        size -= 1
-    font = _font(size)
-    pad = max(3, size // 4)
-    left, top, right, bottom = draw.textbbox((pad, pad), text, font=font)
-    draw.rectangle((0, 0, right + pad, bottom + pad), fill=(20, 20, 28))
-    draw.text((pad, pad), text, fill=(235, 235, 235), font=font)
-    if legend:
-        legend_px = max(OVERLAY_MIN_FONT_PX, round(LEGEND_TEXT_RATIO * overlay_font_px(height)))
-        _burn_legend(draw, legend, _font(legend_px), width, height)
+    layout = None
+    for size in range(overlay_font_px(height), min_font_px(height) - 1, -1):
+        for columns in (1, 2):
+            layout = _panel_layout(draw, size, width, height, lines, legend, columns)
+            if layout is not None:
+                break
+        if layout is not None:
+            break
+    if layout is None:  # does not fit even small: cut the legend at the panel's foot
+        layout = _panel_layout(draw, min_font_px(height), width, height, lines, legend, 2, clip=True)
+    font, items = layout
+    for kind, xy, text, rgba in items:
+        if kind == "dim":
+            draw.text(xy, text, fill=PANEL_DIM_RGB, font=font)
+        elif kind == "text":
+            draw.text(xy, text, fill=PANEL_TEXT_RGB, font=font)
+        elif kind == "swatch":
+            draw.rectangle(xy, fill=tuple(int(round(255 * float(c))) for c in np.asarray(rgba, dtype=float)[:3]),
+                           outline=(90, 92, 100))
+    if len(_PANELS) >= PANEL_CACHE_SIZE:
+        _PANELS.clear()
+    _PANELS[key] = (np.asarray(canvas).copy(), font, [xy for kind, xy, _, _ in items if kind == "line"])
+    for kind, xy, text, _ in items:
+        if kind == "line":
+            draw.text(xy, text, fill=PANEL_TEXT_RGB, font=font)
     return np.asarray(canvas)
 
 
-def _burn_legend(draw, legend: Sequence[tuple[str, Any]], font, width: int, height: int) -> None:
-    """Colour swatches and labels in rows along the bottom of the frame."""
-    size = font.size
-    pad, swatch, gap = max(3, size // 4), size, size
-    rows, row, x = [], [], pad
+def _panel_layout(draw, size, width, height, lines, legend, columns, clip=False):
+    """(font, [(kind, xy, text, rgba)]) of the panel at font ``size`` in ``columns`` legend
+    columns; None when it does not fit (unless ``clip``)."""
+    font = _font(size)
+    pad = max(4, size // 2)
+    line_h = int(size * 1.25)
+    items = []
+    y = pad
+    for text in lines:
+        for part in _wrap(draw, text, font, width - 2 * pad):
+            items.append(("line", (pad, y), part, None))
+            y += line_h
+    if legend:
+        y += line_h // 2
+        items.append(("dim", (pad, y), "colours", None))
+        y += line_h
+    column_w = (width - pad) // columns
+    swatch = size
+    text_w = column_w - swatch - 2 * pad
+    rows = []
     for label, rgba in legend:
-        item = swatch + pad + int(draw.textlength(label, font=font)) + gap
-        if row and x + item > width:
-            rows.append(row)
-            row, x = [], pad
-        row.append((x, label, rgba))
-        x += item
-    rows.append(row)
-    line = size + 2 * pad
-    top = height - line * len(rows)
-    right = max(xx + swatch + pad + int(draw.textlength(lbl, font=font)) for r in rows for xx, lbl, _ in r)
-    draw.rectangle((0, top, right + pad, height), fill=(20, 20, 28))
-    for k, items in enumerate(rows):
-        y = top + k * line + pad
-        for x, label, rgba in items:
-            color = tuple(int(round(255 * float(c))) for c in np.asarray(rgba, dtype=float)[:3])
-            draw.rectangle((x, y, x + swatch, y + size), fill=color)
-            draw.text((x + swatch + pad, y), label, fill=(235, 235, 235), font=font)
+        wrapped = _wrap(draw, str(label), font, text_w)
+        rows.append((wrapped, rgba))
+    per_column = -(-len(rows) // columns) if rows else 0
+    top = y
+    bottom = y
+    for c in range(columns):
+        y = top
+        for wrapped, rgba in rows[c * per_column:(c + 1) * per_column]:
+            needed = line_h * len(wrapped)
+            if y + needed > height - pad // 2 and not clip:
+                return None
+            if y + needed > height:
+                break
+            x = pad + c * column_w
+            items.append(("swatch", (x, y + (line_h - swatch) // 2, x + swatch, y + (line_h - swatch) // 2 + swatch),
+                          "", rgba))
+            for k, part in enumerate(wrapped):
+                if draw.textlength(part, font=font) > text_w and not clip:
+                    return None
+                items.append(("text", (x + swatch + pad, y + k * line_h), part, None))
+            y += needed + line_h // 4
+        bottom = max(bottom, y)
+    if bottom > height and not clip:
+        return None
+    return font, items
+
+
+# The scenes' lights (headlight and sun) sum to about 1.6 on a surface facing up: a decoration's colour is
+# scaled by its inverse, so what the picture shows is the palette's colour the legend names, not a lighter one
+# (the palette's blue rendered as sky blue, the connectors' colour, before).
+LIT_GAIN = 1.6
+
+
+def _lit(rgba) -> np.ndarray:
+    out = np.array(rgba, dtype=np.float32)
+    out[:3] /= LIT_GAIN
+    return out
 
 
 def add_capsule(scene: mujoco.MjvScene, a: np.ndarray, b: np.ndarray, width: float, rgba: np.ndarray) -> None:
@@ -175,7 +279,7 @@ def add_capsule(scene: mujoco.MjvScene, a: np.ndarray, b: np.ndarray, width: flo
     if scene.ngeom >= scene.maxgeom:
         return
     geom = scene.geoms[scene.ngeom]
-    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, np.zeros(3), np.zeros(3), np.zeros(9), rgba)
+    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, np.zeros(3), np.zeros(3), np.zeros(9), _lit(rgba))
     mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, width, a, b)
     scene.ngeom += 1
 
@@ -185,7 +289,7 @@ def add_sphere(scene: mujoco.MjvScene, p: np.ndarray, radius: float, rgba: np.nd
     if scene.ngeom >= scene.maxgeom:
         return
     geom = scene.geoms[scene.ngeom]
-    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_SPHERE, np.full(3, radius), p, np.eye(3).ravel(), rgba)
+    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_SPHERE, np.full(3, radius), p, np.eye(3).ravel(), _lit(rgba))
     scene.ngeom += 1
 
 
@@ -196,12 +300,14 @@ def draw_decorations(canvas, frame: Frame) -> None:
     anything with its ``world``, ``metres_per_px``, ``at_least``,
     ``_add_capsule`` and ``_add_sphere`` (MuJoCo's viewer, viz.viewer)."""
     positions = frame.observation.position
-    weights = frame.commands.decorations.link_weights
     link_width = canvas.at_least(LINK_WIDTH_M, LINK_MIN_PX)
-    delivery = link_delivery_colors(frame)  # non-ideal radio: by delivery; None: today's colours
+    values = link_values(frame)  # delivery (non-ideal radio) or weight; None: every link at full value
+    if values is None:
+        colors, widths = np.broadcast_to(LINK_RGBA, (len(frame.observation.links.edges), 4)), None
+    else:  # weak links fainter and thinner: a start cluster's tangle recedes behind its strong links
+        colors, widths = palette.link_rgba(values), link_width * palette.link_width_share(values)
     for k, (i, j) in enumerate(frame.observation.links.edges):
-        rgba = delivery[k] if delivery is not None else LINK_RGBA if weights is None else link_color(weights[i, j])
-        canvas._add_capsule(positions[i], positions[j], link_width, rgba)
+        canvas._add_capsule(positions[i], positions[j], link_width if widths is None else widths[k], colors[k])
     for p in frame.commands.position:
         canvas._add_sphere(p, canvas.at_least(REFERENCE_RADIUS_M, REFERENCE_MIN_PX), REFERENCE_RGBA)
     # Ground robots are 7 cm across: a translucent halo keeps them visible; quadrotors get one too
@@ -225,14 +331,16 @@ class FrameRenderer:
         self.world = world
         self.config = config
         model = world.model
-        # The offscreen buffer must be at least the frame size.
-        model.vis.global_.offwidth = max(model.vis.global_.offwidth, config.width)
+        # The scene fills the frame's height at the floor's aspect; the legend panel takes the rest.
+        self.scene_width = scene_width(world.bounds, config.width, config.height)
+        # The offscreen buffer must be at least the scene's size.
+        model.vis.global_.offwidth = max(model.vis.global_.offwidth, self.scene_width)
         model.vis.global_.offheight = max(model.vis.global_.offheight, config.height)
         # Coarser tessellation of spheres and capsules: software GL cost is triangles, and a connected
         # mission draws hundreds of path, link and marker geoms a frame (the coarser mesh shows no difference).
         model.vis.quality.numslices = min(model.vis.quality.numslices, MESH_SLICES)
         model.vis.quality.numstacks = min(model.vis.quality.numstacks, MESH_STACKS)
-        self.renderer = mujoco.Renderer(model, config.height, config.width)
+        self.renderer = mujoco.Renderer(model, config.height, self.scene_width)
         self.options = mujoco.MjvOption()
         # Show scene (0), robot visuals (2) and targets (3); hide collision shells (1).
         self.options.geomgroup[:] = (1, 0, 1, 1, 0, 0)
@@ -244,7 +352,7 @@ class FrameRenderer:
         self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
         lo, hi = world.bounds
         # Metres per pixel of a view of the whole floor: the scale of the minimum marker sizes.
-        self.metres_per_px = TOP_MARGIN * max((hi[0] - lo[0]) / config.width, (hi[1] - lo[1]) / config.height)
+        self.metres_per_px = TOP_MARGIN * max((hi[0] - lo[0]) / self.scene_width, (hi[1] - lo[1]) / config.height)
         self._ortho_height_m: float | None = None
         self._data: mujoco.MjData | None = None  # frame.state's, drawn (made on first use)
         self.set_camera(config.camera)
@@ -309,7 +417,7 @@ class FrameRenderer:
             cam.lookat[2] = lo[2]
             cam.distance = 2.0 * (span + hi[2] - lo[2])  # above everything in the scene
             cam.elevation = -90.0
-            aspect = self.config.height / self.config.width
+            aspect = self.config.height / self.scene_width
             self._ortho_height_m = TOP_MARGIN * max(hi[1] - lo[1], (hi[0] - lo[0]) * aspect)
         elif name == "overview":  # perspective from the -y side
             cam.distance = 1.1 * span
@@ -325,13 +433,23 @@ class FrameRenderer:
     def _add_sphere(self, p: np.ndarray, radius: float, rgba: np.ndarray) -> None:
         add_sphere(self.renderer.scene, p, radius, rgba)
 
-    def render(self, frame: Frame) -> np.ndarray:
+    def render_scene(self, frame: Frame) -> np.ndarray:
         """``frame``'s MuJoCo state (``frame.state``; ``world.data`` for a frame
-        without one) with its decorations."""
+        without one) with its decorations: (height, scene_width, 3) uint8."""
         self._update_scene(self._data_of(frame))
         draw_decorations(self, frame)
-        image = self.renderer.render()
-        return burn_overlay(image, overlay_text(frame), frame_legend(frame))
+        return self.renderer.render()
+
+    def render(self, frame: Frame) -> np.ndarray:
+        """The full (height, width, 3) frame: the scene at the left, beside it the panel with
+        the overlay's lines and the legend of everything drawn (never over the scene)."""
+        scene = self.render_scene(frame)
+        height, width = self.config.height, self.config.width
+        image = np.empty((height, width, 3), dtype=np.uint8)
+        image[:, : self.scene_width] = scene
+        image[:, self.scene_width:] = side_panel(height, width - self.scene_width, overlay_lines(frame),
+                                                 frame_legend(frame, self.world.robot_kinds))
+        return image
 
     def close(self) -> None:
         self.renderer.close()

@@ -4,10 +4,12 @@
 :class:`sim.loop.Simulation` and ticks it, paced to real time (``speed``
 times it; 0: as fast as the machine goes). Each tick the viewer's user scene
 (``handle.user_scn``) gets the same decorations as the video
-(:func:`viz.video.draw_decorations`: links coloured by weight, references,
-robot halos in role / team colours, planned paths, meeting points, target
-estimates, markers) and a text box with the video's overlay line and the
-legend. The viewer only reads the simulation (as the video does), except
+(:func:`viz.video.draw_decorations`: links on the palette's ramp by weight
+or delivery, references, robot halos in role / team colours, planned
+paths, meeting points, target estimates, markers), a band at the top-left
+with the video's overlay line, the state and the real-time factor reached,
+and the legend at the top-right. The default camera looks straight down,
+the floor in the window's left part, so the legend sits beside it. The viewer only reads the simulation (as the video does), except
 that MuJoCo's mouse perturbation (double-click a body, Ctrl + drag) pushes
 bodies, as in any MuJoCo viewer.
 
@@ -34,6 +36,7 @@ from typing import Callable
 import mujoco
 import numpy as np
 
+from sim import palette
 from sim.loop import Simulation, end_of_run
 from sim.observers import Frame
 from sim.scenario import Scenario
@@ -43,7 +46,13 @@ from viz.video import TOP_MARGIN, add_capsule, add_sphere, draw_decorations, ove
 
 KEY_SPACE = 32  # GLFW key codes, as MuJoCo's viewer hands them to key_callback
 KEY_RIGHT = 262
-VIEW_PIXELS = 900  # the marker scale assumes the floor spans about this many pixels of the window
+VIEW_PIXELS = 700  # the marker scale assumes the floor spans about this many pixels of the window
+FLOOR_SHARE = 0.62  # the default camera puts the floor in this share of the window's width, the legend beside
+VIEW_MARGIN = 1.06  # ... with 6 % around it
+SLOW_SHARE = 0.9  # the band says the machine cannot keep up below this share of the asked speed
+PACE_WINDOW_S = 2.0  # the real-time factor is measured over this much wall time
+DEFAULT_ASPECT = 4 / 3  # the window's aspect when the viewer does not tell it yet
+VIEW_FOVY_DEG = 15.0  # the viewer's vertical field of view (MuJoCo's default 45)
 
 
 class ViewerControl:
@@ -96,32 +105,60 @@ class UserScene:
         draw_decorations(self, frame)
 
 
-def _legend_text(frame: Frame) -> str:
-    items = frame_legend(frame)
+def _legend_text(frame: Frame, robot_kinds=()) -> str:
+    items = frame_legend(frame, robot_kinds)
     return "\n".join(f"{label}: {colour_name(rgba)}" for label, rgba in items)
 
 
-COLOUR_NAMES = {  # the viewer's text is one colour: the legend names each colour instead
-    "red": (0.9, 0.2, 0.15), "orange": (1.0, 0.6, 0.1), "yellow": (0.95, 0.8, 0.15), "olive": (0.55, 0.55, 0.2),
-    "green": (0.15, 0.7, 0.3), "turquoise": (0.0, 0.9, 0.8), "teal": (0.1, 0.6, 0.65), "blue": (0.2, 0.4, 1.0),
-    "purple": (0.6, 0.3, 0.8), "pink": (0.9, 0.4, 0.7), "magenta": (0.95, 0.2, 0.6), "grey": (0.55, 0.55, 0.6),
-    "dark grey": (0.2, 0.2, 0.25), "white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0),
-}
-
-
 def colour_name(rgba) -> str:
-    """The nearest of :data:`COLOUR_NAMES` to ``rgba`` (0..1)."""
-    rgb = np.asarray(list(rgba)[:3], dtype=float)
-    return min(COLOUR_NAMES, key=lambda name: float(np.sum((np.array(COLOUR_NAMES[name]) - rgb) ** 2)))
+    """The palette's name of ``rgba`` (0..1): the viewer's text is one colour, so the legend names each."""
+    return palette.colour_name(rgba)
 
 
-def _texts(frame: Frame, status: str, control: ViewerControl) -> list:
-    state = status or ("paused (Space resumes, Right arrow steps)" if control.paused else "running (Space pauses)")
+def pace_text(real_time_factor: float | None, speed: float) -> str:
+    """The band's pace: the real-time factor reached, and whether it falls short of the one asked."""
+    if real_time_factor is None:
+        return "x? of real time"
+    text = f"x{real_time_factor:.2f} of real time"
+    if speed > 0 and real_time_factor < SLOW_SHARE * speed:
+        text += f" (asked x{speed:g}: this machine cannot keep up)"
+    return text
+
+
+def _texts(frame: Frame, status: str, control: ViewerControl, robot_kinds=(), real_time_factor: float | None = None,
+           speed: float = 1.0) -> list:
+    state = status or ("paused (Space resumes, Right arrow steps)" if control.paused else
+                       f"running at {pace_text(real_time_factor, speed)} (Space pauses)")
     texts = [(mujoco.mjtFontScale.mjFONTSCALE_150, mujoco.mjtGridPos.mjGRID_TOPLEFT, overlay_text(frame), state)]
-    legend = _legend_text(frame)
-    if legend:
-        texts.append((mujoco.mjtFontScale.mjFONTSCALE_100, mujoco.mjtGridPos.mjGRID_BOTTOMLEFT, "colours", legend))
+    legend = _legend_text(frame, robot_kinds)
+    if legend:  # at the right, beside the floor (default_camera leaves that part of the window to it), below the band
+        texts.append((mujoco.mjtFontScale.mjFONTSCALE_150, mujoco.mjtGridPos.mjGRID_BOTTOMRIGHT, "colours", legend))
     return texts
+
+
+def _aspect(handle) -> float:
+    viewport = getattr(handle, "viewport", None)
+    return viewport.width / viewport.height if viewport is not None and viewport.height else DEFAULT_ASPECT
+
+
+def _camera_pose(cam) -> tuple:
+    return (*np.round(cam.lookat, 6), round(float(cam.distance), 6), float(cam.elevation), float(cam.azimuth))
+
+
+def default_camera(cam, bounds, fovy_deg: float, aspect: float) -> None:
+    """Look straight down on the floor (walls show their tops and hide no room), the whole floor
+    in view at the window's left ``FLOOR_SHARE`` of its width, so the legend at the right sits
+    beside the scene, not over it."""
+    lo, hi = (np.asarray(b, dtype=float) for b in bounds)
+    width, depth = float(hi[0] - lo[0]), float(hi[1] - lo[1])
+    tan = np.tan(np.radians(fovy_deg) / 2)
+    # Visible floor depth (m) at the floor: the depth, or what makes the width fit FLOOR_SHARE of the view.
+    visible_depth = VIEW_MARGIN * max(depth, width / (FLOOR_SHARE * max(aspect, 1e-3)))
+    visible_width = visible_depth * aspect
+    cam.type = mujoco.mjtCamera.mjCAMERA_FREE
+    cam.lookat[:] = (lo[0] + visible_width / 2 - (VIEW_MARGIN - 1) * width / 2, (lo[1] + hi[1]) / 2, lo[2])
+    cam.distance = visible_depth / (2 * tan)
+    cam.elevation, cam.azimuth = -90.0, 90.0
 
 
 def needs_display() -> str | None:
@@ -143,6 +180,9 @@ def view(scenario: Scenario, make_simulation: Callable[[Scenario], Simulation], 
     import mujoco.viewer
 
     sim = make_simulation(scenario)
+    # A narrow field of view from farther away: full-height walls seen from above lean over the rooms
+    # far less (the free camera's fovy is a picture setting; physics, sensing and radio never read it).
+    sim.world.model.vis.global_.fovy = VIEW_FOVY_DEG
     control = control or ViewerControl()
     launch = launch or mujoco.viewer.launch_passive
     handle = launch(sim.world.model, sim.world.data, key_callback=control.key,
@@ -150,11 +190,14 @@ def view(scenario: Scenario, make_simulation: Callable[[Scenario], Simulation], 
     n_ticks = int(round(scenario.duration_s / sim.dt))
     status = ""
     try:
+        fovy = float(sim.world.model.vis.global_.fovy)
         with handle.lock():
-            lo, hi = sim.world.bounds
-            handle.cam.lookat[:] = (lo + hi) / 2
-            handle.cam.distance = 1.2 * float(np.linalg.norm(hi[:2] - lo[:2]))
-            handle.cam.elevation, handle.cam.azimuth = -60.0, 90.0
+            framed = [_aspect(handle), None]  # the aspect framed for, and the camera as set (until the user moves it)
+            default_camera(handle.cam, sim.world.bounds, fovy, framed[0])
+            framed[1] = _camera_pose(handle.cam)
+        kinds = sim.world.robot_kinds
+        pace: list[tuple[float, float]] = []  # (wall, sim) samples of the last PACE_WINDOW_S
+        rtf = None
         scene = UserScene(sim.world, handle.user_scn)
         frame = None
         anchor_wall, anchor_sim = time.perf_counter(), sim.time_s
@@ -162,18 +205,31 @@ def view(scenario: Scenario, make_simulation: Callable[[Scenario], Simulation], 
             if not control.take_tick():
                 anchor_wall, anchor_sim = time.perf_counter(), sim.time_s
                 if frame is not None:
-                    handle.set_texts(_texts(frame, status, control))
+                    handle.set_texts(_texts(frame, status, control, kinds, None, speed))
+                pace.clear()
                 handle.sync()
                 time.sleep(0.02)
                 continue
             with handle.lock():
                 frame, healthy = sim.tick()
                 scene.draw(frame)
+                aspect = _aspect(handle)
+                # The window's size is known once it is drawn: frame again for it, unless the user moved the camera.
+                if abs(aspect - framed[0]) > 0.02 and _camera_pose(handle.cam) == framed[1]:
+                    default_camera(handle.cam, sim.world.bounds, fovy, aspect)
+                    framed[:] = [aspect, _camera_pose(handle.cam)]
             if not healthy:
                 status = Status.DIVERGED
             elif sim.strategy.finished or sim.tick_count >= n_ticks:
                 status, _ = end_of_run(sim.strategy, sim.strategy.finished, scenario.duration_s, sim.time_s)
-            handle.set_texts(_texts(frame, f"{status}: close the window to quit" if status else "", control))
+            now = time.perf_counter()
+            pace.append((now, sim.time_s))
+            while now - pace[0][0] > PACE_WINDOW_S:
+                pace.pop(0)
+            if now - pace[0][0] > 0.25:
+                rtf = (pace[-1][1] - pace[0][1]) / (now - pace[0][0])
+            handle.set_texts(_texts(frame, f"{status}: close the window to quit" if status else "", control, kinds,
+                                    rtf, speed))
             handle.sync()
             if on_tick is not None:
                 on_tick(sim, frame)

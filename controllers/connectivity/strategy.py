@@ -124,29 +124,31 @@ from controllers.connectivity.mission import (
 from controllers.connectivity.potential import guarded_potential_slope
 from controllers.connectivity.roles import ANCHOR_CODE, CONNECTOR_CODE, PRIME_CODE, SECONDARY_CODE, Role
 from controllers.connectivity.smooth_spectrum import smooth_lambda2_gradient
+from sim import palette
 from sim.config import ConfigError
 from sim.geometry import boxes_reaching, point_clearance
 from sim.radio.protocols import HeartbeatMonitor
 from sim.types import NO_DECORATIONS, Commands, Decorations, Observation, WorldInfo
 from sim.strategy import Strategy
 
-# Colours (RGBA) of the robots by role in the video (the paper's Fig. 6:
-# robots blue, the prime traveler turquoise).
+# Colours (RGBA) of the robots by role in the pictures (sim.palette); a traveler's path takes its
+# role's colour, so one legend entry names both.
 ROLE_COLORS = {
-    Role.PRIME_TRAVELER: np.array([0.0, 0.95, 0.85, 1.0]),
-    Role.SECONDARY_TRAVELER: np.array([0.15, 0.35, 1.0, 1.0]),
-    Role.ANCHOR: np.array([1.0, 0.6, 0.1, 1.0]),
-    Role.CONNECTOR: np.array([0.55, 0.55, 0.6, 1.0]),
+    Role.PRIME_TRAVELER: palette.PRIME_TRAVELER,
+    Role.SECONDARY_TRAVELER: palette.SECONDARY_TRAVELER,
+    Role.ANCHOR: palette.ANCHOR,
+    Role.CONNECTOR: palette.CONNECTOR,
 }
 ROLE_NAMES = {Role.PRIME_TRAVELER: "prime traveler", Role.SECONDARY_TRAVELER: "secondary traveler",
               Role.ANCHOR: "anchor", Role.CONNECTOR: "connector"}
-PRIME_PATH_RGBA = np.array([0.0, 0.85, 0.75, 0.9])
-SECONDARY_PATH_RGBA = np.array([0.2, 0.2, 0.25, 0.6])
-TARGET_RGBA = np.array([0.95, 0.2, 0.6, 0.8])
-# What the colours mean (``Decorations.legend``: video, tuning page) and the role codes' names (plots).
-LEGEND = Decorations(legend=(*((ROLE_NAMES[r], ROLE_COLORS[r]) for r in Role), ("prime's path", PRIME_PATH_RGBA),
-                             ("secondary's path", SECONDARY_PATH_RGBA),
-                             ("target", TARGET_RGBA))).legend  # read-only once, not every tick
+PRIME_PATH_RGBA = palette.PRIME_TRAVELER * np.array([1, 1, 1, 0.9], dtype=np.float32)
+SECONDARY_PATH_RGBA = palette.SECONDARY_TRAVELER * np.array([1, 1, 1, 0.85], dtype=np.float32)  # fainter reads as sky blue
+TARGET_RGBA = palette.GOAL * np.array([1, 1, 1, 0.9], dtype=np.float32)
+# What the colours mean (``Decorations.legend``: video, tuning page, viewer, recording) and the role
+# codes' names (plots).
+_LEGEND_LABELS = {Role.PRIME_TRAVELER: "prime traveler, its path", Role.SECONDARY_TRAVELER: "secondary traveler, its path"}
+LEGEND = Decorations(legend=(*((_LEGEND_LABELS.get(r, ROLE_NAMES[r]), ROLE_COLORS[r]) for r in Role),
+                             ("traveler's target point", palette.GOAL))).legend  # read-only once, not every tick
 ROLE_LEVELS = {float(r): ROLE_NAMES[r] for r in Role}
 # Spacing of the points that draw a planned path, as a fraction of R_grid.
 _PATH_DRAW_SPACING = 2.0

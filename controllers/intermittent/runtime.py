@@ -32,31 +32,19 @@ from controllers.intermittent.planner import PlannerParams, RobotPath
 # The intermittent paper's task as every method sees it (re-exported: the strategies import it from here).
 from controllers.task import EstimateSeries, check_time_base, measurement_records, prior_state  # noqa: F401
 from sim.compiled import kernel
+from sim import palette
 from sim.config import ConfigError
 from sim.geometry import Boxes, boxes_reaching, clearance_at, pairwise_min_distance
 from sim.types import Commands, Observation, WorldInfo
 
 PATH_HEIGHT_M = 0.01  # drawn paths lie this high above the floor, m
 
-# Team colours (RGBA, 0..1), cycled by team index.
-TEAM_COLORS = np.array(
-    [
-        (0.90, 0.25, 0.20, 1.0),
-        (0.20, 0.45, 0.90, 1.0),
-        (0.15, 0.70, 0.30, 1.0),
-        (0.85, 0.55, 0.10, 1.0),
-        (0.60, 0.30, 0.80, 1.0),
-        (0.10, 0.70, 0.75, 1.0),
-        (0.85, 0.35, 0.65, 1.0),
-        (0.55, 0.55, 0.20, 1.0),
-        (0.40, 0.40, 0.40, 1.0),
-        (0.95, 0.80, 0.20, 1.0),
-    ]
-)
+# Team colours (RGBA, 0..1), cycled by team index: the palette's (sim.palette).
+TEAM_COLORS = palette.TEAMS
 
 
 def team_color(team: int) -> np.ndarray:
-    return TEAM_COLORS[team % len(TEAM_COLORS)]
+    return palette.team(team)
 
 
 def as_config_error(err: ValueError, prefix: str = "strategy") -> ConfigError:

@@ -90,6 +90,7 @@ from controllers.task import neutral_prior
 from estimation.beliefs import NetworkBeliefs
 from estimation.ekf import FilterState
 from estimation.metrics import delay_report
+from sim import palette
 from sim.config import ConfigError
 from sim.geometry import pairwise_min_distance
 from sim.radio.bus import range_records_bytes
@@ -99,7 +100,7 @@ from sim.strategy import Strategy
 
 RECORDS_KIND = "range_records"  # the bus's message kind of a meeting's exchange
 RING_RADIUS_M = 0.06  # members of a geodesic meeting stop on a ring this wide around its point, m
-IDLE_COLOR = np.array([0.5, 0.5, 0.5, 1.0])
+IDLE_COLOR = palette.IDLE
 
 
 @dataclass
@@ -567,10 +568,11 @@ class MeetingStrategy(Strategy):
         colors, paths, points, point_colors = [], [], [], []
         for robot, queue in enumerate(self.queues):
             colors.append(team_color(queue[0].meeting.team) if queue else IDLE_COLOR)
-            for k, segment in enumerate(queue):
-                rgba = team_color(segment.meeting.team).copy()
-                rgba[3] = 0.9 if k == 0 else 0.45
-                paths.append((lifted(segment.timed.path.positions), rgba))
+            # Only the path to the next meeting: later ones of eight teams crossed the middle in a tangle.
+            if queue:
+                rgba = team_color(queue[0].meeting.team).copy()
+                rgba[3] = 0.9
+                paths.append((lifted(queue[0].timed.path.positions), rgba))
         pending = {id(s.meeting): s.meeting for q in self.queues for s in q}
         for meeting in pending.values():
             rgba = team_color(meeting.team).copy()

@@ -1,6 +1,8 @@
 """The message bus: every message a robot sends, with its real size, over a shared, lossy medium.
 
-Pure Python and numpy, no MuJoCo. Time advances in control periods: the
+numpy and one compiled kernel (the medium's scheduling, ``_schedule_frames``;
+``ReferenceMessageBus`` keeps the plain loop it replaces), no MuJoCo. Time
+advances in control periods: the
 caller ``send``s messages during a tick and calls ``step(time_s, link)``
 once per tick, which puts the queued frames on the air during
 [time_s, time_s + control_period_s) and returns, per receiver, the
@@ -49,13 +51,15 @@ straddle two control periods.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
 
+from sim.compiled import kernel
 from sim.radio import channel
 from sim.radio.presets import IdealDisk, RadioPreset
 
@@ -108,6 +112,15 @@ class Message:
                 raise ValueError(f"robot {self.sender} sends message {self.kind!r} to itself")
             if len(set(self.receivers)) != len(self.receivers):
                 raise ValueError("receivers must not repeat")
+
+
+def _stamped(message: Message, sequence: int, sent_s: float) -> Message:
+    """``message`` with the bus's stamps: ``dataclasses.replace`` without re-running the checks it passed."""
+    stamped = object.__new__(type(message))
+    stamped.__dict__.update(message.__dict__)
+    stamped.__dict__["sequence"] = sequence
+    stamped.__dict__["sent_s"] = sent_s
+    return stamped
 
 
 @dataclass(frozen=True)
@@ -227,7 +240,7 @@ class _KindCounters:
     addressed: int = 0  # (message, receiver) pairs tried
     delivered: int = 0
     latencies_s: list[float] = field(default_factory=list)
-    airtime_s: np.ndarray | None = None  # per robot, s
+    airtime_s: list[float] | None = None  # per robot, s (a list: one float added per frame)
     superseded: int = 0  # latest_only messages replaced unsent by a newer one
 
 
@@ -241,6 +254,114 @@ class TickStats:
     delivery_ratio: float  # delivered / addressed; nan if nothing was addressed
     latency_mean_s: float  # over this period's deliveries; nan if none
     queued: int  # messages still waiting at their senders after the period
+
+
+# How ``_schedule_frames`` draws each receiver's fading gain: none, Exp(1) (Rayleigh, Rician K = 0), or a
+# noncentral chi-square with 2 degrees of freedom over 2 (K + 1) (Rician), as ``channel.fading_gain_db`` does.
+_NO_DRAW, _EXPONENTIAL, _NONCENTRAL_CHISQUARE = 0, 1, 2
+# SNR (dB) from which a modulation's BER is exactly 0 in floating point, so a frame's PER is 0: for the
+# 802.15.4 curve every term exp(20 SINR (1/k - 1)) underflows to 0 once 10 SINR > 746 (the k = 2 term;
+# SINR > 18.7 dB); 19.5 dB leaves a margin (tests/test_radio_bus_fast.py checks the curve is 0 from it on).
+_ZERO_BER_SNR_DB = {"oqpsk_dsss_802154": 19.5}
+
+
+@kernel
+def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airtime_s, error_bits, audience_start,
+                     audience_count, listed, fading_code, noncentrality, gain_scale, sure_snr_db, rng,
+                     popped, sent_frame, sent_finish, sent_draws, draw_receiver, draw_snr, draw_bits, draw_gain,
+                     draw_uniform, draw_unsure):
+    """One period of the shared medium (``ReferenceMessageBus._step_medium``'s loop, step for step).
+
+    Sender s offers frames first[s] .. first[s] + count[s] - 1 in order. Each round, every sender whose next
+    frame is ready starts at max(ready, the end of the latest frame of anyone it senses); the earliest go,
+    a tie broken by ``rng.integers``; a frame that would end after the period stops its sender. A frame
+    that goes draws, per receiver of its audience (``listed[audience_start:][:audience_count]``, or every
+    other robot when the count is -1), its fading gain and then, for all of them, a uniform: the reference's
+    draws in its order. Fills ``popped`` (frames gone per sender), the frames gone in order with their end
+    and the range of their draws (each with its receiver, mean SNR as ``numpy.nan_to_num(nan=-inf)`` gives
+    it, frame bits, fading gain and uniform), and returns how many went. ``sense`` counts as True on the
+    diagonal. ``draw_unsure`` marks the draws whose SNR with fading may lie below ``sure_snr_db``, where
+    the PER may differ from 0 (judged here with 0.5 dB to spare, the exact PER is numpy's).
+    """
+    n = sense.shape[0]
+    largest = 1.7976931348623157e308  # numpy.finfo(float).max, what nan_to_num puts for +inf
+    on_air_until = np.full(n, -np.inf)
+    medium_free = np.full(n, -np.inf)  # per sender: the latest end of a frame of anyone it senses
+    done = np.zeros(n, dtype=np.bool_)
+    ready = np.full(n, np.inf)
+    start = np.empty(n)
+    tied = np.empty(n, dtype=np.int64)
+    for s in range(n):
+        if count[s] > 0 and sent_s[first[s]] < end_s - eps:
+            ready[s] = max(start_s, sent_s[first[s]])
+    sent = 0
+    draws = 0
+    sent_draws[0] = 0
+    while True:
+        earliest = np.inf
+        for s in range(n):
+            start[s] = max(ready[s], medium_free[s])
+            if start[s] < earliest:
+                earliest = start[s]
+        if earliest == np.inf:
+            return sent
+        ties = 0
+        for s in range(n):
+            if start[s] <= earliest + eps:
+                tied[ties] = s
+                ties += 1
+        sender = tied[rng.integers(0, ties)] if ties > 1 else tied[0]
+        frame = first[sender] + popped[sender]
+        finish = earliest + airtime_s[frame]
+        if finish > end_s + eps:
+            done[sender] = True
+            ready[sender] = np.inf
+            continue
+        popped[sender] += 1
+        on_air_until[sender] = finish
+        for s in range(n):
+            if (s == sender or sense[s, sender]) and finish > medium_free[s]:
+                medium_free[s] = finish
+        ready[sender] = np.inf
+        if popped[sender] < count[sender]:
+            following = first[sender] + popped[sender]
+            if sent_s[following] < end_s - eps:
+                ready[sender] = max(start_s, sent_s[following])
+        sent_frame[sent] = frame
+        sent_finish[sent] = finish
+        size = audience_count[frame]
+        first_draw = draws
+        if size < 0:
+            for receiver in range(n):
+                if receiver != sender:
+                    draw_receiver[draws] = receiver
+                    draws += 1
+        else:
+            for k in range(size):
+                draw_receiver[draws] = listed[audience_start[frame] + k]
+                draws += 1
+        for d in range(first_draw, draws):
+            level = snr[sender, draw_receiver[d]]
+            if np.isnan(level):
+                level = -np.inf
+            elif level == np.inf:
+                level = largest
+            elif level == -np.inf:
+                level = -largest
+            draw_snr[d] = level
+            draw_bits[d] = error_bits[frame]
+            if fading_code == 1:
+                gain = rng.standard_exponential()
+            elif fading_code == 2:
+                gain = rng.noncentral_chisquare(2.0, noncentrality) / gain_scale
+            else:
+                gain = 1.0
+            draw_gain[d] = gain
+            draw_unsure[d] = not level + 10.0 * np.log10(max(gain, 1e-300)) >= sure_snr_db + 0.5
+        for d in range(first_draw, draws):
+            draw_uniform[d] = rng.random()
+        sent += 1
+        sent_draws[sent] = draws
 
 
 class MessageBus:
@@ -258,6 +379,11 @@ class MessageBus:
         self._n = robot_count
         self._sequence = 0
         self._queues: dict[int, deque[_Frame]] = {}
+        self._waiting: dict[int, int] = {}  # per sender, messages whose last frame is still queued
+        self._waiting_total = 0
+        self._frames_of_size: dict[int, tuple[tuple[int, float], ...]] = {}  # (payload, airtime) of each frame
+        self._broadcast_audiences: dict[tuple[int, int], tuple[int, ...]] = {}  # (sender, robots): every other
+        self._scratch_arrays: tuple[np.ndarray, ...] | None = None  # _schedule_frames' outputs, reused
         self._in_flight: dict[int, _InFlight] = {}
         self._kinds: dict[str, _KindCounters] = {}
         self._elapsed_s = 0.0
@@ -272,24 +398,40 @@ class MessageBus:
             targets = message.receivers or ()
             if not 0 <= message.sender < self._n or any(not 0 <= r < self._n for r in targets):
                 raise ValueError(f"message {message.kind!r} names a robot outside 0..{self._n - 1}")
-        stamped = replace(message, sequence=self._sequence, sent_s=float(time_s))
+        frames = None if self.params.is_ideal else self._frames(message.size_bytes)
+        stamped = _stamped(message, self._sequence, float(time_s))
         self._sequence += 1
         queue = self._queues.setdefault(stamped.sender, deque())
         if stamped.latest_only and queue:
             self._supersede(queue, stamped)
-        frames: list[_Frame] = []
-        if self.params.is_ideal:
-            frames.append(_Frame(stamped, stamped.size_bytes, True, 0.0))
+        if frames is None:
+            queue.append(_Frame(stamped, stamped.size_bytes, True, 0.0))
         else:
-            payloads = self.params.frame_payloads(stamped.size_bytes)
+            last = len(frames) - 1
+            for k, (payload, airtime) in enumerate(frames):
+                queue.append(_Frame(stamped, payload, k == last, airtime))
+        self._waiting[stamped.sender] = self._waiting.get(stamped.sender, 0) + 1
+        self._waiting_total += 1
+        return stamped
+
+    def _frames(self, size_bytes: int) -> tuple[tuple[int, float], ...]:
+        """(payload bytes, airtime s) of each frame of a ``size_bytes`` message, computed once per size."""
+        frames = self._frames_of_size.get(size_bytes)
+        if frames is None:
+            payloads = self.params.frame_payloads(size_bytes)
             airtimes = self.params.airtime_s(np.array(payloads))
             if airtimes.max() > self.control_period_s:
                 raise ValueError(f"a {self.params.name} frame takes {airtimes.max():.6f} s, longer than the "
                                  f"control period {self.control_period_s} s: it would never go out")
-            for k, (payload, airtime) in enumerate(zip(payloads, airtimes)):
-                frames.append(_Frame(stamped, payload, k == len(payloads) - 1, float(airtime)))
-        queue.extend(frames)
-        return stamped
+            frames = self._frames_of_size[size_bytes] = tuple(
+                (payload, float(airtime)) for payload, airtime in zip(payloads, airtimes))
+        return frames
+
+    def _popped(self, sender: int, frame: _Frame) -> None:
+        """Bookkeeping of ``frame`` leaving ``sender``'s queue."""
+        if frame.last:
+            self._waiting[sender] -= 1
+            self._waiting_total -= 1
 
     def _supersede(self, queue: deque[_Frame], newer: Message) -> None:
         """Drop from ``queue`` the waiting latest_only messages of ``newer``'s kind (none of their frames
@@ -301,12 +443,13 @@ class MessageBus:
             kept = [frame for frame in queue if frame.message.sequence not in stale]
             queue.clear()
             queue.extend(kept)
+            self._waiting[newer.sender] -= len(stale)
+            self._waiting_total -= len(stale)
             self._counters(newer.kind, self._n or newer.sender + 1).superseded += len(stale)
 
     def queued(self, sender: int | None = None) -> int:
         """Messages waiting (some of their frames not yet on the air), at ``sender`` or at all."""
-        queues = self._queues.values() if sender is None else [self._queues.get(sender, deque())]
-        return sum(sum(frame.last for frame in queue) for queue in queues)
+        return self._waiting_total if sender is None else self._waiting.get(sender, 0)
 
     # --- one control period ----------------------------------------------------------------------
 
@@ -366,13 +509,19 @@ class MessageBus:
     def _audience(self, message: Message, n: int) -> tuple[int, ...]:
         if message.receivers is not None:
             return message.receivers
-        return tuple(j for j in range(n) if j != message.sender)
+        key = (message.sender, n)
+        audience = self._broadcast_audiences.get(key)
+        if audience is None:
+            audience = self._broadcast_audiences[key] = tuple(j for j in range(n) if j != message.sender)
+        return audience
 
     def _step_ideal(self, link: LinkState | None, n: int, deliveries: list[list[Delivery]]) -> None:
         for sender in sorted(self._queues):
             queue = self._queues[sender]
             while queue:
-                message = queue.popleft().message
+                frame = queue.popleft()
+                self._popped(sender, frame)
+                message = frame.message
                 audience = self._audience(message, n)
                 if link is not None:  # the ideal disk: only receivers with a link
                     audience = tuple(j for j in audience if link.snr_db[sender, j] > -np.inf)
@@ -389,37 +538,114 @@ class MessageBus:
                 for receiver in audience:
                     deliveries[receiver].append(Delivery(message, receiver, message.sent_s))
 
-    def _step_medium(self, start_s: float, link: LinkState, n: int, deliveries: list[list[Delivery]]) -> None:
-        end_s = start_s + self.control_period_s
-        sense = np.asarray(link.carrier_sense, dtype=bool) | np.eye(n, dtype=bool)
-        snr = np.nan_to_num(np.asarray(link.snr_db, dtype=float), nan=-np.inf)
-        on_air_until = np.full(n, -np.inf)  # end of each robot's latest frame
-        done = np.zeros(n, dtype=bool)  # its head frame does not fit in this period
-        # Tolerance on instants: airtimes are sums of microseconds; 1 ns never changes an order.
-        eps = 1e-9
-        while True:
-            ready = np.full(n, np.inf)
-            for sender, queue in self._queues.items():
-                if queue and not done[sender] and queue[0].message.sent_s < end_s - eps:
-                    ready[sender] = max(start_s, queue[0].message.sent_s)
-            if not np.isfinite(ready).any():
-                return
-            medium_free = np.where(sense, on_air_until[None, :], -np.inf).max(axis=1)
-            start = np.maximum(ready, medium_free)
-            earliest = start.min()
-            tied = np.flatnonzero(start <= earliest + eps)
-            sender = int(tied[self.rng.integers(len(tied))]) if len(tied) > 1 else int(tied[0])
-            frame = self._queues[sender][0]
-            finish = earliest + frame.airtime_s
-            if finish > end_s + eps:
-                done[sender] = True
-                continue
-            self._queues[sender].popleft()
-            on_air_until[sender] = finish
-            self._transmit(frame, finish, snr, n, deliveries)
+    # Tolerance on instants: airtimes are sums of microseconds; 1 ns never changes an order.
+    _EPS_S = 1e-9
 
-    def _transmit(self, frame: _Frame, finish_s: float, snr: np.ndarray, n: int,
+    def _step_medium(self, start_s: float, link: LinkState, n: int, deliveries: list[list[Delivery]]) -> None:
+        """The medium's period, scheduled by the compiled ``_schedule_frames``: the same frames, instants and
+        random draws, in the same order, as ``ReferenceMessageBus``'s loop (tests/test_radio_bus_fast.py)."""
+        end_s = start_s + self.control_period_s
+        sense = np.asarray(link.carrier_sense, dtype=bool)
+        snr = np.asarray(link.snr_db, dtype=float)
+        if sense.shape != (n, n) or snr.shape != (n, n):
+            raise ValueError(f"the link's arrays must be ({n}, {n})")
+        # The head of each queue that can go out in this period: frames while the airtime before them fits,
+        # and one more, which cannot (the loop must meet it to stop that sender, drawing as it does).
+        reach_s = self.control_period_s + 1e-6
+        frames: list[_Frame] = []
+        first = np.zeros(n, dtype=np.int64)
+        count = np.zeros(n, dtype=np.int64)
+        for sender, queue in self._queues.items():
+            first[sender] = len(frames)
+            before_s = 0.0
+            for frame in queue:
+                frames.append(frame)
+                before_s += frame.airtime_s
+                if before_s > reach_s:
+                    break
+            count[sender] = len(frames) - first[sender]
+        total = len(frames)
+        if total == 0:
+            return
+        sent_s = np.fromiter((frame.message.sent_s for frame in frames), float, total)
+        airtime_s = np.fromiter((frame.airtime_s for frame in frames), float, total)
+        error_bits = np.fromiter((frame.payload_bytes for frame in frames), float, total)
+        error_bits *= 8.0
+        error_bits += self.params.header_bits + self.params.mac_overhead_bits
+        # A frame's audience is its message's (``_audience``: the robot count does not change within a run).
+        audience_start = np.zeros(total, dtype=np.int64)
+        audience_count = np.full(total, -1, dtype=np.int64)  # -1: every other robot (a broadcast)
+        listed: list[int] = []
+        for index, frame in enumerate(frames):
+            receivers = frame.message.receivers
+            if receivers is not None:
+                audience_start[index] = len(listed)
+                audience_count[index] = len(receivers)
+                listed.extend(receivers)
+        fading_code, gain_scale = self._fading_draw
+        out = self._scratch(total, total * max(n - 1, 0))
+        popped = np.zeros(n, dtype=np.int64)
+        sure_snr_db = _ZERO_BER_SNR_DB.get(self.params.modulation, np.inf)
+        sent = _schedule_frames(
+            start_s, end_s, self._EPS_S, sense, snr, first, count, sent_s, airtime_s, error_bits, audience_start,
+            audience_count, np.array(listed, dtype=np.int64), fading_code, 2.0 * self.params.rician_k, gain_scale,
+            sure_snr_db, self.rng, popped, *out)
+        if sent == 0:
+            return
+        sent_frame, sent_finish, sent_draws, _receivers, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure = out
+        draws = int(sent_draws[sent])
+        # Per-packet fading and loss of every (frame, receiver) tried, with the reference formulas: a frame
+        # whose SNR with fading is above the modulation's zero-BER SNR has PER exactly 0 and always arrives.
+        survived = np.ones(draws, dtype=bool)
+        unsure = np.flatnonzero(draw_unsure[:draws])
+        if len(unsure):
+            level = draw_snr[unsure]
+            if fading_code != _NO_DRAW or self.params.fading_model != "none":
+                fading_db = np.maximum(draw_gain[unsure], np.finfo(float).tiny)
+                np.log10(fading_db, out=fading_db)
+                fading_db *= 10.0
+                level = level + fading_db
+            per = channel.packet_error_rate_at_snr(self.params.modulation, level, self.params.bandwidth_hz,
+                                                   self.params.bitrate_bps, draw_bits[unsure])
+            survived[unsure] = draw_uniform[unsure] >= per
+        for sender in np.flatnonzero(popped).tolist():
+            queue = self._queues[sender]
+            for _ in range(int(popped[sender])):
+                self._popped(sender, queue.popleft())
+        bounds = sent_draws[:sent + 1].tolist()
+        finishes = sent_finish[:sent].tolist()
+        for k, index in enumerate(sent_frame[:sent].tolist()):
+            self._received(frames[index], finishes[k], survived[bounds[k]:bounds[k + 1]], n, deliveries)
+
+    @property
+    def _fading_draw(self) -> tuple[int, float]:
+        """How ``_schedule_frames`` draws the fading gain of this bus's model, and the gain's divisor."""
+        fading, rician_k = self.params.fading_model, self.params.rician_k
+        if fading == "none" or (fading == "rician" and math.isinf(rician_k)):
+            return _NO_DRAW, 1.0
+        if fading == "rayleigh" or (fading == "rician" and rician_k == 0):
+            return _EXPONENTIAL, 1.0
+        if fading == "rician":
+            if rician_k < 0:
+                raise ValueError("the Rician K-factor must be >= 0")
+            return _NONCENTRAL_CHISQUARE, 2.0 * (rician_k + 1.0)
+        raise ValueError(f"unknown fading model {fading!r}; known: {', '.join(channel.FADING_MODELS)}")
+
+    def _scratch(self, frames: int, draws: int) -> tuple[np.ndarray, ...]:
+        """Output arrays of ``_schedule_frames`` for up to ``frames`` frames and ``draws`` draws, kept between
+        periods (only the part the kernel fills is read)."""
+        held = self._scratch_arrays
+        if held is None or len(held[0]) < frames or len(held[3]) < draws:
+            frames, draws = max(frames, 64), max(draws, 512)
+            held = self._scratch_arrays = (
+                np.empty(frames, dtype=np.int64), np.empty(frames), np.empty(frames + 1, dtype=np.int64),
+                np.empty(draws, dtype=np.int64), np.empty(draws), np.empty(draws), np.empty(draws), np.empty(draws),
+                np.empty(draws, dtype=np.bool_))
+        return held
+
+    def _received(self, frame: _Frame, finish_s: float, survived: np.ndarray, n: int,
                   deliveries: list[list[Delivery]]) -> None:
+        """Counters, the message's surviving receivers and, after its last frame, its deliveries."""
         message = frame.message
         counters = self._counters(message.kind, n)
         counters.frames_sent += 1
@@ -427,31 +653,38 @@ class MessageBus:
         flight = self._in_flight.get(message.sequence)
         if flight is None:
             audience = self._audience(message, n)
-            flight = self._in_flight[message.sequence] = _InFlight(audience, np.ones(len(audience), dtype=bool))
-        if flight.audience:
-            receivers = np.array(flight.audience)
-            fading = channel.fading_gain_db(self.params.fading_model, self.rng, len(receivers),
-                                            self.params.rician_k)
-            per = self.params.packet_error_rate(snr[message.sender, receivers] + fading, frame.payload_bytes)
-            flight.alive &= self.rng.random(len(receivers)) >= per
-        if not frame.last:
-            return
-        del self._in_flight[message.sequence]
+            if frame.last:  # a message of one frame: nothing to keep between frames
+                alive = survived if audience else np.zeros(0, dtype=bool)
+            else:
+                flight = self._in_flight[message.sequence] = _InFlight(audience, survived.copy())
+                return
+        else:
+            audience = flight.audience
+            if audience:
+                flight.alive &= survived
+            if not frame.last:
+                return
+            alive = flight.alive
+            del self._in_flight[message.sequence]
         counters.packets_sent += 1
         counters.bytes_sent += message.size_bytes
-        counters.addressed += len(flight.audience)
-        for receiver, alive in zip(flight.audience, flight.alive):
-            if alive:
-                counters.delivered += 1
-                counters.latencies_s.append(finish_s - message.sent_s)
+        counters.addressed += len(audience)
+        reached = [k for k, got in enumerate(alive.tolist()) if got]
+        if reached:
+            counters.delivered += len(reached)
+            counters.latencies_s += [finish_s - message.sent_s] * len(reached)
+            for k in reached:
+                receiver = audience[k]
                 deliveries[receiver].append(Delivery(message, receiver, finish_s))
 
     # --- metrics ---------------------------------------------------------------------------------
 
     def _counters(self, kind: str, n: int) -> _KindCounters:
-        counters = self._kinds.setdefault(kind, _KindCounters())
+        counters = self._kinds.get(kind)
+        if counters is None:
+            counters = self._kinds[kind] = _KindCounters()
         if counters.airtime_s is None or len(counters.airtime_s) < n:
-            grown = np.zeros(n)
+            grown = [0.0] * n
             if counters.airtime_s is not None:
                 grown[:len(counters.airtime_s)] = counters.airtime_s
             counters.airtime_s = grown
@@ -496,7 +729,8 @@ class MessageBus:
 
     def _metrics(self, prefix: str, counters: _KindCounters) -> dict[str, float | int]:
         latencies = np.array(counters.latencies_s)
-        airtime = counters.airtime_s if counters.airtime_s is not None and len(counters.airtime_s) else np.zeros(1)
+        airtime = (np.asarray(counters.airtime_s, dtype=float) if counters.airtime_s is not None
+                   and len(counters.airtime_s) else np.zeros(1))
         return {
             f"{prefix}_packets_sent": counters.packets_sent,
             f"{prefix}_frames_sent": counters.frames_sent,
@@ -508,3 +742,66 @@ class MessageBus:
             f"{prefix}_airtime_max_share": float(airtime.max() / self._elapsed_s) if self._elapsed_s else 0.0,
             f"{prefix}_packets_superseded": counters.superseded,
         }
+
+
+class ReferenceMessageBus(MessageBus):
+    """The same bus, each period stepped by the plain loop that ``MessageBus``'s compiled scheduling replaces:
+    the specification the fast bus is held to (tests/test_radio_bus_fast.py), frame by frame and draw by draw."""
+
+    def _step_medium(self, start_s: float, link: LinkState, n: int, deliveries: list[list[Delivery]]) -> None:
+        end_s = start_s + self.control_period_s
+        sense = np.asarray(link.carrier_sense, dtype=bool) | np.eye(n, dtype=bool)
+        snr = np.nan_to_num(np.asarray(link.snr_db, dtype=float), nan=-np.inf)
+        on_air_until = np.full(n, -np.inf)  # end of each robot's latest frame
+        done = np.zeros(n, dtype=bool)  # its head frame does not fit in this period
+        # Tolerance on instants: airtimes are sums of microseconds; 1 ns never changes an order.
+        eps = self._EPS_S
+        while True:
+            ready = np.full(n, np.inf)
+            for sender, queue in self._queues.items():
+                if queue and not done[sender] and queue[0].message.sent_s < end_s - eps:
+                    ready[sender] = max(start_s, queue[0].message.sent_s)
+            if not np.isfinite(ready).any():
+                return
+            medium_free = np.where(sense, on_air_until[None, :], -np.inf).max(axis=1)
+            start = np.maximum(ready, medium_free)
+            earliest = start.min()
+            tied = np.flatnonzero(start <= earliest + eps)
+            sender = int(tied[self.rng.integers(len(tied))]) if len(tied) > 1 else int(tied[0])
+            frame = self._queues[sender][0]
+            finish = earliest + frame.airtime_s
+            if finish > end_s + eps:
+                done[sender] = True
+                continue
+            self._popped(sender, self._queues[sender].popleft())
+            on_air_until[sender] = finish
+            self._transmit(frame, finish, snr, n, deliveries)
+
+    def _transmit(self, frame: _Frame, finish_s: float, snr: np.ndarray, n: int,
+                  deliveries: list[list[Delivery]]) -> None:
+        message = frame.message
+        counters = self._counters(message.kind, n)
+        counters.frames_sent += 1
+        counters.airtime_s[message.sender] += frame.airtime_s
+        flight = self._in_flight.get(message.sequence)
+        if flight is None:
+            audience = self._audience(message, n)
+            flight = self._in_flight[message.sequence] = _InFlight(audience, np.ones(len(audience), dtype=bool))
+        if flight.audience:
+            receivers = np.array(flight.audience)
+            fading = channel.fading_gain_db(self.params.fading_model, self.rng, len(receivers),
+                                            self.params.rician_k)
+            per = self.params.packet_error_rate(snr[message.sender, receivers] + fading, frame.payload_bytes)
+            flight.alive &= self.rng.random(len(receivers)) >= per
+        if not frame.last:
+            return
+        del self._in_flight[message.sequence]
+        counters.packets_sent += 1
+        counters.bytes_sent += message.size_bytes
+        counters.addressed += len(flight.audience)
+        for receiver, alive in zip(flight.audience, flight.alive):
+            if alive:
+                counters.delivered += 1
+                counters.latencies_s.append(finish_s - message.sent_s)
+                deliveries[receiver].append(Delivery(message, receiver, finish_s))
+

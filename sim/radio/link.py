@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from sim.compiled import kernel
 from sim.geometry import Boxes
 from sim.radio import channel
 from sim.radio.config import RadioConfig
@@ -96,9 +97,34 @@ class RadioChannel:
                                                              config.shadowing_correlation_s, standard_normal=1.0))
                 self._step = (dt, rho, innovation)
             _, rho, innovation = self._step
-            self._shadowing = rho * self._shadowing + innovation * self.rng.standard_normal(pairs)
+            innovations = self.rng.standard_normal(pairs)
+            innovations *= innovation
+            stepped = rho * self._shadowing
+            stepped += innovations  # rho X + sigma_innovation z, as one expression would round it
+            self._shadowing = stepped
         self._shadowing_time = time_s
         return self._shadowing
+
+    def pair_figures(self, distance_m: np.ndarray, wall_loss_db: np.ndarray,
+                     shadowing_db: np.ndarray) -> dict[str, np.ndarray]:
+        """Per pair ((P,) each: distance, m; walls' loss, dB; shadowing, dB): received power, SNR and the
+        reference packet's delivery, as ``channel``'s chain log_distance_path_loss_db -> received_power_dbm
+        -> snr_db -> delivery_at_snr gives them, bit for bit (tests/test_radio_link.py): the logarithm here
+        and the BER of the pairs in the uncertain band with numpy, the rest in one compiled pass."""
+        config = self.config
+        log_ratio = np.log10(np.maximum(np.asarray(distance_m, dtype=float), 1.0) / 1.0)  # d0 = 1 m
+        rx = np.empty(len(log_ratio))
+        snr = np.empty(len(log_ratio))
+        delivery = np.empty(len(log_ratio))
+        uncertain = np.empty(len(log_ratio), dtype=np.bool_)
+        below, above = self._certain
+        some = _pair_figures(log_ratio, np.ascontiguousarray(wall_loss_db, dtype=float),
+                             np.ascontiguousarray(shadowing_db, dtype=float), 10.0 * config.path_loss_exponent,
+                             float(config.reference_loss_db), float(config.tx_power_dbm),
+                             float(config.noise_floor_dbm), below, above, rx, snr, delivery, uncertain)
+        if some:
+            delivery[uncertain] = self.delivery_at_snr(snr[uncertain])
+        return {"rx_power_dbm": rx, "snr_db": snr, "shadowing_db": shadowing_db, "delivery": delivery}
 
     def state(self, time_s: float, positions: np.ndarray, links: Links, extra_loss_db: np.ndarray | None = None,
               silent: np.ndarray | None = None) -> RadioState:
@@ -114,7 +140,7 @@ class RadioChannel:
         config = self.config
 
         def walls() -> dict[str, np.ndarray]:
-            crossed = self.walls.crossed(positions[first], positions[second])
+            crossed = self.walls.crossed_pairs(positions, first, second)
             return {"count": crossed.count, "loss_db": crossed.loss_db}
 
         if config.is_ideal:
@@ -129,25 +155,40 @@ class RadioChannel:
                               ideal, walls, (first, second))
         shadowing = self._advance_shadowing(time_s, len(first))
         distance = links.distance
-        state: RadioState
+        computed: dict[str, dict[str, np.ndarray]] = {}  # the walls, once, for whichever reads first
+
+        def walls_once() -> dict[str, np.ndarray]:
+            if "walls" not in computed:
+                computed["walls"] = walls()
+            return computed["walls"]
 
         def figures() -> dict[str, np.ndarray]:
-            path_loss = channel.log_distance_path_loss_db(
-                distance[first, second], config.path_loss_exponent, config.reference_loss_db,
-                total_wall_loss_db=state.wall_pairs["loss_db"])
+            wall_loss = walls_once()["loss_db"]
             if extra_loss_db is not None:
-                path_loss = path_loss + extra_loss_db
-            rx = channel.received_power_dbm(config.tx_power_dbm, path_loss, shadowing)
+                wall_loss = wall_loss + extra_loss_db  # a blackout adds to the path loss, as a wall does
+            figures = self.pair_figures(distance[first, second], wall_loss, shadowing)
             if silent is not None:
-                rx = np.where(silent[first] | silent[second], -np.inf, rx)
-            snr = channel.snr_db(rx, config.noise_floor_dbm)
-            below, above = self._certain
-            delivery = np.where(snr >= above, 1.0, 0.0)
-            uncertain = (snr > below) & (snr < above)
-            if uncertain.any():
-                delivery[uncertain] = self.delivery_at_snr(snr[uncertain])
-            return {"rx_power_dbm": rx, "snr_db": snr, "shadowing_db": shadowing, "delivery": delivery}
+                dead = silent[first] | silent[second]
+                for key, value in (("rx_power_dbm", -np.inf), ("snr_db", -np.inf), ("delivery", 0.0)):
+                    figures[key] = np.where(dead, value, figures[key])
+            return figures
 
-        state = RadioState(config.preset, config.delivery_threshold, self.comm_range_m, distance, figures, walls,
-                           (first, second))
-        return state
+        return RadioState(config.preset, config.delivery_threshold, self.comm_range_m, distance, figures,
+                          walls_once, (first, second))
+
+
+@kernel
+def _pair_figures(log_ratio, wall_loss_db, shadowing_db, distance_coefficient, reference_loss_db, tx_power_dbm,
+                  noise_floor_dbm, below, above, rx, snr, delivery, uncertain):
+    """The arithmetic of ``channel``'s chain, operation for operation in numpy's order: PL = (PL(d0) +
+    10 n log10(d / d0)) + walls, P_rx = ((P_tx - PL) - X) + 0 (no fading), SNR = P_rx - N; the delivery 1
+    or 0 outside (below, above), and the pairs inside marked. Returns how many are inside."""
+    inside = 0
+    for p in range(log_ratio.shape[0]):
+        path_loss = (reference_loss_db + distance_coefficient * log_ratio[p]) + wall_loss_db[p]
+        rx[p] = ((tx_power_dbm - path_loss) - shadowing_db[p]) + 0.0
+        snr[p] = rx[p] - noise_floor_dbm
+        delivery[p] = 1.0 if snr[p] >= above else 0.0
+        uncertain[p] = snr[p] > below and snr[p] < above
+        inside += uncertain[p]
+    return inside

@@ -55,6 +55,18 @@ class SceneWalls:
         return WallCrossings(count, loss)
 
 
+    def crossed_pairs(self, positions: np.ndarray, first: np.ndarray, second: np.ndarray) -> WallCrossings:
+        """``crossed`` of the segments ``positions[first[p]] -> positions[second[p]]`` ((N, 3), m; index
+        arrays (P,)), without gathering the end points."""
+        positions = np.ascontiguousarray(positions, dtype=np.float64)
+        count = np.zeros(len(first), dtype=np.int64)
+        loss = np.zeros(len(first))
+        if len(self.centers):
+            _pair_crossings(positions, first, second, self.centers, self.halves, self.rotations, self.extents,
+                            self.losses, count, loss)
+        return WallCrossings(count, loss)
+
+
 def walls_crossed(starts: np.ndarray, ends: np.ndarray, boxes: Boxes, loss_per_box_db: np.ndarray) -> WallCrossings:
     """Boxes each segment ``starts[p] -> ends[p]`` ((P, 3) each, m) crosses, and their summed loss.
 
@@ -104,6 +116,28 @@ def _crossings(starts, ends, centers, halves, rotations, extents, losses, count,
                 continue
             if segment_crosses_box(starts[s, 0], starts[s, 1], starts[s, 2], ends[s, 0], ends[s, 1], ends[s, 2],
                                    centers[k], halves[k], rotations[k]):
+                n += 1
+                total += losses[k]
+        count[s] = n
+        loss[s] = total
+
+
+@kernel
+def _pair_crossings(positions, first, second, centers, halves, rotations, extents, losses, count, loss):
+    for s in range(first.shape[0]):
+        a, b = positions[first[s]], positions[second[s]]
+        n = 0
+        total = 0.0
+        for k in range(centers.shape[0]):
+            apart = False
+            for axis in range(3):
+                low, high = min(a[axis], b[axis]), max(a[axis], b[axis])
+                if high < centers[k, axis] - extents[k, axis] or low > centers[k, axis] + extents[k, axis]:
+                    apart = True
+                    break
+            if apart:
+                continue
+            if segment_crosses_box(a[0], a[1], a[2], b[0], b[1], b[2], centers[k], halves[k], rotations[k]):
                 n += 1
                 total += losses[k]
         count[s] = n

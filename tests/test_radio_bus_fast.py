@@ -1,0 +1,115 @@
+"""The bus's compiled scheduling against the plain loop it replaces (``ReferenceMessageBus``): the same
+frames at the same instants, the same random draws in the same order, the same deliveries and figures."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from sim.radio.bus import BusParameters, Message, MessageBus, ReferenceMessageBus, link_conditions
+from sim.radio.presets import IEEE802154, NRF24, WIFI
+
+PRESETS = {"ieee802154": IEEE802154, "nrf24": NRF24, "wifi": WIFI}
+# (model, Rician K): every branch of the per-receiver fading draw.
+FADINGS = [("none", 0.0), ("rayleigh", 0.0), ("rician", 0.0), ("rician", 3.5), ("rician", math.inf)]
+
+
+@st.composite
+def bus_cases(draw):
+    n = draw(st.integers(1, 9))
+    preset = draw(st.sampled_from(sorted(PRESETS)))
+    fading, k = draw(st.sampled_from(FADINGS))
+    period_s = draw(st.sampled_from([0.005, 0.01, 0.02]))
+    # SNRs where frames are sure, lost or anything between; -inf: no link; NaN: the diagonal's figure.
+    snr = np.array(draw(st.lists(st.sampled_from([-math.inf, -5.0, 0.0, 1.5, 3.0, 6.0, 9.0, 30.0]),
+                                 min_size=n * n, max_size=n * n))).reshape(n, n)
+    np.fill_diagonal(snr, np.nan)
+    sense = np.array(draw(st.lists(st.booleans(), min_size=n * n, max_size=n * n))).reshape(n, n)
+    if draw(st.booleans()):
+        sense = sense | sense.T
+    robot = st.integers(0, n - 1)
+    message = st.tuples(robot, st.one_of(st.none(), st.sets(robot, max_size=n)), st.integers(1, 400),
+                        st.sampled_from([0.0, 0.0, 0.3, 0.999]))
+    ticks = draw(st.lists(st.lists(message, max_size=3 * n), min_size=1, max_size=8))
+    return PRESETS[preset], fading, k, period_s, snr, sense, ticks, draw(st.integers(0, 2**32 - 1))
+
+
+def _frame_fits(params: BusParameters, size: int, period_s: float) -> bool:
+    return float(params.airtime_s(np.array(params.frame_payloads(size))).max()) <= period_s
+
+
+def _same(a, b) -> bool:
+    return a == b or (isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b))
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(bus_cases())
+def test_the_compiled_bus_is_the_reference_loop(case):
+    preset, fading, k, period_s, snr, sense, ticks, seed = case
+    params = replace(BusParameters.from_preset(preset), fading_model=fading, rician_k=k)
+    n = snr.shape[0]
+    link = link_conditions(snr, sense)
+    buses = [cls(params, np.random.default_rng(seed), period_s, robot_count=n)
+             for cls in (MessageBus, ReferenceMessageBus)]
+    extra_ticks = 4  # then a few ticks with nothing new, so that queued frames go out
+    for tick in range(len(ticks) + extra_ticks):
+        time_s = tick * period_s
+        for sender, receivers, size, offset in (ticks[tick] if tick < len(ticks) else []):
+            targets = None if receivers is None else tuple(sorted(receivers - {sender}))
+            if not _frame_fits(params, size, period_s):
+                continue
+            for bus in buses:
+                bus.send(Message("kind%d" % (size % 3), sender, targets, None, size), time_s + offset * period_s)
+        fast, reference = (bus.step(time_s, link) for bus in buses)
+        assert [[(d.receiver, d.message.sequence, d.arrival_s) for d in row] for row in fast] == \
+               [[(d.receiver, d.message.sequence, d.arrival_s) for d in row] for row in reference]
+        assert buses[0].rng.bit_generator.state == buses[1].rng.bit_generator.state  # the same draws
+        assert all(_same(a, b) for a, b in zip(vars(buses[0].last_tick).values(),
+                                               vars(buses[1].last_tick).values()))
+        assert buses[0].queued() == buses[1].queued()
+        assert [buses[0].queued(s) for s in range(n)] == [buses[1].queued(s) for s in range(n)]
+    summaries = [bus.summary() for bus in buses]
+    assert summaries[0].keys() == summaries[1].keys()
+    assert all(_same(summaries[0][key], summaries[1][key]) for key in summaries[0])
+
+
+def test_a_saturated_medium_matches_the_reference_over_many_ticks():
+    """Ten robots in one another's carrier sense, each broadcasting every tick more than the air carries:
+    the queues grow and both buses still agree, draw for draw."""
+    n, period_s = 10, 0.01
+    params = BusParameters.from_preset(IEEE802154)
+    snr = np.full((n, n), 4.0)
+    np.fill_diagonal(snr, np.nan)
+    link = link_conditions(snr, True)
+    buses = [cls(params, np.random.default_rng(11), period_s, robot_count=n)
+             for cls in (MessageBus, ReferenceMessageBus)]
+    for tick in range(120):
+        for bus in buses:
+            for robot in range(n):
+                bus.send(Message("state", robot, None, None, 40), tick * period_s)
+            if tick % 25 == 0:
+                bus.send(Message("records", tick % n, ((tick + 1) % n,), None, 300), tick * period_s)
+        fast, reference = (bus.step(tick * period_s, link) for bus in buses)
+        assert [[(d.message.sequence, d.arrival_s) for d in row] for row in fast] == \
+               [[(d.message.sequence, d.arrival_s) for d in row] for row in reference]
+    assert buses[0].queued() == buses[1].queued() > 500
+    summaries = [bus.summary() for bus in buses]
+    assert summaries[0] == summaries[1]
+    assert 0.0 < summaries[0]["radio_delivery_ratio"] < 1.0
+
+
+def test_the_802154_curve_is_exactly_zero_from_the_buses_sure_snr():
+    """The bus skips the PER of frames above this SNR; the reference's PER there is exactly 0."""
+    from sim.radio import bus, channel
+
+    sure = bus._ZERO_BER_SNR_DB["oqpsk_dsss_802154"]
+    snr = np.concatenate([np.linspace(sure, sure + 60.0, 20001), [300.0, 1e300, np.finfo(float).max]])
+    with np.errstate(over="ignore"):  # 10^(SNR / 10) is inf at the top: the BER is then exactly 0 too
+        ber = channel.ber_oqpsk_dsss_802154(snr)
+    assert not np.any(ber)
+    assert not np.any(channel.packet_error_rate(ber, 8 * 127))
+    assert channel.ber_oqpsk_dsss_802154(np.array([sure - 2.0]))[0] > 0.0  # and the margin is not wide
