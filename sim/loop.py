@@ -30,6 +30,7 @@ import mujoco
 import numpy as np
 
 from sim.config import ConfigError
+from sim.faults import FaultState
 from sim.observers import EstimationError, Frame, Observer, PhysicsState, estimation_error
 from sim.radio.bus import LinkConditions, MessageBus, link_conditions
 from sim.radio.config import RadioConfig
@@ -136,6 +137,16 @@ class Simulation:
         # the channel's, so the channel's draws are those of a run without a bus.
         self.bus = MessageBus(scenario.radio.bus_parameters, self.rng.spawn(1)[0],
                               scenario.physics.control_period_s, robot_count=self.world.n_robots)
+        # The scenario's faults (None without any): spawned after the bus, and only when position noise needs
+        # a stream, so a run without faults draws and spawns exactly as before.
+        self.faults: FaultState | None = None
+        if scenario.faults:
+            self.faults = FaultState(scenario.faults, self.world.n_robots)
+            if self.faults.noise is not None:
+                self.faults.rng = self.rng.spawn(1)[0]
+            self._robot_actuators = _robot_actuators(self.world)
+            self._hold: dict[int, tuple[np.ndarray, float]] = {}  # stopped robot -> (position m, yaw rad) it holds
+            self._frozen_ctrl: dict[int, np.ndarray] = {}  # drifting robot -> its actuators' last command
         self._no_inbox: tuple[tuple, ...] = ((),) * self.world.n_robots
         self._inbox = self._no_inbox  # the deliveries of the last tick's bus step, for the next observation
         self._bus_flowed = False  # some tick's step had messages: the bus's per-tick scalars are reported
@@ -246,13 +257,65 @@ class Simulation:
             step = int(round(self.time_s / self.scenario.target_motion.step_s))
             self._next_reading_s += self.scenario.sensing.period_s
         links = self.sensors.links(position)
+        faults = self.faults
+        if faults is not None and self.scenario.radio.is_ideal:
+            # The ideal radio's channel is the disk itself: a silent robot's links and those in a deep
+            # enough blackout are cut there (sim.faults.IDEAL_BLACKOUT_CUT_DB).
+            adjacency = faults.cut_adjacency(self.time_s, position, links.adjacency)
+            if adjacency is not links.adjacency:
+                links = dataclasses.replace(links, adjacency=readonly(adjacency))
         return Observation(
             time_s=self.time_s, tick=self.tick_count, position=position, velocity=velocity,
             quaternion=quaternion, angular_velocity=angular, sensor_position=sensors,
             links=links, target_ranges=ranges, target_step=step,
-            decorations_wanted=decorations_wanted, radio=self.radio.state(self.time_s, position, links),
+            decorations_wanted=decorations_wanted, radio=self._radio_state(position, links),
             inbox=self._inbox,
         )
+
+    def _radio_state(self, position: np.ndarray, links: Links):
+        """The channel at this tick, with the faults' dead links and blackout losses under a real radio."""
+        faults = self.faults
+        if faults is None or self.scenario.radio.is_ideal:
+            return self.radio.state(self.time_s, position, links)
+        first, second = self.radio.pairs(len(position))
+        extra = faults.extra_loss_pairs_db(self.time_s, position, first, second)
+        silent = faults.failed if faults.any_failed else None
+        return self.radio.state(self.time_s, position, links, extra_loss_db=extra, silent=silent)
+
+    def _fail_robots(self) -> None:
+        """Robots whose failure time has come: what their actuators will do from now on."""
+        newly = self.faults.advance(self.time_s)
+        for robot in newly:
+            robot = int(robot)
+            if self.faults.fail_mode[robot] == "stop":
+                adr = self.world.qpos_adr[robot]
+                w, x, y, z = self._qpos[adr + 3: adr + 7]
+                yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+                self._hold[robot] = (self._qpos[adr: adr + 3].copy(), yaw)
+            else:
+                self._frozen_ctrl[robot] = self.world.data.ctrl[self._robot_actuators[robot]].copy()
+
+    def _failed_commands(self, commands: Commands) -> Commands:
+        """``commands`` with the failed robots' part overridden: a stopped robot holds its place, and no
+        failed robot sends anything (the drifting ones' actuators are frozen after the low-level control)."""
+        failed = self.faults.failed
+        outbox = tuple(m for m in commands.outbox if not failed[m.sender])
+        if not self._hold:
+            return dataclasses.replace(commands, outbox=outbox) if len(outbox) != len(commands.outbox) else commands
+        position, velocity = np.array(commands.position), np.array(commands.velocity)
+        acceleration, yaw = np.array(commands.acceleration), np.array(commands.yaw)
+        for robot, (held, held_yaw) in self._hold.items():
+            position[robot], velocity[robot], acceleration[robot], yaw[robot] = held, 0.0, 0.0, held_yaw
+        return dataclasses.replace(commands, position=position, velocity=velocity, acceleration=acceleration,
+                                   yaw=yaw, outbox=outbox)
+
+    def strategy_view(self, observation: Observation) -> Observation:
+        """What the strategy reads: ``observation`` with the position noise's positions and the distances
+        between them (line of sight, adjacency and the channel stay the truth)."""
+        noisy = self.faults.noisy_positions(observation.time_s, observation.position)
+        distance = np.linalg.norm(noisy[:, None, :] - noisy[None, :, :], axis=-1)
+        links = dataclasses.replace(observation.links, distance=distance)
+        return dataclasses.replace(observation, position=noisy, links=links)
 
     def tick(self, decorations_wanted: bool = True) -> tuple[Frame, bool]:
         """One control period. Returns the frame (state before the step,
@@ -264,12 +327,24 @@ class Simulation:
         Each stage's wall time is added to ``self.timing``."""
         timing = self.timing
         start = time.perf_counter()
+        faults = self.faults
+        if faults is not None:
+            self._fail_robots()
         observation = self.observe(decorations_wanted=decorations_wanted)
         sensed = time.perf_counter()
-        commands = self.strategy.step(observation)
+        if faults is None:
+            commands = self.strategy.step(observation)
+        else:
+            commands = self.strategy.step(self.strategy_view(observation) if faults.noise else observation)
+            if faults.any_failed:
+                commands = self._failed_commands(commands)
         self._exchange(observation, commands)
         planned = time.perf_counter()
         self.control.apply(observation, commands)
+        if faults is not None and self._frozen_ctrl:
+            ctrl = self.world.data.ctrl
+            for robot, frozen in self._frozen_ctrl.items():
+                ctrl[self._robot_actuators[robot]] = frozen
         frame = self._frame(observation, commands)
         controlled = time.perf_counter()
         model, data = self.world.model, self.world.data
@@ -298,6 +373,9 @@ class Simulation:
             self._inbox = self._no_inbox
             return
         rows = bus.step(time_s, self.bus_link(observation))
+        if self.faults is not None and self.faults.any_failed:  # a silent robot hears nothing
+            failed = self.faults.failed
+            rows = [() if failed[robot] else row for robot, row in enumerate(rows)]
         self._inbox = tuple(tuple(row) for row in rows)
         self._bus_flowed = True
 
@@ -313,6 +391,11 @@ class Simulation:
         with np.errstate(invalid="ignore"):
             sense = radio.rx_power_dbm >= self.scenario.radio.carrier_sense_dbm
         return LinkConditions(radio.snr_db, sense)
+
+    def fault_summary(self) -> dict[str, Any]:
+        """metrics.json's ``faults`` (what was injected, and whether it came to pass); {} without faults, so
+        a run without any writes the metrics it always did."""
+        return {} if self.faults is None else {"faults": self.faults.summary()}
 
     def radio_summary(self) -> dict[str, float | int | None]:
         """The bus's ``radio_*`` metrics over the run (``MessageBus.summary``); a ratio or latency over no
@@ -353,6 +436,15 @@ class Simulation:
         if reason:
             return reason
         return self.strategy.violation(commands) or ""
+
+
+def _robot_actuators(world: World) -> list[np.ndarray]:
+    """Per robot (in robot order), the ids of its actuators."""
+    out: list[np.ndarray] = [np.zeros(0, dtype=int)] * world.n_robots
+    for kind, robots in world.kind_index.items():
+        for row, robot in enumerate(robots):
+            out[int(robot)] = np.asarray(world.actuator_ids[kind][row], dtype=int)
+    return out
 
 
 def _readonly_observation(observation: Observation) -> Observation:
@@ -516,6 +608,8 @@ def run_ticks(sim: Simulation, observers: Sequence[Observer], duration_s: float,
                 message = f"failed at t = {sim.time_s:.3f} s: {failure}"
             if status == Status.COMPLETED:  # ran to its end: the mission's end or the time limit
                 status, message = end_of_run(sim.strategy, mission_ended, duration_s, sim.time_s)
+            if sim.faults is not None and sim.faults.events:  # what was injected and what it did
+                message = f"{message}; faults: {sim.faults.message()}"
             interrupts.closing = True
             if interrupts.requested and status not in (Status.INTERRUPTED, Status.FAILED):
                 # came after the last tick's look: the run is interrupted all the same

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from sim.faults import parse_faults
 from sim.radio.config import RadioConfig
 from sim.config import (MAX_INT, MAX_TOML_BYTES, ConfigError, build, builtin_descriptions, builtin_or_file,
                         check_nesting, read_toml_file, require, to_table)
@@ -192,6 +193,9 @@ class ScenarioBody:
     target_motion: TargetMotionConfig = field(default_factory=TargetMotionConfig)
     video: VideoConfig = field(default_factory=VideoConfig)
     radio: RadioConfig = field(default_factory=RadioConfig)  # the radio channel between robots (docs/radio.md)
+    # faults injected into the run, each a table with a kind: robot_failure, radio_blackout, position_noise
+    # (docs/faults.md)
+    faults: tuple[Any, ...] = ()
 
     def __post_init__(self):
         require(self.duration_s > 0, "duration_s", f"must be positive, got {self.duration_s}")
@@ -203,6 +207,7 @@ class ScenarioBody:
         require(n_robots <= MAX_ROBOTS, "robots", f"has {n_robots} robots, at most {MAX_ROBOTS}")
         require(len(self.targets) <= MAX_TARGETS, "targets",
                 f"lists {len(self.targets)} targets, at most {MAX_TARGETS}")
+        object.__setattr__(self, "faults", parse_faults(self.faults, n_robots, self.duration_s))
 
 
 @dataclass(frozen=True)
@@ -252,17 +257,25 @@ def _parse_value(text: str, key: str) -> Any:
         raise ConfigError(key, "lists or tables nested too deeply") from None
 
 
+APPENDABLE_LIST = "faults"  # --set faults.N.KEY=VALUE with N one past the last fault adds a fault
+
+
 def apply_override(table: dict, assignment: str) -> None:
-    """Apply one ``key.path=value`` override in place."""
+    """Apply one ``key.path=value`` override in place (``faults.N.KEY`` with N the next index starts a
+    new fault table)."""
     key, sep, text = assignment.partition("=")
     key = key.strip()
     if not sep or not key:
         raise ConfigError("--set", f"expected key=value, got {assignment!r}")
     parts = key.split(".")
     node: Any = table
+    if parts[0] == APPENDABLE_LIST and len(parts) > 2 and table.get(APPENDABLE_LIST) is None:
+        table[APPENDABLE_LIST] = []
     for i, part in enumerate(parts[:-1]):
         where = ".".join(parts[: i + 1])
         if isinstance(node, list):
+            if i == 1 and parts[0] == APPENDABLE_LIST and part.isdigit() and int(part) == len(node):
+                node.append({})  # faults.N.KEY with N the next index: a new fault table
             if not part.isdigit() or int(part) >= len(node):
                 raise ConfigError(where, f"no list entry {part} (has {len(node)})")
             node = node[int(part)]

@@ -144,6 +144,22 @@ def run(
     return RunResult(outcome.status, written["metrics"], out, files, outcome.trajectory)
 
 
+def _failure_detections(metrics: dict[str, Any]) -> None:
+    """Each failed robot's ``detected_after_s`` in ``faults``: from its failure to the first time a team
+    mate counted it silent (the strategy's ``silence_detected_s``; null: never within the run). Only for
+    strategies that watch heartbeats."""
+    detected = metrics.get("silence_detected_s")
+    if detected is None or "faults" not in metrics:
+        return
+    for fault in metrics["faults"]:
+        if fault["kind"] == "robot_failure" and fault["happened"]:
+            after = [t - fault["at_s"] for t in detected[fault["robot"]] if t >= fault["at_s"]]
+            fault["detected_after_s"] = min(after) if after else None
+            noticed = (f"noticed by a team mate {min(after):.2f} s after its failure" if after
+                       else "never noticed by its team mates")
+            metrics["message"] += f"; robot {fault['robot']}'s silence {noticed}"
+
+
 def _metrics(scenario: Scenario, sim: Simulation, status: Status, message: str, wall: float,
              named: dict[str, Any], timing: dict[str, Any]) -> dict[str, Any]:
     """The run's metrics.json: the foundation's figures and the strategy's
@@ -169,8 +185,10 @@ def _metrics(scenario: Scenario, sim: Simulation, status: Status, message: str, 
         **named["links"].summary(),
         **named["estimation"].summary(),
         **sim.radio_summary(),
+        **sim.fault_summary(),
         **sim.strategy.summary(),
     }
+    _failure_detections(metrics)
     missing = non_finite_fields(metrics)
     if missing:
         note = f"not finite, written as null: {', '.join(missing)}"

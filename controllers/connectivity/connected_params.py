@@ -255,6 +255,9 @@ class ConnectedParams:
     estimator_message_speedup: float = param(0.1, min=0.01, max=1.0, tunable=False)
     # Estimator under a real radio: a neighbour's last received state counts for this long, s
     estimator_message_timeout_s: float = param(0.2, unit="s", min=0.0, max=1.0, tunable=False)
+    # Under a real radio: a robot counts a neighbour it heard as failed once nothing from it has arrived
+    # for this long (any message is a heartbeat; reported in silent_neighbour_detections), s
+    heartbeat_timeout_s: float = param(1.0, unit="s", above=0.0, max=600.0, tunable=False)
 
     # -- connectivity, Appendix A (link weight W_ij = range x line of sight x inter-robot factors;
     # R_s, where the range factor vanishes, is sensing.comm_range_m)

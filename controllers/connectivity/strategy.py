@@ -127,6 +127,7 @@ from controllers.connectivity.smooth_spectrum import smooth_lambda2_gradient
 from sim import palette
 from sim.config import ConfigError
 from sim.geometry import boxes_reaching, point_clearance
+from sim.radio.protocols import HeartbeatMonitor
 from sim.types import NO_DECORATIONS, Commands, Decorations, Observation, WorldInfo
 from sim.strategy import Strategy
 
@@ -214,6 +215,8 @@ class ConnectedStrategy(Strategy):
         # Under a real radio the election, the token and the consensus travel on the message bus.
         over_bus = initial.radio is not None and initial.radio.preset != "ideal"
         self.explorer = ExplorationController(p, self.planner, self.queues, self.dt if over_bus else None)
+        # Under a real radio each robot watches whom it still hears (every message is a heartbeat).
+        self.heartbeats = HeartbeatMonitor(n, p.heartbeat_timeout_s) if over_bus else None
         self.estimator = None
         # Under a real radio the estimator's state travels as messages (estimator_messages.py); under the
         # ideal one it runs in process, as before the bus.
@@ -330,6 +333,10 @@ class ConnectedStrategy(Strategy):
         q, v = self.q, self.v
 
         start = time.perf_counter()
+        if self.heartbeats is not None:
+            for receiver, sender in self.heartbeats.step(t, observation.inbox):
+                self._events.append(f"t = {t:.2f} s: {self.names[receiver]} has heard nothing from "
+                                    f"{self.names[sender]} for {p.heartbeat_timeout_s:g} s")
         state = connectivity_state(q, self.boxes, p)
         estimate = None
         if self.estimator is not None:
@@ -501,4 +508,15 @@ class ConnectedStrategy(Strategy):
             "prime_elections": self.stats.elections,
             "token_recoveries": self.explorer.role_machine.token_recoveries,
             **self.stats.summary(),
+            **self._heartbeat_summary(),
         }
+
+    def _heartbeat_summary(self) -> dict:
+        """Under a real radio: how often a robot counted a neighbour as failed, and when each robot's
+        silence was first noticed (per robot, the times a first neighbour declared it silent)."""
+        monitor = self.heartbeats
+        if monitor is None:
+            return {}
+        return {"silent_neighbour_detections": len(monitor.detections),
+                "silent_neighbour_withdrawals": len(monitor.withdrawn),
+                "silence_detected_s": [list(times) for times in monitor.silence_detected_s]}

@@ -70,6 +70,11 @@ class RadioChannel:
 
         return edge(0.0, -200.0, 200.0), edge(1.0, -200.0, 200.0)
 
+    def pairs(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The index arrays (first, second) of the pairs i < j of ``n`` robots, row-major: the order of every
+        per-pair array (``RadioState.pairs``)."""
+        return self._pairs(n)
+
     def _pairs(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         if self._pairs_n != n:
             self._upper = np.triu_indices(n, 1)
@@ -121,8 +126,14 @@ class RadioChannel:
             delivery[uncertain] = self.delivery_at_snr(snr[uncertain])
         return {"rx_power_dbm": rx, "snr_db": snr, "shadowing_db": shadowing_db, "delivery": delivery}
 
-    def state(self, time_s: float, positions: np.ndarray, links: Links) -> RadioState:
-        """The channel of every pair of robots at ``positions`` ((N, 3), m) at ``time_s`` (s)."""
+    def state(self, time_s: float, positions: np.ndarray, links: Links, extra_loss_db: np.ndarray | None = None,
+              silent: np.ndarray | None = None) -> RadioState:
+        """The channel of every pair of robots at ``positions`` ((N, 3), m) at ``time_s`` (s).
+
+        Faults (``sim.faults``), real radios only: ``extra_loss_db`` ((P,) dB over the pairs, or None) adds
+        to each pair's path loss (a blackout); the pairs with an end in ``silent`` ((N,) bool, or None: a
+        failed robot) are dead: no power received, SNR -inf, delivery 0. Under ``ideal`` the caller cuts
+        the links' adjacency instead."""
         n = len(positions)
         first, second = self._pairs(n)
         positions = np.array(positions, dtype=float)  # the closures keep this tick's
@@ -152,7 +163,15 @@ class RadioChannel:
             return computed["walls"]
 
         def figures() -> dict[str, np.ndarray]:
-            return self.pair_figures(distance[first, second], walls_once()["loss_db"], shadowing)
+            wall_loss = walls_once()["loss_db"]
+            if extra_loss_db is not None:
+                wall_loss = wall_loss + extra_loss_db  # a blackout adds to the path loss, as a wall does
+            figures = self.pair_figures(distance[first, second], wall_loss, shadowing)
+            if silent is not None:
+                dead = silent[first] | silent[second]
+                for key, value in (("rx_power_dbm", -np.inf), ("snr_db", -np.inf), ("delivery", 0.0)):
+                    figures[key] = np.where(dead, value, figures[key])
+            return figures
 
         return RadioState(config.preset, config.delivery_threshold, self.comm_range_m, distance, figures,
                           walls_once, (first, second))

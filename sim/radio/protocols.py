@@ -41,6 +41,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+import numpy as np
+
 from sim.radio.bus import INT32_BYTES, Delivery, Message
 
 RELIABLE_HEADER_BYTES = INT32_BYTES  # the transfer number
@@ -284,3 +286,44 @@ class TokenHandover:
         offer, receiver = self._confirmed
         self._confirm = self.link.send(self.CONFIRM_KIND, receiver, TokenConfirm(offer), TOKEN_BYTES, time_s)
         self.token_maybe_lost = False
+
+
+class HeartbeatMonitor:
+    """Every robot's view of whom it still hears: a neighbour silent for ``timeout_s`` counts as failed.
+
+    Any delivery counts as a heartbeat (the methods' periodic broadcasts, such as the consensus, are
+    heartbeats already). Robot i declares robot j silent once it has heard j at least once and nothing
+    from j has reached it for longer than ``timeout_s``; hearing j again withdraws it. Robot i learns
+    nothing else: the monitor reads only i's own inbox, never the simulator's truth.
+    """
+
+    def __init__(self, n_robots: int, timeout_s: float):
+        self.timeout_s = float(timeout_s)
+        self.last_heard = np.full((n_robots, n_robots), -np.inf)  # [receiver, sender] -> last arrival, s
+        self.silent = np.zeros((n_robots, n_robots), dtype=bool)  # [receiver, sender]: declared silent
+        self.detections: list[tuple[float, int, int]] = []  # (t, receiver, sender): each declaration
+        self.withdrawn: list[tuple[float, int, int]] = []  # (t, receiver, sender): heard again
+        # Per sender, the times at which a first robot declared it silent while none did: when its silence
+        # was detected (a failure's detection time is the first of these after it).
+        self.silence_detected_s: list[list[float]] = [[] for _ in range(n_robots)]
+
+    def step(self, time_s: float, inbox: tuple[tuple[Delivery, ...], ...]) -> list[tuple[int, int]]:
+        """Take this tick's inbox (per receiver) at ``time_s`` (s); the pairs (receiver, sender) declared
+        silent now."""
+        last, silent = self.last_heard, self.silent
+        for receiver, row in enumerate(inbox):
+            for delivery in row:
+                sender = delivery.message.sender
+                last[receiver, sender] = max(last[receiver, sender], delivery.arrival_s)
+                if silent[receiver, sender]:
+                    silent[receiver, sender] = False
+                    self.withdrawn.append((time_s, receiver, sender))
+        quiet = np.isfinite(last) & (last < time_s - self.timeout_s) & ~silent
+        new = [(int(i), int(j)) for i, j in zip(*np.nonzero(quiet))]
+        for sender in {j for _, j in new}:
+            if not silent[:, sender].any():
+                self.silence_detected_s[sender].append(float(time_s))
+        for receiver, sender in new:
+            silent[receiver, sender] = True
+            self.detections.append((time_s, receiver, sender))
+        return new

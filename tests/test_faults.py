@@ -1,0 +1,270 @@
+"""Faults (sim.faults, applied by sim.loop): bad tables refused, a failed robot stops and goes silent,
+a blackout cuts links inside its window only, position noise has the statistics it claims, runs with
+faults end with a status and a message, and the same seed gives the same run."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+import tether  # noqa: F401 (registers the built-in scenarios)
+from controllers.lowlevel.actuation import LowLevelControl
+from sim.config import ConfigError
+from sim.faults import IDEAL_BLACKOUT_CUT_DB, FaultState, PositionNoise
+from sim.loop import Simulation
+from sim.radio.bus import Delivery, Message
+from sim.radio.protocols import HeartbeatMonitor
+from sim.scenario import load
+from sim.strategy import Strategy, build_strategy
+from sim.types import Commands
+from tether.cli import main
+
+# The hover scene with quadrotor 1 moved next to quadrotor 0 (1 m, line of sight).
+NEAR = 'robots.0.starts=[[1.0, 4.0, 1.0], [2.0, 4.0, 1.0], [8.8, 5.5, 1.0], [5.0, 6.0, 1.2]]'
+IEEE = ['radio.preset="ieee802154"', 'radio.fading="none"']
+
+
+@dataclass(frozen=True)
+class BroadcastParams:
+    pass
+
+
+class Broadcaster(Strategy):
+    """Holds every robot at its start; every robot broadcasts its index and the tick every tick."""
+
+    def __init__(self, params=BroadcastParams()):
+        self.params = params
+
+    def reset(self, world, initial, rng) -> None:
+        self.hold = np.array(initial.position)
+        self.seen: list = []  # per tick: the observation the strategy read
+
+    def step(self, observation) -> Commands:
+        self.seen.append(observation)
+        n = len(self.hold)
+        zeros = np.zeros((n, 3))
+        outbox = tuple(Message("test", robot, None, observation.tick, 20) for robot in range(n))
+        return Commands(self.hold, zeros, zeros, np.zeros(n), outbox=outbox)
+
+
+def broadcast(overrides, ticks=40, seed=0):
+    sim = Simulation(load("hover", [NEAR, *overrides], seed=seed, duration_s=2.0), lambda _: Broadcaster(),
+                     LowLevelControl)
+    frames = [sim.tick()[0] for _ in range(ticks)]
+    return sim, frames
+
+
+@pytest.mark.parametrize("assignment, key, problem", [
+    ('faults=[{kind="robot_failure", robot=10, at_s=1.0}]', "faults.0.robot", "robot index below 10"),
+    ('faults=[{kind="robot_failure", robot=1, at_s=-1.0}]', "faults.0.at_s", "must be at least 0"),
+    ('faults=[{kind="robot_failure", robot=1, at_s=99.0}]', "faults.0.at_s", "within the run"),
+    ('faults=[{kind="robot_failure", robot=1, at_s=nan}]', "faults.0.at_s", "finite"),
+    ('faults=[{kind="robot_failure", robot=1, at_s=1.0, mode="fly"}]', "faults.0.mode", "must be one of"),
+    ('faults=[{kind="meteor"}]', "faults.0.kind", "must be one of robot_failure"),
+    ('faults=[{robot=1}]', "faults.0.kind", "is required"),
+    ('faults=[{kind="radio_blackout", center=[1, 1, 1], radius_m=-1.0, extra_loss_db=10.0}]',
+     "faults.0.radius_m", "must be positive"),
+    ('faults=[{kind="radio_blackout", center=[1, 1, 1], radius_m=1.0, extra_loss_db=inf}]',
+     "faults.0.extra_loss_db", "finite"),
+    ('faults=[{kind="radio_blackout", center=[1, 1, 1], radius_m=1.0, extra_loss_db=9.0, from_s=5.0, to_s=4.0}]',
+     "faults.0.to_s", "must be after from_s"),
+    ('faults=[{kind="position_noise", sigma_m=-0.1}]', "faults.0.sigma_m", "must be in [0, 100] m"),
+    ('faults=[{kind="position_noise", sigma_m=0.1, jitter=1}]', "faults.0.jitter", "unknown key"),
+])
+def test_bad_fault_is_refused_in_one_line(capsys, tmp_path, assignment, key, problem):
+    code = main(["run", "connected-office", "--duration", "10", "--set", assignment, "--out", str(tmp_path / "o"),
+                 "--quiet"])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, lines
+    assert f"{key}: " in lines[0] and problem in lines[0], lines[0]
+    assert not (tmp_path / "o").exists()
+
+
+def test_faults_are_set_key_by_key_and_read_back():
+    scenario = load("connected-office", ["faults.0.kind=robot_failure", "faults.0.robot=3", "faults.0.at_s=5.0",
+                                         'faults.1.kind="position_noise"', "faults.1.sigma_m=0.1",
+                                         "faults.0.at_s=6.0"])
+    failure, noise = scenario.faults
+    assert (failure.robot, failure.at_s, failure.mode) == (3, 6.0, "stop")
+    assert (noise.sigma_m, noise.bias_m, noise.period_s) == (0.1, 0.0, math.inf)
+    # In any order (a sweep sorts its overrides), and the list is made when the scenario has none.
+    overrides = sorted(["faults.0.kind=robot_failure", "faults.0.robot=3", "faults.0.at_s=5.0"])
+    assert load("connected-office", overrides).faults == (dataclasses.replace(failure, at_s=5.0),)
+    with pytest.raises(ConfigError) as err:
+        load("connected-office", ["faults.2.kind=robot_failure"])  # not the next index
+    assert err.value.field == "faults.2"
+
+
+@pytest.mark.parametrize("radio", [[], IEEE], ids=["ideal", "ieee802154"])
+def test_a_failed_robot_goes_silent(radio):
+    fail_tick = 10
+    sim, frames = broadcast([*radio, f'faults=[{{kind="robot_failure", robot=0, at_s={fail_tick * 0.01}}}]'])
+    seen = sim.strategy.seen
+    heard = [{(d.message.sender, receiver) for receiver, row in enumerate(o.inbox) for d in row} for o in seen]
+    before, after = set().union(*heard[1:fail_tick + 1]), set().union(*heard[fail_tick + 1:])
+    assert {(0, 1), (1, 0)} <= before
+    sure = {(i, j) for i, j in before if 0 not in (i, j) and seen[fail_tick].radio.delivery[i, j] == 1.0}
+    assert sure, "some other pair talks"
+    assert not any(0 in pair for pair in after)  # nothing sent at the failure tick or later, nothing received
+    assert sure <= after  # the others still hear each other
+    after = seen[fail_tick + 5]
+    assert not after.radio.delivery[0].any() and not after.radio.comm_adjacency[0].any()
+    assert after.radio.delivery[1, 3] == seen[fail_tick - 5].radio.delivery[1, 3]  # others' links untouched
+    assert sim.faults.failed.tolist() == [True] + [False] * 7
+    assert sim.fault_summary()["faults"][0]["happened"] is True
+
+
+def test_a_stopped_robot_stays_put_and_a_drifting_one_keeps_its_last_command():
+    # Quadrotor 1 stops and quadrotor 2 drifts at 0.5 s, flying; ground robot 6 stops at 3 s, turning.
+    faults = ('faults=[{kind="robot_failure", robot=1, at_s=0.5}, {kind="robot_failure", robot=6, at_s=3.0}, '
+              '{kind="robot_failure", robot=2, at_s=0.5, mode="drift"}]')
+    free = Simulation(load("hover", [], duration_s=5.0), lambda p: build_strategy("waypoints", p), LowLevelControl)
+    sim = Simulation(load("hover", [faults], duration_s=5.0), lambda p: build_strategy("waypoints", p),
+                     LowLevelControl)
+    drift_actuators = sim._robot_actuators[2]
+    states, free_states, ctrl, free_ctrl = [], [], [], []
+    for _ in range(450):
+        observation = sim.tick()[0].observation
+        states.append(np.hstack([observation.position, observation.quaternion]))
+        observation = free.tick()[0].observation
+        free_states.append(np.hstack([observation.position, observation.quaternion]))
+        ctrl.append(np.array(sim.world.data.ctrl[drift_actuators]))
+        free_ctrl.append(np.array(free.world.data.ctrl[drift_actuators]))
+    states, free_states = np.array(states), np.array(free_states)
+    for robot, failed in ((1, 50), (6, 300)):  # still over the last second, where it would have moved
+        assert np.ptp(states[350:, robot], axis=0).max() < 0.01, robot
+        assert np.ptp(free_states[350:, robot], axis=0).max() > 0.05, robot
+        assert np.linalg.norm(states[-1, robot, :3] - states[failed, robot, :3]) < 0.1, robot
+    assert all(np.array_equal(c, ctrl[50]) for c in ctrl[50:])  # frozen from the failure on
+    assert any(not np.array_equal(c, ctrl[50]) for c in free_ctrl[51:])  # unfailed, the commands would change
+    assert np.array_equal(states[:51], free_states[:51])  # nothing changed before the failures
+
+
+@pytest.mark.parametrize("radio, loss_db, cut", [(IEEE, 100.0, True), ([], IDEAL_BLACKOUT_CUT_DB, True),
+                                                 ([], IDEAL_BLACKOUT_CUT_DB - 0.1, False)],
+                         ids=["ieee802154", "ideal-cut", "ideal-weak"])
+def test_a_blackout_cuts_links_inside_its_window_only(radio, loss_db, cut):
+    # Around quadrotor 1 only, from tick 10 to tick 20.
+    sim, _ = broadcast([*radio, f'faults=[{{kind="radio_blackout", center=[2.0, 4.0, 1.0], radius_m=0.3, '
+                                f'extra_loss_db={loss_db}, from_s=0.1, to_s=0.2}}]'])
+    clear, _ = broadcast(radio)
+    for tick, (observation, reference) in enumerate(zip(sim.strategy.seen, clear.strategy.seen)):
+        inside = 10 <= tick < 20 and cut
+        assert observation.radio.delivery[0, 1] == (0.0 if inside else reference.radio.delivery[0, 1]), tick
+        assert observation.radio.delivery[0, 3] == reference.radio.delivery[0, 3], tick  # both ends outside
+    arrivals = np.array([d.arrival_s for o in sim.strategy.seen for d in o.inbox[1] if d.message.sender == 0])
+    in_window = (arrivals >= 0.1 - 1e-9) & (arrivals < 0.2 - 1e-9)
+    assert (arrivals < 0.1).any() and (arrivals > 0.2).any()
+    assert in_window.any() != cut  # what was on the air within the window was lost
+    assert clear.strategy.seen[15].radio.delivery[0, 1] == 1.0
+
+
+def test_position_noise_has_its_sigma_and_bias():
+    n, draws = 5, 4000
+    noise = PositionNoise(sigma_m=0.2, bias_m=0.3, period_s=1.0)
+    faults = FaultState((noise,), n, rng=np.random.default_rng(7))
+    truth = np.arange(3 * n, dtype=float).reshape(n, 3)
+    # Within one bias period: the mean error is the bias (length bias_m), the spread sigma per axis.
+    errors = np.array([faults.noisy_positions(0.0 + k * 1e-4, truth) - truth for k in range(draws)])
+    bias = errors.mean(axis=0)
+    assert np.allclose(np.linalg.norm(bias, axis=1), 0.3, atol=0.02)
+    assert np.allclose((errors - bias).std(axis=0), 0.2, rtol=0.06)
+    # Over many periods the bias averages out and its length stays bias_m.
+    biases = []
+    for period in range(1, 2001):
+        faults.noisy_positions(float(period), truth)
+        biases.append(np.array(faults._bias))
+    biases = np.array(biases)
+    assert np.allclose(np.linalg.norm(biases, axis=2), 0.3)
+    assert np.abs(biases.mean(axis=0)).max() < 0.3 * 4 / math.sqrt(3 * 2000)
+    assert np.allclose(biases.reshape(-1, 3).std(axis=0), 0.3 / math.sqrt(3), rtol=0.05)
+
+
+def test_position_noise_reaches_the_strategy_not_the_truth():
+    sim, frames = broadcast(['faults=[{kind="position_noise", sigma_m=0.05}]'], ticks=200)
+    seen = np.array([o.position for o in sim.strategy.seen])
+    truth = np.array([f.observation.position for f in frames])
+    assert np.allclose((seen - truth).std(axis=(0, 1)), 0.05, rtol=0.1)
+    distance = sim.strategy.seen[-1].links.distance
+    assert np.allclose(distance, np.linalg.norm(seen[-1][:, None] - seen[-1][None], axis=-1))
+    assert not np.allclose(distance, frames[-1].observation.links.distance)
+
+
+def test_zero_position_noise_is_the_fault_free_run_bit_for_bit():
+    plain, plain_frames = broadcast(IEEE)
+    quiet, quiet_frames = broadcast([*IEEE, 'faults=[{kind="position_noise", sigma_m=0.0, bias_m=0.0}]'])
+    assert all(np.array_equal(a.observation.position, b.observation.position)
+               for a, b in zip(plain_frames, quiet_frames))
+    assert plain.radio_summary() == quiet.radio_summary()
+
+
+def test_same_seed_same_run_with_faults():
+    faults = ('faults=[{kind="robot_failure", robot=0, at_s=0.1}, {kind="position_noise", sigma_m=0.05, '
+              'bias_m=0.02, period_s=0.1}, {kind="radio_blackout", center=[5.0, 6.0, 1.2], radius_m=1.0, '
+              'extra_loss_db=6.0}]')
+    runs = [broadcast([*IEEE[:1], "radio.tx_power_dbm=-40.0", faults], seed=3) for _ in range(2)]
+    (first, first_frames), (second, second_frames) = runs
+    assert all(np.array_equal(a.position, b.position) for a, b in zip(first.strategy.seen, second.strategy.seen))
+    assert all(np.array_equal(a.observation.position, b.observation.position)
+               for a, b in zip(first_frames, second_frames))
+    assert first.radio_summary() == second.radio_summary()
+
+
+@pytest.mark.parametrize("scenario, radio", [("connected-office", []), ("connected-office", IEEE[:1]),
+                                             ("intermittent-8", []), ("intermittent-8", IEEE[:1])])
+def test_a_fault_never_crashes_a_run(tmp_path, scenario, radio):
+    from tether.runner import run
+
+    faults = ('faults=[{kind="robot_failure", robot=1, at_s=1.0}, {kind="robot_failure", robot=2, at_s=1.5, '
+              'mode="drift"}, {kind="position_noise", sigma_m=0.05, bias_m=0.02}, {kind="radio_blackout", '
+              'center=[2.0, 2.0, 0.5], radius_m=2.0, extra_loss_db=30.0, from_s=0.5, to_s=2.5}]')
+    result = run(load(scenario, [*radio, faults], duration_s=3.0), tmp_path / "out")
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["status"] in ("completed", "time limit", "diverged"), metrics["message"]
+    assert "robot 1 failed at 1.0 s (stop)" in metrics["message"] and "robot 2 failed at 1.5 s (drift)" in metrics["message"]
+    assert [f["kind"] for f in metrics["faults"]] == ["robot_failure", "robot_failure", "position_noise",
+                                                      "radio_blackout"]
+    assert all(f["happened"] for f in metrics["faults"])
+    assert result.status.value == metrics["status"]
+
+
+def _deliveries(n, time_s, senders_to_receivers):
+    rows = [[] for _ in range(n)]
+    for sender, receiver in senders_to_receivers:
+        rows[receiver].append(Delivery(Message("beat", sender, None, None, 8, 0, time_s), receiver, time_s))
+    return tuple(tuple(row) for row in rows)
+
+
+def test_heartbeats_declare_a_neighbour_silent_after_the_timeout_and_not_before():
+    n, dt, timeout = 3, 0.01, 0.5
+    monitor = HeartbeatMonitor(n, timeout)
+    declared = {}
+    for tick in range(200):
+        t = tick * dt
+        talking = [s for s in range(n) if not (s == 2 and t >= 0.5)]  # robot 2 falls silent at 0.5 s
+        pairs = [(s, r) for s in talking for r in range(n) if r != s and not (r == 2 and t >= 0.5)]
+        for receiver, sender in monitor.step(t, _deliveries(n, t, pairs)):
+            declared.setdefault((receiver, sender), t)
+    last = 0.49  # robot 2's last heartbeat
+    assert declared[(0, 2)] == declared[(1, 2)] == pytest.approx(last + timeout + dt)  # the first tick past it
+    assert monitor.silence_detected_s[2] == [pytest.approx(last + timeout + dt)]
+    assert not any(sender != 2 and receiver != 2 for receiver, sender in declared)  # the others still talk
+    monitor.step(2.0, _deliveries(n, 2.0, [(2, 0)]))  # heard again: withdrawn
+    assert not monitor.silent[0, 2] and monitor.withdrawn == [(2.0, 0, 2)]
+
+
+def test_the_connected_method_detects_a_failed_robot_over_the_radio(tmp_path):
+    from tether.runner import run
+
+    scenario = load("connected-office", ['radio.preset="ieee802154"', "strategy.heartbeat_timeout_s=0.5",
+                                         'faults=[{kind="robot_failure", robot=4, at_s=1.0}]'], duration_s=3.0)
+    result = run(scenario, tmp_path / "out")
+    fault = result.metrics["faults"][0]
+    assert 0.5 <= fault["detected_after_s"] <= 0.5 + 0.1, fault  # the timeout, plus the last message's age
+    assert result.metrics["silent_neighbour_detections"] >= 1
+    assert "robot 4's silence noticed by a team mate 0.5" in result.metrics["message"], result.metrics["message"]
