@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from tether.runner import run
+from sim import palette
 from sim.scenario import load
 
 from helpers import check_static_once_and_both_timelines, recorded_ticks, rrd_chunks, rrd_column, rrd_rows, write_scenario
@@ -80,11 +81,13 @@ def test_video_frames_match_duration_and_move(hover_run):
     frames = [frame for frame in reader]
     assert len(frames) == round(DURATION_S * fps)
     first, last = frames[0].astype(float), frames[-1].astype(float)
-    # The burned-in time overlay (top-left band) changes from frame to frame.
-    assert np.abs(first[:14, :60] - frames[30][:14, :60].astype(float)).mean() > 1
+    height, width = first.shape[:2]
+    # The time, first line of the panel beside the scene (the frame's right half), changes from frame to frame.
+    panel_top = (slice(0, height // 12), slice(width // 2, width))
+    assert np.abs(first[panel_top] - frames[30][panel_top].astype(float)).mean() > 0.2
     assert first.mean() > 30  # not black
     assert np.abs(first - last).mean() > 0.05  # robots moved: frames differ
-    assert first.shape == (480, 640, 3)
+    assert first.shape == (540, 960, 3)  # the 16:9 default
 
 
 def test_recording_has_entities_rows_and_a_blueprint(hover_run):
@@ -107,8 +110,10 @@ def test_recording_has_entities_rows_and_a_blueprint(hover_run):
     # Colours explained in the recording: hover's robots are coloured by kind.
     ((tick, text),) = rrd_column(chunks["/legend"], "TextDocument:text")  # logged once: it never changes
     assert tick == 0
-    for line in ("**orange** `#e67828`: quadrotor robot", "**green** `#3ca050`: ground robot",
-                 "**blue** `#3c6eff`: reference", "communication link", "target (true)"):
+    for colour, meaning in ((palette.KIND["quadrotor"], "quadrotor robot"), (palette.KIND["ground"], "ground robot"),
+                            (palette.REFERENCE, "reference"), (palette.LINK_STRONG, "communication link"),
+                            (palette.TARGET_TRUE, "target (true)")):
+        line = f"**{palette.colour_name(colour)}** `{palette.hex_code(colour)}`: {meaning}"
         assert line in str(text), line
 
 
