@@ -94,7 +94,8 @@ class RobotGroup:
             require(self.count >= 1, "count", f"must be at least 1, got {self.count}")
             require(self.count <= MAX_ROBOTS, "count", f"must be at most {MAX_ROBOTS} robots, got {self.count}")
             require(self.spawn_center is not None or len(self.starts) >= self.count,
-                    "spawn_center", "is required with count unless starts lists enough positions")
+                    "count", f"is {self.count} but starts lists {len(self.starts)} position(s); list {self.count} "
+                    "starts, or set spawn_center (and spawn_spacing_m) for a grid of count robots")
         else:
             require(len(self.starts) >= 1, "starts", "must list at least one start position (or give count)")
         require(self.spawn_spacing_m > 0, "spawn_spacing_m", f"must be positive, got {self.spawn_spacing_m}")
