@@ -9,9 +9,11 @@ world (robots inside walls, outside the scene) happen in :mod:`sim.world`.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import tomllib
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -309,9 +311,29 @@ def from_table(table: dict, source: str = "") -> Scenario:
         raise ConfigError("strategy.kind", f"unknown strategy {kind!r} (one of: {', '.join(strategy_kinds())})")
     params = build(strategy_params_class(kind), strategy_table, "strategy")
     table.setdefault("name", Path(source).stem if source else "scenario")
-    body = build(ScenarioBody, table)
+    try:
+        body = build(ScenarioBody, table)
+    except ConfigError as err:
+        if "." in err.field or not err.problem.startswith("unknown key"):
+            raise
+        raise ConfigError(err.field, _unknown_top_level(err.field, strategy_params_class(kind))) from None
     fields = {k: getattr(body, k) for k in ScenarioBody.__dataclass_fields__}
     return Scenario(**fields, strategy=StrategyConfig(kind, params), source=source)
+
+
+def _unknown_top_level(key: str, params_class: type) -> str:
+    """The problem of an unknown top-level key: where a key of that name lives (the
+    strategy's table, [physics], ...), else the keys the top level allows."""
+    tables = {"strategy": params_class}
+    hints = typing.get_type_hints(ScenarioBody)
+    for f in dataclasses.fields(ScenarioBody):
+        if dataclasses.is_dataclass(hints[f.name]):
+            tables[f.name] = hints[f.name]
+    homes = [f"{name}.{key}" for name, cls in tables.items() if key in {f.name for f in dataclasses.fields(cls)}]
+    if homes:
+        return f"unknown key at the top level; did you mean {' or '.join(homes)} (--set {homes[0]}=...)?"
+    allowed = sorted({f.name for f in dataclasses.fields(ScenarioBody) if f.name != "name"} | {"strategy"})
+    return f"unknown key (allowed: {', '.join(allowed)})"
 
 
 def load_table(name_or_path: str, overrides: list[str] = (), seed: int | None = None,

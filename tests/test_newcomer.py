@@ -1,8 +1,10 @@
 """A newcomer's first hour: the commands someone new to tether types, each
 working or refused in one line (exit 2, no traceback), on real MuJoCo."""
 
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -54,3 +56,48 @@ def test_team_size_changes_of_every_builtin_work_or_are_refused(tmp_path, scenar
     out = tmp_path / "out"
     result = run_cli("run", scenario, "--duration", "0.1", "--set", change, "--out", str(out), "--quiet")
     assert_works_or_one_line(result, out)
+
+
+def test_a_strategy_key_at_the_top_level_names_its_table():
+    result = run_cli("run", "connected-office", "--set", "cruise_speed_mps=2")
+    assert result.returncode == 2
+    assert result.stderr.strip() == ("tether: error: cruise_speed_mps: unknown key at the top level; did you mean "
+                                     "strategy.cruise_speed_mps (--set strategy.cruise_speed_mps=...)?")
+
+
+def test_an_unknown_top_level_key_lists_strategy_among_the_allowed():
+    result = run_cli("run", "hover", "--set", "colour=3")
+    assert result.returncode == 2 and "strategy" in result.stderr and "physics" in result.stderr, result.stderr
+
+
+def test_set_with_a_space_for_the_equals_sign_shows_the_one_word_form():
+    result = run_cli("run", "connected-office", "--set", "strategy.cruise_speed_mps", "2")
+    assert result.returncode == 2
+    assert "--set strategy.cruise_speed_mps=2" in result.stderr and len(result.stderr.splitlines()) == 1
+
+
+def test_sweep_given_a_scenario_file_says_how_a_sweep_file_names_it(tmp_path):
+    scenario = tmp_path / "my.toml"
+    init = run_cli("init", "intermittent-4")
+    scenario.write_text(init.stdout)
+    result = run_cli("sweep", str(scenario), "--out", str(tmp_path / "sweep"))
+    assert result.returncode == 2 and len(result.stderr.splitlines()) == 1, result.stderr
+    assert "is a scenario file" in result.stderr and f'scenario = "{scenario}"' in result.stderr
+    assert not (tmp_path / "sweep").exists()
+
+
+def test_sweep_given_a_builtin_scenario_name_says_how_a_sweep_file_names_it(tmp_path):
+    result = run_cli("sweep", "intermittent-4", "--out", str(tmp_path / "sweep"))
+    assert result.returncode == 2 and 'scenario = "intermittent-4"' in result.stderr, result.stderr
+
+
+@pytest.mark.parametrize("command", [("sweeps",), ("scenarios",), ("run", "--help"), ("report", "--help")])
+def test_cli_speaks_of_methods_and_papers_not_file_numbers(command):
+    result = run_cli(*command)
+    assert result.returncode == 0
+    assert not re.search(r"seed[ _]?00\d", result.stdout, re.IGNORECASE), result.stdout
+
+
+def test_readme_speaks_of_methods_and_papers_not_file_numbers():
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    assert not re.search(r"seed[ _]?00\d", readme, re.IGNORECASE)

@@ -31,9 +31,22 @@ EXIT_INTERRUPTED = 130
 class _Parser(argparse.ArgumentParser):
     """argparse, with its errors as one line (like every other refusal) and exit 2."""
 
+    def parse_args(self, args=None, namespace=None):
+        self._argv = list(sys.argv[1:] if args is None else args)
+        return super().parse_args(args, namespace)
+
     def error(self, message: str):
-        _fail(f"{message} (see '{self.prog} --help')")
+        hint = _set_hint(getattr(self, "_argv", [])) if message.startswith("unrecognized arguments") else ""
+        _fail(f"{message}{hint} (see '{self.prog} --help')")
         raise SystemExit(EXIT_BAD_INPUT)
+
+
+def _set_hint(argv: list[str]) -> str:
+    """'--set KEY VALUE' (a space for the '='): the one word --set takes."""
+    for flag, key, value in zip(argv, argv[1:], argv[2:]):
+        if flag == "--set" and "=" not in key and not value.startswith("-"):
+            return f"; --set takes KEY=VALUE as one word: --set {key}={value}"
+    return ""
 
 
 def _parser() -> argparse.ArgumentParser:

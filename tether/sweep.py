@@ -121,7 +121,16 @@ def builtin_sweeps() -> dict[str, str]:
 
 
 def _read_sweep_table(name_or_path: str) -> tuple[dict, Path]:
-    path = builtin_or_file(name_or_path, SWEEP_DIR, "sweep")
+    from tether.catalog import SCENARIO_DIR
+
+    try:
+        path = builtin_or_file(name_or_path, SWEEP_DIR, "sweep")
+    except ConfigError as err:
+        if (SCENARIO_DIR / f"{name_or_path}.toml").is_file():
+            raise ConfigError("sweep", f"{err.problem}; {name_or_path!r} is a built-in scenario (tether run "
+                              f"{name_or_path}): a sweep file names it with scenario = \"{name_or_path}\" "
+                              "(docs/sweeps.md)") from None
+        raise
     try:
         with open(path, "rb") as f:
             return tomllib.load(f), path
@@ -180,6 +189,10 @@ def load_sweep(name_or_path: str, video: Iterable[str] = (), rrd: Iterable[str] 
 
     table, path = _read_sweep_table(name_or_path)
     unknown = sorted(set(table) - SWEEP_KEYS)
+    if "scenario" not in table and "strategy" in table and "robots" in table:
+        raise ConfigError("sweep", f"{path} is a scenario file (run it with: tether run {path}); a sweep file "
+                          f"names it with scenario = \"{path}\" and lists what to vary under [grid] "
+                          "(docs/sweeps.md)")
     if unknown:
         raise ConfigError(unknown[0], f"unknown sweep key (known: {', '.join(sorted(SWEEP_KEYS))})")
     if "scenario" not in table:
