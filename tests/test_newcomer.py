@@ -101,3 +101,36 @@ def test_cli_speaks_of_methods_and_papers_not_file_numbers(command):
 def test_readme_speaks_of_methods_and_papers_not_file_numbers():
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     assert not re.search(r"seed[ _]?00\d", readme, re.IGNORECASE)
+
+
+def test_compile_watch_sees_a_compile_once_and_a_cached_kernel_not_at_all():
+    import numba
+
+    from sim.compiled import CompileWatch
+
+    @numba.njit
+    def twice(x):
+        return 2.0 * x
+
+    said = []
+    with CompileWatch(on_first=lambda: said.append("compiling")) as watch:
+        assert twice(1.5) == 3.0
+        assert twice(2.5) == 5.0  # same signature: no second compile
+    assert said == ["compiling"] and watch.count == 1 and watch.seconds > 0
+    with CompileWatch() as again:
+        twice(4.0)
+    assert again.count == 0
+
+
+@pytest.mark.slow
+def test_the_first_run_says_it_compiles_kernels_and_how_long_it_took(tmp_path):
+    import os
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "empty-cache")}  # numba's first cache locator
+    command = [sys.executable, "-m", "tether.cli", "run", "hover", "--duration", "0.1", "--out"]
+    first = subprocess.run([*command, str(tmp_path / "a")], capture_output=True, text=True, env=env, timeout=300)
+    assert first.returncode == 0, first.stderr
+    assert "compiling kernels (once" in first.stderr
+    assert re.search(r"compiled kernels in \d+ s", first.stderr), first.stderr
+    second = subprocess.run([*command, str(tmp_path / "b")], capture_output=True, text=True, env=env, timeout=300)
+    assert second.returncode == 0 and "compil" not in second.stderr, second.stderr
