@@ -134,3 +134,58 @@ def test_the_first_run_says_it_compiles_kernels_and_how_long_it_took(tmp_path):
     assert re.search(r"compiled kernels in \d+ s", first.stderr), first.stderr
     second = subprocess.run([*command, str(tmp_path / "b")], capture_output=True, text=True, env=env, timeout=300)
     assert second.returncode == 0 and "compil" not in second.stderr, second.stderr
+
+
+OWN_SWEEP = """
+description = "my own: the waypoint demo at two speeds"
+scenario = "hover"
+duration_s = 0.3
+seeds = 2
+
+[grid]
+"strategy.speed_mps" = [0.6, 0.3]
+"sensing.comm_range_m" = [2.5, 1.0]
+"""
+
+
+def test_the_report_of_your_own_sweep_has_a_table_and_a_figure(tmp_path):
+    import csv
+
+    (tmp_path / "mine.toml").write_text(OWN_SWEEP)
+    out = tmp_path / "runs"
+    result = run_cli("sweep", str(tmp_path / "mine.toml"), "--out", str(out), "--workers", "2")
+    assert result.returncode == 0, result.stderr
+    assert "\r" not in result.stderr  # a log gets plain lines
+    assert "mine: 8/8 trials" in result.stderr
+    report = (out / "report.md").read_text()
+    assert "## Every metric per grid cell" in report and "![main metrics against strategy.speed_mps](grid.png)" in report
+    header = next(line for line in report.splitlines() if line.startswith("| metric |"))
+    # the sweep file's order, both keys named
+    assert header.index("strategy.speed_mps=0.6, sensing.comm_range_m=2.5") < header.index("strategy.speed_mps=0.3")
+    rows = {line.split(" | ")[0][2:]: line for line in report.splitlines() if line.startswith("| ")}
+    for metric in ("tracking_error_mean_m", "edges_mean", "sim_time_s", "control_ticks"):
+        assert rows[metric].count("(n=2)") == 4, rows[metric]
+    assert rows["sim_time_s"].count("0.3 ± 0 (n=2)") == 4
+    assert (out / "grid.png").stat().st_size > 10_000
+    with open(out / "grid.csv") as f:
+        table = list(csv.DictReader(f))
+    assert {(r["strategy.speed_mps"], r["sensing.comm_range_m"]) for r in table} == \
+        {("0.6", "2.5"), ("0.6", "1.0"), ("0.3", "2.5"), ("0.3", "1.0")}
+    assert all(r["n"] == "2" for r in table if r["metric"] == "edges_mean")
+    assert rows["edges_mean"].count("4 ± 0 (n=2)") == 2 and rows["edges_mean"].count("| 0 ± 0 (n=2)") == 2
+
+
+def test_report_help_documents_the_plot_flags():
+    result = run_cli("report", "--help")
+    assert result.returncode == 0
+    for flag in ("--x KEY", "--y METRIC", "--hue KEY", "grid.png", "per grid cell"):
+        assert flag in result.stdout, flag
+
+
+def test_cell_statistics_by_hand():
+    from tether.grid_report import cell_statistics
+
+    rows = [{"k": "b", "seed": 0, "m": 1.0}, {"k": "b", "seed": 1, "m": 3.0}, {"k": "a", "seed": 0, "m": 5.0},
+            {"k": "a", "seed": 1, "m": None}]
+    cells = cell_statistics(rows, ["k"], ["m"], {"k": ["b", "a"]})
+    assert cells == [(("b",), {"m": (2.0, 2.0 ** 0.5, 2)}), (("a",), {"m": (5.0, 0.0, 1)})]

@@ -142,11 +142,16 @@ def _parser() -> argparse.ArgumentParser:
 
     sub.add_parser("sweeps", help="list built-in sweeps")
 
-    report = sub.add_parser("report", help="figures and tables of a sweep's results (no simulation)")
+    report = sub.add_parser("report", help="figures and tables of a sweep's results (no simulation)",
+                            description="Write DIR/report.md from a sweep's results table: the trial counts, the "
+                                        "papers' figures the sweep reproduces, every numeric metric's mean +- std "
+                                        "and n per grid cell (grid.csv) with the main metrics against the first "
+                                        "swept key (grid.png), and with --x KEY --y METRIC [--hue KEY] a plot of "
+                                        "any metric against any column (docs/sweeps.md).")
     report.add_argument("dir", metavar="DIR", help="a sweep's results folder (or a results .parquet file)")
-    report.add_argument("--x", default=None, metavar="KEY", help="generic plot: swept key or metric on x")
-    report.add_argument("--y", default=None, metavar="METRIC", help="generic plot: metric on y")
-    report.add_argument("--hue", default=None, metavar="KEY", help="generic plot: one line per value of KEY")
+    report.add_argument("--x", default=None, metavar="KEY", help="plot a metric against this column (a swept key as the sweep file names it, or a metric); needs --y")
+    report.add_argument("--y", default=None, metavar="METRIC", help="the metric on y of the --x plot (a key of metrics.json, e.g. e_g_mean_m)")
+    report.add_argument("--hue", default=None, metavar="KEY", help="the --x plot: one line per value of this column (e.g. a second swept key)")
     report.add_argument("--out", default=None, metavar="DIR", help="where the report goes (default: DIR)")
     return parser
 
