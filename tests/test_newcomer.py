@@ -1,6 +1,7 @@
 """A newcomer's first hour: the commands someone new to tether types, each
 working or refused in one line (exit 2, no traceback), on real MuJoCo."""
 
+import json
 import re
 import subprocess
 import sys
@@ -189,3 +190,26 @@ def test_cell_statistics_by_hand():
             {"k": "a", "seed": 1, "m": None}]
     cells = cell_statistics(rows, ["k"], ["m"], {"k": ["b", "a"]})
     assert cells == [(("b",), {"m": (2.0, 2.0 ** 0.5, 2)}), (("a",), {"m": (5.0, 0.0, 1)})]
+
+
+def test_connected_tracking_checks_its_invariant(tmp_path):
+    """The issue's command: it loses lambda2 within two seconds and ends diverged, saying so."""
+    out = tmp_path / "out"
+    result = run_cli("run", "intermittent-8", "--seed", "29", "--duration", "150", "--set",
+                     "strategy.kind=connected_tracking", "--set", "sensing.comm_range_m=1.0", "--out", str(out),
+                     "--quiet")
+    assert result.returncode == 1, result.stdout + result.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "diverged" and "lambda2" in metrics["message"], metrics["message"]
+    assert metrics["sim_time_s"] < 150
+
+
+def test_connected_tracking_refuses_starts_inside_r_c(tmp_path):
+    starts = "[[4.57,3.94,0],[4.645,3.94,0],[4.81,3.94,0],[4.93,3.94,0],[4.57,4.06,0],[4.69,4.06,0],[4.81,4.06,0]," \
+             "[4.93,4.06,0]]"  # ground0 and ground1 0.075 m apart: bodies clear (0.072 m), inside R_c = 0.08 m
+    out = tmp_path / "out"
+    result = run_cli("run", "intermittent-8", "--set", "strategy.kind=connected_tracking", "--set",
+                     f"robots.0.starts={starts}", "--duration", "1", "--out", str(out))
+    assert result.returncode == 2 and len(result.stderr.splitlines()) == 1, result.stderr
+    assert "ground0 and ground1 start 0.07 m apart, within R_c = 0.08 m" in result.stderr
+    assert not out.exists()
