@@ -86,7 +86,7 @@ class RobotGroup:
 
     kind: Literal["quadrotor", "ground"]  # "quadrotor" or "ground" (e-puck-sized, differential drive)
     starts: tuple[Vec3, ...] = ()  # start positions, m (z ignored for ground robots)
-    count: int | None = None  # with spawn_center: a square grid of this many robots
+    count: int | None = None  # how many robots: the first `count` of starts, or with spawn_center a square grid
     spawn_center: Vec3 | None = None  # grid centre, m
     spawn_spacing_m: float = 0.8  # grid spacing, m
 

@@ -418,7 +418,8 @@ def cmd_init(args: argparse.Namespace) -> int:
         if args.scene is not None:
             from tether.placement import load_in_scene
 
-            scenario, notes = load_in_scene(args.scenario, args.scene, args.overrides, seed=args.seed)
+            scenario, notes = load_in_scene(args.scenario, args.scene, args.overrides, seed=args.seed,
+                                            unplaced_ok=True)  # a file to edit even where the team fits nowhere
         else:
             from sim.scenario import load
 
