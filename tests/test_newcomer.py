@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 import pytest
 
 from sim.scenario import builtin_scenarios
@@ -213,3 +215,90 @@ def test_connected_tracking_refuses_starts_inside_r_c(tmp_path):
     assert result.returncode == 2 and len(result.stderr.splitlines()) == 1, result.stderr
     assert "ground0 and ground1 start 0.07 m apart, within R_c = 0.08 m" in result.stderr
     assert not out.exists()
+
+
+# A held-out scene: an ordinary 8 x 6 m flat with two interior walls (doorways at opposite ends),
+# the room the issue's newcomer tried. Written here, never shipped.
+HELD_OUT_FLAT = """<mujoco model="held_out_flat">
+  <custom><numeric name="tether_bounds" data="0 0 0 8 6 2.5"/></custom>
+  <default><default class="obstacle"><geom type="box" group="0" contype="1" conaffinity="1"/></default></default>
+  <worldbody>
+    <light pos="4 3 8" dir="0 0 -1" directional="true"/>
+    <geom name="floor" type="plane" size="4 3 0.05" pos="4 3 0" group="0"/>
+    <geom name="wall_south" class="obstacle" size="4.1 0.05 1.25" pos="4 -0.05 1.25"/>
+    <geom name="wall_north" class="obstacle" size="4.1 0.05 1.25" pos="4 6.05 1.25"/>
+    <geom name="wall_west" class="obstacle" size="0.05 3 1.25" pos="-0.05 3 1.25"/>
+    <geom name="wall_east" class="obstacle" size="0.05 3 1.25" pos="8.05 3 1.25"/>
+    <geom name="wall_a" class="obstacle" size="0.05 2 1.25" pos="3 2 1.25"/>
+    <geom name="wall_b" class="obstacle" size="0.05 2 1.25" pos="5.5 4 1.25"/>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.fixture
+def flat(tmp_path):
+    path = tmp_path / "yours.xml"
+    path.write_text(HELD_OUT_FLAT)
+    return path
+
+
+def _placed_starts(flat, scenario, *overrides, connected=True):
+    from tether.placement import SceneGeometry, starts_fit, load_in_scene
+
+    loaded, notes = load_in_scene(scenario, str(flat), list(overrides))
+    kinds = [k for k, _ in loaded.robot_starts()]
+    starts = np.array([p for _, p in loaded.robot_starts()], dtype=float)
+    assert starts_fit(SceneGeometry(flat), kinds, starts, loaded.sensing.comm_range_m, connected, tolerance_m=1e-3), \
+        notes
+    return loaded, starts, notes
+
+
+@pytest.mark.parametrize("scenario", ["connected-office", "connected-lab", "connected-empty", "connected-town",
+                                      "intermittent-4", "intermittent-8", "hover"])
+def test_placement_finds_a_start_for_every_builtin_in_a_held_out_flat(flat, scenario):
+    loaded, starts, notes = _placed_starts(flat, scenario, connected=scenario != "hover")  # hover: spread out
+    if scenario.startswith("connected"):  # their patterns do not fit as they are: each move is said
+        assert any(note.startswith("robots:") for note in notes), notes
+
+
+def test_a_grown_start_keeps_the_pattern_spacing_where_it_fits(flat):
+    _, starts, notes = _placed_starts(flat, "connected-office")
+    distance = np.linalg.norm(starts[:, None] - starts[None], axis=2)
+    np.fill_diagonal(distance, np.inf)
+    assert distance.min() >= 1.1 - 1e-9  # R'_c, the pattern's spacing
+    assert any("grown over free space" in note for note in notes), notes
+
+
+def test_a_team_size_does_not_turn_placement_off(flat):
+    loaded, starts, notes = _placed_starts(flat, "connected-office", "robots.0.count=6")
+    assert len(starts) == 6 and any(note.startswith("robots: the team's start pattern") for note in notes), notes
+
+
+def test_explicit_starts_are_kept_and_said(flat):
+    from tether.placement import load_in_scene
+
+    loaded, notes = load_in_scene("connected-office", str(flat), ["robots.0.starts=[[1.0, 1.0, 1.0], [1.0, 2.0, 1.0]]",
+                                                                  "robots.0.count=2"])
+    assert [p for _, p in loaded.robot_starts()] == [(1.0, 1.0, 1.0), (1.0, 2.0, 1.0)]
+    assert any("robots.0.starts" in note and "kept as given" in note for note in notes), notes
+
+
+def test_the_readme_own_scene_command_runs_in_a_held_out_flat(flat, tmp_path):
+    out = tmp_path / "out"
+    result = run_cli("run", "connected-office", "--scene", str(flat), "--duration", "2", "--out", str(out), "--quiet")
+    assert result.returncode == 0, result.stdout + result.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "time limit" and metrics["comm_lambda2_min"] > 0
+
+
+def test_init_with_a_scene_always_writes_a_file(tmp_path):
+    tiny = tmp_path / "tiny.xml"  # 2 x 2 m: no connected start for ten quadrotors 0.6 m from the walls exists
+    tiny.write_text('<mujoco><custom><numeric name="tether_bounds" data="0 0 0 2 2 2.5"/></custom><worldbody>'
+                    '<geom name="floor" type="plane" size="1 1 0.05" pos="1 1 0"/></worldbody></mujoco>')
+    result = run_cli("init", "connected-office", "--scene", str(tiny))
+    assert result.returncode == 0, result.stderr
+    assert "robots: NOT placed" in result.stderr and "# " in result.stdout
+    assert "NOT placed" in result.stdout and "[[robots]]" in result.stdout
+    refused = run_cli("run", "connected-office", "--scene", str(tiny))
+    assert refused.returncode == 2 and "tether init connected-office --scene" in refused.stderr

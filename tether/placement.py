@@ -100,12 +100,12 @@ def connected_by_range(starts: np.ndarray, comm_range_m: float) -> bool:
 
 
 def starts_fit(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, comm_range_m: float,
-               connected: bool = True) -> bool:
+               connected: bool = True, tolerance_m: float = 0.0) -> bool:
     """Every start inside the bounds and clear of obstacles and, if ``connected``,
     the team connected by links within ``comm_range_m`` whose line of sight keeps
-    the same clearance."""
+    the same clearance (less ``tolerance_m``: starts written rounded to the mm)."""
     lo, hi = geometry.bounds
-    margin = np.array([START_CLEARANCE_M[k] for k in kinds])
+    margin = np.array([START_CLEARANCE_M[k] for k in kinds]) - tolerance_m
     probe = starts.copy()
     ground = np.array([k == "ground" for k in kinds])
     probe[ground, 2] = lo[2] + margin[ground] + GROUND_PROBE_LIFT_M
