@@ -254,9 +254,9 @@ def _placed_starts(flat, scenario, *overrides, connected=True):
     return loaded, starts, notes
 
 
-@pytest.mark.parametrize("scenario", ["connected-office", "connected-lab", "connected-empty", "connected-town",
-                                      "intermittent-4", "intermittent-8", "hover"])
-def test_placement_finds_a_start_for_every_builtin_in_a_held_out_flat(flat, scenario):
+@pytest.mark.parametrize("scenario", ["connected-office", "connected-lab", "intermittent-4", "intermittent-8",
+                                      "hover"])
+def test_placement_finds_a_start_for_every_indoor_builtin_in_a_held_out_flat(flat, scenario):
     loaded, starts, notes = _placed_starts(flat, scenario, connected=scenario != "hover")  # hover: spread out
     if scenario.startswith("connected"):  # their patterns do not fit as they are: each move is said
         assert any(note.startswith("robots:") for note in notes), notes
@@ -302,3 +302,14 @@ def test_init_with_a_scene_always_writes_a_file(tmp_path):
     assert "NOT placed" in result.stdout and "[[robots]]" in result.stdout
     refused = run_cli("run", "connected-office", "--scene", str(tiny))
     assert refused.returncode == 2 and "tether init connected-office --scene" in refused.stderr
+
+
+@pytest.mark.parametrize("scenario", ["connected-empty", "connected-town"])
+def test_an_outdoor_team_that_fits_no_flat_is_refused_by_placement_in_one_line(flat, scenario, tmp_path):
+    """Ten quadrotors of the outdoor preset need 0.8 m from walls (R_o = 0.75 m) and 1.75 m between
+    starts (half way from R_c = 1 m to R'_c = 2.5 m): the flat holds no such connected team."""
+    out = tmp_path / "out"
+    result = run_cli("run", scenario, "--scene", str(flat), "--out", str(out))
+    assert result.returncode == 2 and len(result.stderr.splitlines()) == 1, result.stderr
+    assert result.stderr.startswith("tether: error: robots: no free place in yours.xml")
+    assert not out.exists()

@@ -100,12 +100,13 @@ def connected_by_range(starts: np.ndarray, comm_range_m: float) -> bool:
 
 
 def starts_fit(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, comm_range_m: float,
-               connected: bool = True, tolerance_m: float = 0.0) -> bool:
+               connected: bool = True, tolerance_m: float = 0.0, clearance: dict[str, float] | None = None) -> bool:
     """Every start inside the bounds and clear of obstacles and, if ``connected``,
     the team connected by links within ``comm_range_m`` whose line of sight keeps
     the same clearance (less ``tolerance_m``: starts written rounded to the mm)."""
     lo, hi = geometry.bounds
-    margin = np.array([START_CLEARANCE_M[k] for k in kinds]) - tolerance_m
+    clearance = START_CLEARANCE_M if clearance is None else clearance
+    margin = np.array([clearance[k] for k in kinds]) - tolerance_m
     probe = starts.copy()
     ground = np.array([k == "ground" for k in kinds])
     probe[ground, 2] = lo[2] + margin[ground] + GROUND_PROBE_LIFT_M
@@ -130,14 +131,15 @@ def starts_fit(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, co
 
 
 def move_team(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, comm_range_m: float,
-              connected: bool = True) -> np.ndarray | None:
+              connected: bool = True, clearance: dict[str, float] | None = None) -> np.ndarray | None:
     """The start pattern translated (in x and y; in z only as far as the bounds
     require) to the fitting spot nearest the scene's centre, or None."""
     lo, hi = geometry.bounds
+    clearance = START_CLEARANCE_M if clearance is None else clearance
     pattern = starts.copy()
     flying = np.array([k != "ground" for k in kinds])
     if flying.any():
-        margin = max(START_CLEARANCE_M[k] for k in kinds if k != "ground")
+        margin = max(clearance[k] for k in kinds if k != "ground")
         z = pattern[flying, 2]
         shift = max(0.0, lo[2] + margin - z.min()) - max(0.0, z.max() - (hi[2] - margin))
         pattern[flying, 2] += shift
@@ -148,7 +150,7 @@ def move_team(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, com
     for c in grid[order]:
         moved = pattern.copy()
         moved[:, :2] += c - centroid
-        if starts_fit(geometry, kinds, moved, comm_range_m, connected):
+        if starts_fit(geometry, kinds, moved, comm_range_m, connected, clearance=clearance):
             return moved
     return None
 
@@ -170,13 +172,19 @@ def pattern_spacing(starts: np.ndarray) -> float:
     return float(distance.min()) if len(starts) > 1 else 0.0
 
 
-# Where the pattern's spacing does not fit, a grown team tries these fractions of it (the
-# connected method's R_c is below half its R'_c in every preset).
+# Where the pattern's spacing does not fit, a grown team tries these fractions of it, never closer
+# than the method accepts (Strategy.start_separation_m: the connected method's half way from R_c to R'_c).
 GROW_SPACING_FRACTIONS = (1.0, 0.8, 0.64, 0.5)
 
 
+def grow_spacings(pattern: float, least: float) -> list[float]:
+    """The spacings a grown team tries, m: fractions of the pattern's, then the least accepted."""
+    out = [f * pattern for f in GROW_SPACING_FRACTIONS if f * pattern >= least]
+    return out + ([least] if least < pattern and least not in out else [])
+
+
 def grow_team(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, comm_range_m: float,
-              spacing: float | None = None) -> np.ndarray | None:
+              spacing: float | None = None, clearance: dict[str, float] | None = None) -> np.ndarray | None:
     """A connected start grown over free space where the pattern fits nowhere: from the free
     spot nearest the scene's centre, robot after robot, each at the free spot nearest that seed
     (lowest of the pattern's heights first) that is at least the pattern's spacing from every
@@ -189,8 +197,9 @@ def grow_team(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, com
         return None
     reach = min(1.5 * spacing, comm_range_m)
     lo, hi = geometry.bounds
+    clearance = START_CLEARANCE_M if clearance is None else clearance
     flying = [k for k in kinds if k != "ground"]
-    margin = max(START_CLEARANCE_M[k] for k in kinds)
+    margin = max(clearance[k] for k in kinds)
     if flying:
         if len(set(kinds)) > 1:
             return None  # mixed teams keep their pattern
@@ -240,7 +249,7 @@ def grow_team(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray, com
     team = team[np.lexsort((np.arange(n), team[:, 2]))]  # lowest layer first, growth order within it
     if ground:
         team[:, 2] = starts[:, 2]
-    return team if starts_fit(geometry, kinds, team, comm_range_m, True) else None
+    return team if starts_fit(geometry, kinds, team, comm_range_m, True, clearance=clearance) else None
 
 
 def place_each(geometry: SceneGeometry, kinds: list[str], starts: np.ndarray,
@@ -375,21 +384,25 @@ def place_in_scene(table: dict, source: str, scene: str, keep: set[str] = frozen
         # A team that starts connected (the methods rely on it) must stay so; one
         # spread out on purpose (the waypoint demo) need not.
         connected = connected_by_range(starts, comm)
-        if not starts_fit(geometry, kinds, starts, comm, connected):
+        method = strategy_class(scenario.strategy.kind)
+        clearance = {kind: max(own, method.start_clearance_m(table.get("strategy", {}), kind))
+                     for kind, own in START_CLEARANCE_M.items()}
+        if not starts_fit(geometry, kinds, starts, comm, connected, clearance=clearance):
             how = "moved"
             if connected:
-                moved = move_team(geometry, kinds, starts, comm, connected)
+                moved = move_team(geometry, kinds, starts, comm, connected, clearance)
                 for turns in (1, 2, 3):  # a pattern too long one way may fit turned
                     if moved is not None:
                         break
-                    moved = move_team(geometry, kinds, _rotated(starts, turns), comm, connected)
+                    moved = move_team(geometry, kinds, _rotated(starts, turns), comm, connected, clearance)
                     how = f"turned {90 * turns} degrees and moved"
-                for fraction in GROW_SPACING_FRACTIONS:
+                spacings = [] if moved is not None else \
+                    grow_spacings(pattern_spacing(starts), method.start_separation_m(table.get("strategy", {})))
+                for grown_spacing in spacings:
+                    moved = grow_team(geometry, kinds, starts, comm, grown_spacing, clearance)
+                    how = "grown"
                     if moved is not None:
                         break
-                    grown_spacing = fraction * pattern_spacing(starts)
-                    moved = grow_team(geometry, kinds, starts, comm, grown_spacing)
-                    how = "grown"
             else:
                 moved = place_each(geometry, kinds, starts, old_bounds)
             if moved is None:

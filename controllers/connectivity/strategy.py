@@ -150,6 +150,21 @@ _PATH_DRAW_SPACING = 2.0
 _WARMUP_STEP_S = 0.01
 
 
+# A start placed in another scene keeps this much more than R_o from obstacles, m.
+START_LINK_MARGIN_M = 0.05
+
+
+def _table_or_none(strategy_table: dict) -> ConnectedParams | None:
+    """The ``[strategy]`` table's parameters (presets filled), or None where it does not build (the run
+    refuses it by name later)."""
+    from sim.config import build
+
+    try:
+        return build(ConnectedParams, {k: v for k, v in strategy_table.items() if k != "kind"}, "strategy")
+    except ValueError:
+        return None
+
+
 class ConnectedStrategy(Strategy):
     """Nestmeyer et al. 2017 for a team of quadrotors (see the module docstring)."""
 
@@ -163,6 +178,20 @@ class ConnectedStrategy(Strategy):
         self._finished = False
 
     # ------------------------------------------------------------------ set-up
+    @classmethod
+    def start_clearance_m(cls, strategy_table: dict, robot_kind: str) -> float:
+        """R_o plus START_LINK_MARGIN_M: a start graph with lambda2 > 0 needs every link's line of
+        sight clearer than R_o (0 for a table that does not build: the run refuses it by name)."""
+        table = _table_or_none(strategy_table)
+        return 0.0 if table is None else float(table.min_obstacle_clearance_m) + START_LINK_MARGIN_M
+
+    @classmethod
+    def start_separation_m(cls, strategy_table: dict) -> float:
+        """Half way from R_c to R'_c: within R_c a robot cuts the start graph's links, and near R_c
+        their weights (rising from R_c to R'_c) leave lambda2 all but 0."""
+        table = _table_or_none(strategy_table)
+        return 0.0 if table is None else 0.5 * float(table.min_robot_distance_m + table.full_weight_robot_distance_m)
+
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
         n = world.n_robots
         if n < 2:
