@@ -284,9 +284,10 @@ def test_explicit_starts_are_kept_and_said(flat):
     assert any("robots.0.starts" in note and "kept as given" in note for note in notes), notes
 
 
-def test_the_readme_own_scene_command_runs_in_a_held_out_flat(flat, tmp_path):
+@pytest.mark.parametrize("scenario", ["connected-office", "connected-lab"])  # lab: fixed targets moved too
+def test_the_readme_own_scene_command_runs_in_a_held_out_flat(flat, tmp_path, scenario):
     out = tmp_path / "out"
-    result = run_cli("run", "connected-office", "--scene", str(flat), "--duration", "2", "--out", str(out), "--quiet")
+    result = run_cli("run", scenario, "--scene", str(flat), "--duration", "2", "--out", str(out), "--quiet")
     assert result.returncode == 0, result.stdout + result.stderr
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["status"] == "time limit" and metrics["comm_lambda2_min"] > 0

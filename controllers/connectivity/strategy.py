@@ -123,7 +123,7 @@ from controllers.connectivity.roles import ANCHOR_CODE, CONNECTOR_CODE, PRIME_CO
 from controllers.connectivity.smooth_spectrum import smooth_lambda2_gradient
 from sim.config import ConfigError
 from sim.geometry import boxes_reaching, point_clearance
-from sim.types import NO_DECORATIONS, Commands, Decorations, Observation, WorldInfo
+from sim.types import NO_DECORATIONS, Commands, Decorations, Observation, SceneChange, WorldInfo
 from sim.strategy import Strategy
 
 # Colours (RGBA) of the robots by role in the video (the paper's Fig. 6:
@@ -191,6 +191,36 @@ class ConnectedStrategy(Strategy):
         their weights (rising from R_c to R'_c) leave lambda2 all but 0."""
         table = _table_or_none(strategy_table)
         return 0.0 if table is None else 0.5 * float(table.min_robot_distance_m + table.full_weight_robot_distance_m)
+
+    @classmethod
+    def adapt_to_scene(cls, strategy_table: dict, change: SceneChange, keep: frozenset[str]) -> list[str]:
+        """Fixed targets (``target_lists``) scaled from the old floor plan into the new one, each
+        moved to the nearest spot ``target_clearance_m`` from obstacles and the bounds; random
+        targets are drawn in the new scene anyway."""
+        from sim.free_space import candidate_grid, nearest_free, scale_plan
+
+        lists = strategy_table.get("target_lists")
+        if strategy_table.get("targets") != "fixed" or not lists or "strategy.target_lists" in keep:
+            return []
+        table = _table_or_none(strategy_table)
+        if table is None:
+            return []  # the run refuses the table by name
+        grid = candidate_grid(change)
+        moved = []
+        for robot, route in enumerate(lists):
+            points = scale_plan(np.array(route, dtype=float).reshape(-1, 3), change.old_bounds, change.bounds)
+            placed = []
+            for k, point in enumerate(points):
+                spot = nearest_free(change, grid, point, table.target_clearance_m, False)
+                if spot is None:
+                    raise ConfigError(f"strategy.target_lists.{robot}.{k}", f"no free spot in {change.scene_name} "
+                                      f"{table.target_clearance_m:g} m from obstacles; set strategy.target_lists "
+                                      "by hand, or --set strategy.targets=\"random\"")
+                placed.append([round(float(v), 3) for v in spot])
+            moved.append(placed)
+        strategy_table["target_lists"] = moved
+        return [f"strategy.target_lists: scaled to {change.scene_name}'s floor plan, each target moved to the "
+                f"nearest free spot {table.target_clearance_m:g} m from obstacles"]
 
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
         n = world.n_robots
