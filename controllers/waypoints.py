@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.compiled import kernel
-from sim.config import check_params, param
+from sim.config import ConfigError, check_params, param
 from sim.free_space import candidate_grid, nearest_free, route_is_clear, scale_plan
 from sim.strategy import Strategy
 from sim.types import Commands, Observation, SceneChange, WorldInfo
@@ -179,7 +179,9 @@ class WaypointStrategy(Strategy):
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
         n = world.n_robots
         if self.params.routes and len(self.params.routes) != n:
-            raise ValueError(f"routes: has {len(self.params.routes)} routes for {n} robots")
+            raise ConfigError("strategy.routes", f"lists {len(self.params.routes)} routes for {n} robots (one per "
+                              "robot, in robot order); after changing the team give one route per robot, or "
+                              "--set strategy.routes=[] to hold every start")
         self.routes = []
         self._ground = np.array([k == "ground" for k in world.robot_kinds])
         for i in range(n):

@@ -28,3 +28,56 @@ def kernel(function: Callable) -> Callable:
         return numba.njit(cache=True, error_model="numpy")(function)
     except RuntimeError:  # "cannot cache function ...: no locator available"
         return numba.njit(error_model="numpy")(function)
+
+
+class CompileWatch:
+    """Wall time spent compiling kernels while it is open (numba's compile
+    events; a kernel loaded from the on-disk cache is no compile). ``on_first``
+    is called once, when the first compile starts, so a run can say why its
+    first seconds are slow. Use as a context manager, or ``open``/``close``."""
+
+    def __init__(self, on_first: Callable[[], None] | None = None):
+        self.on_first = on_first
+        self.seconds = 0.0  # wall time inside outermost compiles, s
+        self.count = 0  # outermost compiles (a kernel calling kernels compiles them inside its own)
+        self._depth = 0
+        self._started = 0.0
+        self._listener = None
+
+    def open(self) -> "CompileWatch":
+        import time
+
+        from numba.core import event
+
+        watch = self
+
+        class _Listener(event.Listener):
+            def on_start(self, _event) -> None:
+                if watch._depth == 0:
+                    if watch.count == 0 and watch.on_first is not None:
+                        watch.on_first()
+                    watch._started = time.perf_counter()
+                watch._depth += 1
+
+            def on_end(self, _event) -> None:
+                watch._depth -= 1
+                if watch._depth == 0:
+                    watch.seconds += time.perf_counter() - watch._started
+                    watch.count += 1
+
+        self._listener = _Listener()
+        event.register("numba:compile", self._listener)
+        return self
+
+    def close(self) -> None:
+        if self._listener is not None:
+            from numba.core import event
+
+            event.unregister("numba:compile", self._listener)
+            self._listener = None
+
+    def __enter__(self) -> "CompileWatch":
+        return self.open()
+
+    def __exit__(self, *_exc) -> None:
+        self.close()

@@ -9,9 +9,11 @@ world (robots inside walls, outside the scene) happen in :mod:`sim.world`.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import tomllib
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -88,7 +90,7 @@ class RobotGroup:
 
     kind: Literal["quadrotor", "ground"]  # "quadrotor" or "ground" (e-puck-sized, differential drive)
     starts: tuple[Vec3, ...] = ()  # start positions, m (z ignored for ground robots)
-    count: int | None = None  # with spawn_center: a square grid of this many robots
+    count: int | None = None  # how many robots: the first `count` of starts, or with spawn_center a square grid
     spawn_center: Vec3 | None = None  # grid centre, m
     spawn_spacing_m: float = 0.8  # grid spacing, m
 
@@ -98,7 +100,8 @@ class RobotGroup:
             require(self.count >= 1, "count", f"must be at least 1, got {self.count}")
             require(self.count <= MAX_ROBOTS, "count", f"must be at most {MAX_ROBOTS} robots, got {self.count}")
             require(self.spawn_center is not None or len(self.starts) >= self.count,
-                    "spawn_center", "is required with count unless starts lists enough positions")
+                    "count", f"is {self.count} but starts lists {len(self.starts)} position(s); list {self.count} "
+                    "starts, or set spawn_center (and spawn_spacing_m) for a grid of count robots")
         else:
             require(len(self.starts) >= 1, "starts", "must list at least one start position (or give count)")
         require(self.spawn_spacing_m > 0, "spawn_spacing_m", f"must be positive, got {self.spawn_spacing_m}")
@@ -308,9 +311,29 @@ def from_table(table: dict, source: str = "") -> Scenario:
         raise ConfigError("strategy.kind", f"unknown strategy {kind!r} (one of: {', '.join(strategy_kinds())})")
     params = build(strategy_params_class(kind), strategy_table, "strategy")
     table.setdefault("name", Path(source).stem if source else "scenario")
-    body = build(ScenarioBody, table)
+    try:
+        body = build(ScenarioBody, table)
+    except ConfigError as err:
+        if "." in err.field or not err.problem.startswith("unknown key"):
+            raise
+        raise ConfigError(err.field, _unknown_top_level(err.field, strategy_params_class(kind))) from None
     fields = {k: getattr(body, k) for k in ScenarioBody.__dataclass_fields__}
     return Scenario(**fields, strategy=StrategyConfig(kind, params), source=source)
+
+
+def _unknown_top_level(key: str, params_class: type) -> str:
+    """The problem of an unknown top-level key: where a key of that name lives (the
+    strategy's table, [physics], ...), else the keys the top level allows."""
+    tables = {"strategy": params_class}
+    hints = typing.get_type_hints(ScenarioBody)
+    for f in dataclasses.fields(ScenarioBody):
+        if dataclasses.is_dataclass(hints[f.name]):
+            tables[f.name] = hints[f.name]
+    homes = [f"{name}.{key}" for name, cls in tables.items() if key in {f.name for f in dataclasses.fields(cls)}]
+    if homes:
+        return f"unknown key at the top level; did you mean {' or '.join(homes)} (--set {homes[0]}=...)?"
+    allowed = sorted({f.name for f in dataclasses.fields(ScenarioBody) if f.name != "name"} | {"strategy"})
+    return f"unknown key (allowed: {', '.join(allowed)})"
 
 
 def load_table(name_or_path: str, overrides: list[str] = (), seed: int | None = None,

@@ -114,6 +114,20 @@ class Strategy(abc.ABC):
         return False
 
     @classmethod
+    def start_clearance_m(cls, strategy_table: dict[str, Any], robot_kind: str) -> float:
+        """The clearance from obstacles this method needs of a ``robot_kind`` robot's start
+        and of the line of sight between starts, m, given its raw ``[strategy]`` table (read
+        when placing a team in another scene: placement keeps the larger of this and its
+        own). Default 0: nothing beyond placement's own."""
+        return 0.0
+
+    @classmethod
+    def start_separation_m(cls, strategy_table: dict[str, Any]) -> float:
+        """The least distance between two starts this method accepts, m, given its raw
+        ``[strategy]`` table (placement grows a team no closer). Default 0: any."""
+        return 0.0
+
+    @classmethod
     def adapt_to_scene(cls, strategy_table: dict[str, Any], change: SceneChange, keep: frozenset[str]) -> list[str]:
         """Adapt the raw ``[strategy]`` table of a scenario moved into another
         scene (``change`` describes both floor plans and the robots' starts),

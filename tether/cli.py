@@ -32,9 +32,22 @@ MAX_WORKERS_PER_CORE = 4  # tether sweep --workers: trials are CPU-bound, more p
 class _Parser(argparse.ArgumentParser):
     """argparse, with its errors as one line (like every other refusal) and exit 2."""
 
+    def parse_args(self, args=None, namespace=None):
+        self._argv = list(sys.argv[1:] if args is None else args)
+        return super().parse_args(args, namespace)
+
     def error(self, message: str):
-        _fail(f"{message} (see '{self.prog} --help')")
+        hint = _set_hint(getattr(self, "_argv", [])) if message.startswith("unrecognized arguments") else ""
+        _fail(f"{message}{hint} (see '{self.prog} --help')")
         raise SystemExit(EXIT_BAD_INPUT)
+
+
+def _set_hint(argv: list[str]) -> str:
+    """'--set KEY VALUE' (a space for the '='): the one word --set takes."""
+    for flag, key, value in zip(argv, argv[1:], argv[2:]):
+        if flag == "--set" and "=" not in key and not value.startswith("-"):
+            return f"; --set takes KEY=VALUE as one word: --set {key}={value}"
+    return ""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -130,11 +143,16 @@ def _parser() -> argparse.ArgumentParser:
 
     sub.add_parser("sweeps", help="list built-in sweeps")
 
-    report = sub.add_parser("report", help="figures and tables of a sweep's results (no simulation)")
+    report = sub.add_parser("report", help="figures and tables of a sweep's results (no simulation)",
+                            description="Write DIR/report.md from a sweep's results table: the trial counts, the "
+                                        "papers' figures the sweep reproduces, every numeric metric's mean +- std "
+                                        "and n per grid cell (grid.csv) with the main metrics against the first "
+                                        "swept key (grid.png), and with --x KEY --y METRIC [--hue KEY] a plot of "
+                                        "any metric against any column (docs/sweeps.md).")
     report.add_argument("dir", metavar="DIR", help="a sweep's results folder (or a results .parquet file)")
-    report.add_argument("--x", default=None, metavar="KEY", help="generic plot: swept key or metric on x")
-    report.add_argument("--y", default=None, metavar="METRIC", help="generic plot: metric on y")
-    report.add_argument("--hue", default=None, metavar="KEY", help="generic plot: one line per value of KEY")
+    report.add_argument("--x", default=None, metavar="KEY", help="plot a metric against this column (a swept key as the sweep file names it, or a metric); needs --y")
+    report.add_argument("--y", default=None, metavar="METRIC", help="the metric on y of the --x plot (a key of metrics.json, e.g. e_g_mean_m)")
+    report.add_argument("--hue", default=None, metavar="KEY", help="the --x plot: one line per value of this column (e.g. a second swept key)")
     report.add_argument("--out", default=None, metavar="DIR", help="where the report goes (default: DIR)")
     return parser
 
@@ -401,7 +419,8 @@ def cmd_init(args: argparse.Namespace) -> int:
         if args.scene is not None:
             from tether.placement import load_in_scene
 
-            scenario, notes = load_in_scene(args.scenario, args.scene, args.overrides, seed=args.seed)
+            scenario, notes = load_in_scene(args.scenario, args.scene, args.overrides, seed=args.seed,
+                                            unplaced_ok=True)  # a file to edit even where the team fits nowhere
         else:
             from sim.scenario import load
 

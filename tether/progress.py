@@ -6,6 +6,10 @@ and the strategy's headline figure (targets visited, meetings held) from its
 duration cap or every 30 s of wall time, whichever comes first, so logs get
 no carriage returns. A mission that ends before the cap ends the bar where
 it stopped (``close``), with its status.
+
+A run that compiles kernels (the first of each scenario on a machine: numba's
+cache then holds them) says so when the compile starts and, at the end, how
+long it took, so the slow first seconds are explained.
 """
 
 from __future__ import annotations
@@ -13,6 +17,8 @@ from __future__ import annotations
 import sys
 import time
 from typing import Any, TextIO
+
+from sim.compiled import CompileWatch
 
 PLAIN_EVERY_FRACTION = 0.1  # plain lines: every 10 % of the duration ...
 PLAIN_EVERY_WALL_S = 30.0  # ... or every 30 s of wall time
@@ -52,6 +58,8 @@ class RunProgress:
         self.lines = 0
         self._time_s = 0.0
         self._headline = ""
+        self.compiles = CompileWatch(on_first=lambda: self._say(
+            "compiling kernels (once: later runs load them from the cache) ...")).open()
         if self.bar_on:
             from tqdm import tqdm
 
@@ -87,10 +95,18 @@ class RunProgress:
         print("  " + ", ".join(parts), file=self.stream, flush=True)
         self.lines += 1
 
+    def _say(self, text: str) -> None:
+        if self._bar is not None:
+            self._bar.write(text, file=self.stream)
+        else:
+            print(text, file=self.stream, flush=True)
+
     def close(self, metrics: dict[str, Any] | None = None) -> None:
         """End the bar where the run stopped (a mission may end before the
-        cap) with the final headline; plain output needs no closing."""
+        cap) with the final headline, and say how long compiling took."""
+        self.compiles.close()
         if self._bar is None:
+            self._compile_note()
             return
         if metrics is not None:
             self._time_s = float(metrics.get("sim_time_s", self._time_s))
@@ -102,3 +118,10 @@ class RunProgress:
         self._bar.set_postfix_str(f"{postfix}, {self._headline}" if self._headline else postfix, refresh=False)
         self._bar.close()
         self._bar = None
+        self._compile_note()
+
+    def _compile_note(self) -> None:
+        if self.compiles.count:
+            self._say(f"compiled kernels in {self.compiles.seconds:.0f} s (once; the next run loads them from the "
+                      "cache)")
+            self.compiles.count = 0  # said once, however often close is called

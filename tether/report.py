@@ -15,6 +15,8 @@ trials, and every cell states its n:
   ``paradigms``: ``e_g_mean_m`` of two or more strategy kinds with a swept
   ``sensing.comm_range_m``): e_g and lambda-bar per method and range, mean
   and spread over seeds, a table and a plot (``paradigms.png``);
+- every sweep: each numeric metric's mean +- std and n per grid cell and the
+  main metrics against the first swept key (:mod:`tether.grid_report`);
 - with ``--x KEY --y METRIC [--hue KEY]``: any metric against any column.
 
 Finished rows (status "completed", or "time limit": ran to the duration cap)
@@ -586,6 +588,11 @@ def write_report(results: str | Path, out: str | Path | None = None, x: str | No
         text, files = section(rows, target)
         lines += text
         pngs += files
+    from tether.grid_report import grid_section
+
+    text, files = grid_section(rows, manifest, target)  # every sweep, the user's own included
+    lines += text
+    pngs += files
     if x is not None and y is not None:
         text, files = generic_section(rows, target, x, y, hue)
         lines += text

@@ -124,7 +124,16 @@ def builtin_sweeps() -> dict[str, str]:
 
 
 def _read_sweep_table(name_or_path: str) -> tuple[dict, Path]:
-    path = builtin_or_file(name_or_path, SWEEP_DIR, "sweep")
+    from tether.catalog import SCENARIO_DIR
+
+    try:
+        path = builtin_or_file(name_or_path, SWEEP_DIR, "sweep")
+    except ConfigError as err:
+        if (SCENARIO_DIR / f"{name_or_path}.toml").is_file():
+            raise ConfigError("sweep", f"{err.problem}; {name_or_path!r} is a built-in scenario (tether run "
+                              f"{name_or_path}): a sweep file names it with scenario = \"{name_or_path}\" "
+                              "(docs/sweeps.md)") from None
+        raise
     return read_toml_file(path, "sweep"), path
 
 
@@ -201,6 +210,10 @@ def load_sweep(name_or_path: str, video: Iterable[str] = (), rrd: Iterable[str] 
 
     table, path = _read_sweep_table(name_or_path)
     unknown = sorted(set(table) - SWEEP_KEYS)
+    if "scenario" not in table and "strategy" in table and "robots" in table:
+        raise ConfigError("sweep", f"{path} is a scenario file (run it with: tether run {path}); a sweep file "
+                          f"names it with scenario = \"{path}\" and lists what to vary under [grid] "
+                          "(docs/sweeps.md)")
     if unknown:
         raise ConfigError(unknown[0], f"unknown sweep key (known: {', '.join(sorted(SWEEP_KEYS))})")
     if "scenario" not in table:
@@ -856,13 +869,54 @@ class SweepOutcome:
     stopped: str = ""  # why the sweep stopped before its end ("" if it did not)
 
 
+class _SweepProgress:
+    """The sweep's progress on stderr: a tqdm bar on a terminal; into a pipe or a
+    log, as ``tether run`` does, one plain line every 10 % of the trials or 30 s
+    of wall time (the policy of :class:`tether.progress.RunProgress`), no carriage returns."""
+
+    def __init__(self, name: str, total: int, initial: int, enabled: bool):
+        from tether.progress import PLAIN_EVERY_FRACTION, PLAIN_EVERY_WALL_S
+
+        self.name, self.total, self.n, self.enabled = name, total, initial, enabled
+        self._postfix = ""
+        self._every_trials = max(1, math.ceil(PLAIN_EVERY_FRACTION * total))
+        self._every_wall_s = PLAIN_EVERY_WALL_S
+        self._start = time.monotonic()
+        self._last_line = (initial, self._start)
+        self._bar = None
+        if enabled and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, initial=initial, desc=name, unit="trial", file=sys.stderr,
+                             dynamic_ncols=True, smoothing=0.1)
+
+    def set_postfix_str(self, text: str, refresh: bool = False) -> None:
+        self._postfix = text
+        if self._bar is not None:
+            self._bar.set_postfix_str(text, refresh=refresh)
+
+    def update(self, count: int) -> None:
+        self.n += count
+        if self._bar is not None:
+            self._bar.update(count)
+            return
+        now = time.monotonic()
+        if self.enabled and (self.n - self._last_line[0] >= self._every_trials or self.n == self.total
+                             or now - self._last_line[1] >= self._every_wall_s):
+            self._last_line = (self.n, now)
+            print(f"  {self.name}: {self.n}/{self.total} trials, {self._postfix}, {now - self._start:.0f} s wall",
+                  file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+
+
 def run_sweep(sweep: Sweep, out: str | Path, engine: Engine, retry_failed: bool = False,
               progress: bool = True, on_row: Callable[[dict], None] | None = None) -> SweepOutcome:
     """Run the sweep's trials that have no row in ``out`` (and, with
     ``retry_failed``, those whose latest row failed); store each row as it
     comes. The folder must have been claimed (:meth:`ResultsFolder.claim`)."""
-    from tqdm import tqdm
-
     folder = ResultsFolder(out)
     status = folder.latest_status({t.trial_id for t in sweep.trials})
     todo = [t for t in sweep.trials
@@ -871,8 +925,7 @@ def run_sweep(sweep: Sweep, out: str | Path, engine: Engine, retry_failed: bool 
     finished = sum(s in FINISHED for _, s in status.values())
     rerun = {t.trial_id for t in todo}
     failed = sum(s in FAILED for trial_id, (_, s) in status.items() if trial_id not in rerun)
-    bar = tqdm(total=len(sweep.trials), initial=len(sweep.trials) - len(todo), desc=sweep.name, unit="trial",
-               disable=not progress, file=sys.stderr, dynamic_ncols=True, smoothing=0.1)
+    bar = _SweepProgress(sweep.name, len(sweep.trials), len(sweep.trials) - len(todo), progress)
 
     def show() -> None:
         remaining = len(sweep.trials) - finished - failed

@@ -110,7 +110,8 @@ def target_queues(params: ConnectedParams, planner: GridPlanner, starts: np.ndar
     if params.targets == "fixed":
         lists = [np.asarray(route, dtype=float).reshape(-1, 3) for route in params.target_lists]
         if len(lists) > n:
-            raise ConfigError("strategy.target_lists", f"lists {len(lists)} robots but the scenario has {n}")
+            raise ConfigError("strategy.target_lists", f"lists {len(lists)} robots but the scenario has {n}; give "
+                              "one list per robot, or --set strategy.targets=\"random\"")
         lists += [np.zeros((0, 3))] * (n - len(lists))
         # A single-layer grid (ground robots: the sensors' plane) has lower == upper on z: a target is
         # a place in that plane, whatever height the list gives.

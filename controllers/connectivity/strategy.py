@@ -128,7 +128,7 @@ from sim import palette
 from sim.config import ConfigError
 from sim.geometry import boxes_reaching, point_clearance
 from sim.radio.protocols import HeartbeatMonitor
-from sim.types import NO_DECORATIONS, Commands, Decorations, Observation, WorldInfo
+from sim.types import NO_DECORATIONS, Commands, Decorations, Observation, SceneChange, WorldInfo
 from sim.strategy import Strategy
 
 # Colours (RGBA) of the robots by role in the pictures (sim.palette); a traveler's path takes its
@@ -156,6 +156,21 @@ _PATH_DRAW_SPACING = 2.0
 _WARMUP_STEP_S = 0.01
 
 
+# A start placed in another scene keeps this much more than R_o from obstacles, m.
+START_LINK_MARGIN_M = 0.05
+
+
+def _table_or_none(strategy_table: dict) -> ConnectedParams | None:
+    """The ``[strategy]`` table's parameters (presets filled), or None where it does not build (the run
+    refuses it by name later)."""
+    from sim.config import build
+
+    try:
+        return build(ConnectedParams, {k: v for k, v in strategy_table.items() if k != "kind"}, "strategy")
+    except ValueError:
+        return None
+
+
 class ConnectedStrategy(Strategy):
     """Nestmeyer et al. 2017 for a team of quadrotors (see the module docstring)."""
 
@@ -169,6 +184,50 @@ class ConnectedStrategy(Strategy):
         self._finished = False
 
     # ------------------------------------------------------------------ set-up
+    @classmethod
+    def start_clearance_m(cls, strategy_table: dict, robot_kind: str) -> float:
+        """R_o plus START_LINK_MARGIN_M: a start graph with lambda2 > 0 needs every link's line of
+        sight clearer than R_o (0 for a table that does not build: the run refuses it by name)."""
+        table = _table_or_none(strategy_table)
+        return 0.0 if table is None else float(table.min_obstacle_clearance_m) + START_LINK_MARGIN_M
+
+    @classmethod
+    def start_separation_m(cls, strategy_table: dict) -> float:
+        """Half way from R_c to R'_c: within R_c a robot cuts the start graph's links, and near R_c
+        their weights (rising from R_c to R'_c) leave lambda2 all but 0."""
+        table = _table_or_none(strategy_table)
+        return 0.0 if table is None else 0.5 * float(table.min_robot_distance_m + table.full_weight_robot_distance_m)
+
+    @classmethod
+    def adapt_to_scene(cls, strategy_table: dict, change: SceneChange, keep: frozenset[str]) -> list[str]:
+        """Fixed targets (``target_lists``) scaled from the old floor plan into the new one, each
+        moved to the nearest spot ``target_clearance_m`` from obstacles and the bounds; random
+        targets are drawn in the new scene anyway."""
+        from sim.free_space import candidate_grid, nearest_free, scale_plan
+
+        lists = strategy_table.get("target_lists")
+        if strategy_table.get("targets") != "fixed" or not lists or "strategy.target_lists" in keep:
+            return []
+        table = _table_or_none(strategy_table)
+        if table is None:
+            return []  # the run refuses the table by name
+        grid = candidate_grid(change)
+        moved = []
+        for robot, route in enumerate(lists):
+            points = scale_plan(np.array(route, dtype=float).reshape(-1, 3), change.old_bounds, change.bounds)
+            placed = []
+            for k, point in enumerate(points):
+                spot = nearest_free(change, grid, point, table.target_clearance_m, False)
+                if spot is None:
+                    raise ConfigError(f"strategy.target_lists.{robot}.{k}", f"no free spot in {change.scene_name} "
+                                      f"{table.target_clearance_m:g} m from obstacles; set strategy.target_lists "
+                                      "by hand, or --set strategy.targets=\"random\"")
+                placed.append([round(float(v), 3) for v in spot])
+            moved.append(placed)
+        strategy_table["target_lists"] = moved
+        return [f"strategy.target_lists: scaled to {change.scene_name}'s floor plan, each target moved to the "
+                f"nearest free spot {table.target_clearance_m:g} m from obstacles"]
+
     def reset(self, world: WorldInfo, initial: Observation, rng: np.random.Generator) -> None:
         n = world.n_robots
         if n < 2:

@@ -104,7 +104,8 @@ class IntermittentParams:
         teams = Teams.from_lists(self.teams)
         outside = [r for r in teams.robots if r >= n_robots]
         require(not outside, "teams", f"robot index {outside[0] if outside else ''} does not exist "
-                f"(the scenario has {n_robots} robots, indices 0..{n_robots - 1})")
+                f"(the scenario has {n_robots} robots, indices 0..{n_robots - 1}); a team of another size "
+                "needs its own strategy.teams (lists of robot indices, every robot in exactly two teams)")
         missing = sorted(set(range(n_robots)) - set(teams.robots))
         require(not missing, "teams", f"robot(s) {missing} belong to no team; every robot must belong to exactly two teams")
         require(self.lag_team < teams.n_teams, "lag_team",
