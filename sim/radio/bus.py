@@ -491,13 +491,22 @@ class MessageBus:
     def _supersede(self, queue: deque[_Frame], newer: Message) -> None:
         """Drop from ``queue`` the waiting latest_only messages of ``newer``'s kind (none of their frames
         sent); ``newer`` then joins the queue's end, as a fresh frame in a transmit buffer does."""
-        stale = {frame.message.sequence for frame in queue
-                 if frame.message.latest_only and frame.message.kind == newer.kind
-                 and frame.message.sequence not in self._in_flight}
+        kind, in_flight = newer.kind, self._in_flight
+        stale = set()
+        everything = True  # every frame of the queue is stale
+        for frame in queue:
+            message = frame.message
+            if message.latest_only and message.kind == kind and message.sequence not in in_flight:
+                stale.add(message.sequence)
+            else:
+                everything = False
         if stale:
-            kept = [frame for frame in queue if frame.message.sequence not in stale]
-            queue.clear()
-            queue.extend(kept)
+            if everything:
+                queue.clear()
+            else:
+                kept = [frame for frame in queue if frame.message.sequence not in stale]
+                queue.clear()
+                queue.extend(kept)
             self._waiting[newer.sender] -= len(stale)
             self._waiting_total -= len(stale)
             self._counters(newer.kind, self._n or newer.sender + 1).superseded += len(stale)
