@@ -831,8 +831,21 @@ class MessageBus:
 
 
 class ReferenceMessageBus(MessageBus):
-    """The same bus, each period stepped by the plain loop that ``MessageBus``'s compiled scheduling replaces:
-    the specification the fast bus is held to (tests/test_radio_bus_fast.py), frame by frame and draw by draw."""
+    """The same bus, each period stepped by the plain loop that ``MessageBus``'s compiled scheduling replaces,
+    and a superseding send's plain filter of the queue: the specification the fast bus is held to
+    (tests/test_radio_bus_fast.py), frame by frame and draw by draw."""
+
+    def _supersede(self, queue: deque[_Frame], newer: Message) -> None:
+        stale = {frame.message.sequence for frame in queue
+                 if frame.message.latest_only and frame.message.kind == newer.kind
+                 and frame.message.sequence not in self._in_flight}
+        if stale:
+            kept = [frame for frame in queue if frame.message.sequence not in stale]
+            queue.clear()
+            queue.extend(kept)
+            self._waiting[newer.sender] -= len(stale)
+            self._waiting_total -= len(stale)
+            self._counters(newer.kind, self._n or newer.sender + 1).superseded += len(stale)
 
     def _step_medium(self, start_s: float, link: LinkState, n: int, deliveries: list[list[Delivery]]) -> None:
         end_s = start_s + self.control_period_s
