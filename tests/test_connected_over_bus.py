@@ -21,7 +21,7 @@ from controllers.connectivity.election import (
     election_bytes,
     election_window_ticks,
 )
-from controllers.connectivity.exploration import CONSENSUS_KIND, heard_estimates
+from controllers.connectivity.exploration import CONSENSUS_KIND, heard_estimates, split_consensus
 from controllers.connectivity.roles import PRIME_CODE, SECONDARY_CODE, Role, RoleMachine
 from controllers.connectivity.travel import consensus_step
 from sim.radio.bus import BusParameters, Delivery, Message, MessageBus, link_conditions
@@ -342,3 +342,34 @@ def test_a_latest_only_message_never_cuts_one_already_on_the_air():
     bus.send(Message(ELECTION_KIND, 0, None, "newer", 20, latest_only=True), PERIOD_S)
     assert [d.message.payload for d in bus.step(PERIOD_S, link)[1]] == ["long", "newer"]
     assert bus.summary()["radio_election_packets_superseded"] == 0
+
+
+def test_split_consensus_is_heard_estimates_and_the_other_deliveries():
+    """The one pass over the inbox gives the per-message loop's heard values and arrivals, and leaves every
+    other delivery, in order, to the role machine."""
+    def reference(inbox, n):
+        heard, arrived = np.full((n, n), np.nan), np.zeros((n, n), dtype=bool)
+        for robot, deliveries in enumerate(inbox):
+            for delivery in deliveries:
+                if delivery.message.kind == CONSENSUS_KIND and delivery.receiver == robot:
+                    heard[robot, delivery.message.sender] = delivery.message.payload
+                    arrived[robot, delivery.message.sender] = True
+        return heard, arrived
+
+    rng = np.random.default_rng(3)
+    n = 5
+    for _ in range(50):
+        inbox = []
+        for robot in range(n):
+            row = []
+            for _ in range(int(rng.integers(0, 9))):
+                sender = int(rng.choice([j for j in range(n) if j != robot]))
+                kind = CONSENSUS_KIND if rng.random() < 0.7 else "election"
+                message = Message(kind, sender, None, float(rng.random()), 8, sequence=0, sent_s=0.0)
+                row.append(Delivery(message, robot, 0.0))
+            inbox.append(tuple(row))
+        heard, arrived, rest = split_consensus(tuple(inbox), n)
+        expected_heard, expected_arrived = reference(inbox, n)
+        np.testing.assert_array_equal(heard, expected_heard)
+        np.testing.assert_array_equal(arrived, expected_arrived)
+        assert rest == [[d for d in row if d.message.kind != CONSENSUS_KIND] for row in inbox]

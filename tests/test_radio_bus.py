@@ -474,3 +474,18 @@ def test_token_safe_over_the_lossy_bus(seed, plan):
     bus = bus_for(IEEE802154, seed=seed)
     link = uniform_link(3, 6.0)  # Rayleigh fading at a few dB: frequent losses
     run_token(bus, lambda k: bus.step(k * PERIOD_S, link), 3, 60, lambda k: plan[k % len(plan)] if k < 40 else None)
+
+
+def test_new_parameters_take_effect_on_the_next_message():
+    """The tuning page retunes the bus between ticks: a message sent afterwards gets the new bitrate's
+    airtime, not the one cached for its size under the old parameters."""
+    bus = bus_for(IEEE802154)
+    link = uniform_link(2, 40.0)
+    bus.send(Message("state", 0, (1,), None, 40), 0.0)
+    (first,) = bus.step(0.0, link)[1]
+    bus.params = replace(bus.params, bitrate_bps=bus.params.bitrate_bps / 2)
+    bus.send(Message("state", 0, (1,), None, 40), PERIOD_S)
+    (second,) = bus.step(PERIOD_S, link)[1]
+    slow = float(replace(BusParameters.from_preset(IEEE802154), bitrate_bps=bus.params.bitrate_bps).airtime_s(40))
+    assert second.latency_s == pytest.approx(slow, rel=1e-12)
+    assert second.latency_s > 1.5 * first.latency_s  # the bits take twice as long; the fixed overhead does not

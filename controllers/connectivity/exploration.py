@@ -54,6 +54,7 @@ targets.py. Here:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -287,6 +288,8 @@ class ExplorationController:
         if references is not None:
             remaining[travelers] = references.remaining
 
+        if self.over_bus:  # the consensus messages here, the rest (election, token) to the role machine
+            heard, consensus_links, inbox = split_consensus(inbox, n)
         changes = self.role_machine.step(self.tick, adjacency, got_target, near_target, task_done, remaining,
                                          inbox, float(time))
         roles = changes.roles
@@ -310,9 +313,7 @@ class ExplorationController:
         lam, error, alignment, gain = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
         path_points = np.empty((n, 3))
         estimates = np.empty(n)
-        if self.over_bus:
-            heard, consensus_links = heard_estimates(inbox, n)
-        else:
+        if not self.over_bus:
             heard, consensus_links = np.tile(self.estimates, (n, 1)), adjacency
         if references is None or not len(travelers):
             points = velocities_ref = accelerations = np.zeros((0, 3))
@@ -363,15 +364,29 @@ def heard_estimates(inbox, n_robots: int) -> tuple[np.ndarray, np.ndarray]:
     """Over the bus: heard[i, j], the estimate hat-Lambda_p^j in the latest consensus message that reached
     robot i since the last tick (``inbox``, per robot in order of arrival), and which arrived (bool (N, N));
     NaN and False elsewhere."""
-    heard = np.full((n_robots, n_robots), np.nan)
-    arrived = np.zeros((n_robots, n_robots), dtype=bool)
+    heard, arrived, _ = split_consensus(inbox, n_robots)
+    return heard, arrived
+
+
+def split_consensus(inbox, n_robots: int) -> tuple[np.ndarray, np.ndarray, list[list]]:
+    """``heard_estimates``' two arrays, and per robot its other deliveries (in order): one pass over the
+    inbox, so the role machine's readers do not walk the N - 1 consensus messages of every robot again."""
+    cells = n_robots * n_robots
+    heard = [math.nan] * cells  # row-major (N, N), as Python lists: cheaper per cell than ndarray indexing
+    arrived = [False] * cells
+    rest: list[list] = [[] for _ in range(n_robots)]
     for robot, deliveries in enumerate(inbox):
+        others = rest[robot]
+        row = robot * n_robots
         for delivery in deliveries:
             message = delivery.message
-            if message.kind == CONSENSUS_KIND and delivery.receiver == robot:
-                heard[robot, message.sender] = message.payload
-                arrived[robot, message.sender] = True
-    return heard, arrived
+            if message.kind != CONSENSUS_KIND:
+                others.append(delivery)
+            elif delivery.receiver == robot:
+                heard[row + message.sender] = message.payload
+                arrived[row + message.sender] = True
+    return (np.array(heard, dtype=float).reshape(n_robots, n_robots),
+            np.array(arrived, dtype=bool).reshape(n_robots, n_robots), rest)
 
 
 @kernel

@@ -216,12 +216,13 @@ class BusParameters:
         return channel.packet_error_rate(ber, self.error_bits(payload_bytes))
 
 
-@dataclass
+@dataclass(slots=True)
 class _Frame:
     message: Message
     payload_bytes: int
     last: bool
     airtime_s: float
+    error_bits: float = 0.0  # bits whose errors lose it (``BusParameters.error_bits``), as a float
 
 
 @dataclass
@@ -229,7 +230,7 @@ class _InFlight:
     """A message whose frames are going out: the receivers still holding every frame."""
 
     audience: tuple[int, ...]
-    alive: np.ndarray  # bool per audience member
+    alive: Any  # bool per audience member (a list in MessageBus, an array in ReferenceMessageBus)
 
 
 @dataclass
@@ -364,6 +365,42 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airt
         sent_draws[sent] = draws
 
 
+# The kernel's compiled entry per (type of generator, whether snr and carrier sense are writeable): calling it
+# skips the dispatcher's typing of every argument each period (~10 us, most of it the Generator's).
+_SCHEDULE_ENTRIES: dict[tuple, Any] = {}
+
+
+def _schedule(arguments: tuple) -> int:
+    """``_schedule_frames(*arguments)`` through its compiled entry point once the dispatcher has compiled it.
+    ``_step_medium`` passes every array C-contiguous and every scalar as a Python float or int, so one
+    signature per key."""
+    key = (type(arguments[17]), arguments[3].flags.writeable, arguments[4].flags.writeable)
+    entry = _SCHEDULE_ENTRIES.get(key)
+    if entry is not None:
+        return entry(*arguments)
+    sent = _schedule_frames(*arguments)
+    overloads = getattr(_schedule_frames, "overloads", None)  # absent when numba's JIT is disabled
+    if overloads is not None:
+        signature = tuple(_schedule_frames.typeof_pyval(argument) for argument in arguments)
+        if signature in overloads:
+            _SCHEDULE_ENTRIES[key] = overloads[signature].entry_point
+    return sent
+
+
+_new_object = object.__new__
+
+
+def _arrival_order(delivery: Delivery) -> tuple[float, int]:
+    return delivery.arrival_s, delivery.message.sequence
+
+
+def _delivery(message: Message, receiver: int, arrival_s: float) -> Delivery:
+    """``Delivery(message, receiver, arrival_s)`` without the frozen dataclass's per-field ``__setattr__``."""
+    delivery = _new_object(Delivery)
+    delivery.__dict__.update(message=message, receiver=receiver, arrival_s=arrival_s)
+    return delivery
+
+
 class MessageBus:
     """Queues, airtime, loss and latency of every message. See the module docstring."""
 
@@ -385,37 +422,53 @@ class MessageBus:
         self._broadcast_audiences: dict[tuple[int, int], tuple[int, ...]] = {}  # (sender, robots): every other
         self._scratch_arrays: tuple[np.ndarray, ...] | None = None  # _schedule_frames' outputs, reused
         self._in_flight: dict[int, _InFlight] = {}
+        # Set by a period whose frames all ended at distinct, increasing instants: each receiver's deliveries,
+        # made in that order, are already by (arrival, sequence)
+        self._arrivals_in_order = False
         self._kinds: dict[str, _KindCounters] = {}
         self._elapsed_s = 0.0
         self._last: TickStats | None = TickStats(math.nan, 0, 0, math.nan, math.nan, 0)
         self._idle_s = math.nan
 
+    @property
+    def params(self) -> BusParameters:
+        return self._params
+
+    @params.setter
+    def params(self, params: BusParameters) -> None:
+        """New parameters (the tuning page's retuning) drop the frames' airtimes computed under the old."""
+        self._params = params
+        self._frames_of_size = {}
+
     # --- sending ---------------------------------------------------------------------------------
 
     def send(self, message: Message, time_s: float) -> Message:
         """Queue ``message`` at its sender at ``time_s``; returns it with its ``sequence`` and ``sent_s``."""
-        if self._n is not None:
-            targets = message.receivers or ()
-            if not 0 <= message.sender < self._n or any(not 0 <= r < self._n for r in targets):
-                raise ValueError(f"message {message.kind!r} names a robot outside 0..{self._n - 1}")
+        robots = self._n
+        if robots is not None and (not 0 <= message.sender < robots or (
+                message.receivers and any(not 0 <= r < robots for r in message.receivers))):
+            raise ValueError(f"message {message.kind!r} names a robot outside 0..{robots - 1}")
         frames = None if self.params.is_ideal else self._frames(message.size_bytes)
         stamped = _stamped(message, self._sequence, float(time_s))
         self._sequence += 1
-        queue = self._queues.setdefault(stamped.sender, deque())
-        if stamped.latest_only and queue:
+        queue = self._queues.get(stamped.sender)
+        if queue is None:
+            queue = self._queues[stamped.sender] = deque()
+        elif stamped.latest_only and queue:
             self._supersede(queue, stamped)
         if frames is None:
             queue.append(_Frame(stamped, stamped.size_bytes, True, 0.0))
         else:
             last = len(frames) - 1
-            for k, (payload, airtime) in enumerate(frames):
-                queue.append(_Frame(stamped, payload, k == last, airtime))
+            for k, (payload, airtime, bits) in enumerate(frames):
+                queue.append(_Frame(stamped, payload, k == last, airtime, bits))
         self._waiting[stamped.sender] = self._waiting.get(stamped.sender, 0) + 1
         self._waiting_total += 1
         return stamped
 
-    def _frames(self, size_bytes: int) -> tuple[tuple[int, float], ...]:
-        """(payload bytes, airtime s) of each frame of a ``size_bytes`` message, computed once per size."""
+    def _frames(self, size_bytes: int) -> tuple[tuple[int, float, float], ...]:
+        """(payload bytes, airtime s, error bits) of each frame of a ``size_bytes`` message, computed once per
+        size."""
         frames = self._frames_of_size.get(size_bytes)
         if frames is None:
             payloads = self.params.frame_payloads(size_bytes)
@@ -423,8 +476,10 @@ class MessageBus:
             if airtimes.max() > self.control_period_s:
                 raise ValueError(f"a {self.params.name} frame takes {airtimes.max():.6f} s, longer than the "
                                  f"control period {self.control_period_s} s: it would never go out")
+            # The error bits as _step_medium summed them: 8 * payload, then plus the headers, in float64.
             frames = self._frames_of_size[size_bytes] = tuple(
-                (payload, float(airtime)) for payload, airtime in zip(payloads, airtimes))
+                (payload, float(airtime), 8.0 * payload + (self.params.header_bits + self.params.mac_overhead_bits))
+                for payload, airtime in zip(payloads, airtimes))
         return frames
 
     def _popped(self, sender: int, frame: _Frame) -> None:
@@ -436,13 +491,22 @@ class MessageBus:
     def _supersede(self, queue: deque[_Frame], newer: Message) -> None:
         """Drop from ``queue`` the waiting latest_only messages of ``newer``'s kind (none of their frames
         sent); ``newer`` then joins the queue's end, as a fresh frame in a transmit buffer does."""
-        stale = {frame.message.sequence for frame in queue
-                 if frame.message.latest_only and frame.message.kind == newer.kind
-                 and frame.message.sequence not in self._in_flight}
+        kind, in_flight = newer.kind, self._in_flight
+        stale = set()
+        everything = True  # every frame of the queue is stale
+        for frame in queue:
+            message = frame.message
+            if message.latest_only and message.kind == kind and message.sequence not in in_flight:
+                stale.add(message.sequence)
+            else:
+                everything = False
         if stale:
-            kept = [frame for frame in queue if frame.message.sequence not in stale]
-            queue.clear()
-            queue.extend(kept)
+            if everything:
+                queue.clear()
+            else:
+                kept = [frame for frame in queue if frame.message.sequence not in stale]
+                queue.clear()
+                queue.extend(kept)
             self._waiting[newer.sender] -= len(stale)
             self._waiting_total -= len(stale)
             self._counters(newer.kind, self._n or newer.sender + 1).superseded += len(stale)
@@ -476,11 +540,14 @@ class MessageBus:
                 raise ValueError(f"the {self.params.name!r} bus needs this tick's link state")
             self._step_medium(float(time_s), link, n, deliveries)
         self._elapsed_s += self.control_period_s
-        for row in deliveries:
-            row.sort(key=lambda d: (d.arrival_s, d.message.sequence))
+        if not self._arrivals_in_order:
+            for row in deliveries:
+                if len(row) > 1:
+                    row.sort(key=_arrival_order)
+        self._arrivals_in_order = False
         after = self._totals()
         sent, addressed, delivered = (a - b for a, b in zip(after, before))
-        latencies = [d.latency_s for row in deliveries for d in row]
+        latencies = [d.arrival_s - d.message.sent_s for row in deliveries for d in row]  # each one's latency_s
         self._last = TickStats(float(time_s), sent, delivered, delivered / addressed if addressed else math.nan,
                                float(np.mean(latencies)) if latencies else math.nan, self.queued())
         return deliveries
@@ -545,21 +612,42 @@ class MessageBus:
         """The medium's period, scheduled by the compiled ``_schedule_frames``: the same frames, instants and
         random draws, in the same order, as ``ReferenceMessageBus``'s loop (tests/test_radio_bus_fast.py)."""
         end_s = start_s + self.control_period_s
-        sense = np.asarray(link.carrier_sense, dtype=bool)
-        snr = np.asarray(link.snr_db, dtype=float)
+        sense = np.ascontiguousarray(link.carrier_sense, dtype=bool)
+        snr = np.ascontiguousarray(link.snr_db, dtype=float)
         if sense.shape != (n, n) or snr.shape != (n, n):
             raise ValueError(f"the link's arrays must be ({n}, {n})")
         # The head of each queue that can go out in this period: frames while the airtime before them fits,
         # and one more, which cannot (the loop must meet it to stop that sender, drawing as it does).
         reach_s = self.control_period_s + 1e-6
         frames: list[_Frame] = []
+        sent_at: list[float] = []
+        airtimes: list[float] = []
+        bits: list[float] = []
+        # A frame's audience is its message's (``_audience``: the robot count does not change within a run).
+        audience_start: list[int] = []
+        audience_count: list[int] = []  # -1: every other robot (a broadcast)
+        listed: list[int] = []
         first = np.zeros(n, dtype=np.int64)
         count = np.zeros(n, dtype=np.int64)
         for sender, queue in self._queues.items():
+            if not queue:
+                continue
             first[sender] = len(frames)
             before_s = 0.0
             for frame in queue:
                 frames.append(frame)
+                message = frame.message
+                sent_at.append(message.sent_s)
+                airtimes.append(frame.airtime_s)
+                bits.append(frame.error_bits)
+                receivers = message.receivers
+                if receivers is None:
+                    audience_start.append(0)
+                    audience_count.append(-1)
+                else:
+                    audience_start.append(len(listed))
+                    audience_count.append(len(receivers))
+                    listed.extend(receivers)
                 before_s += frame.airtime_s
                 if before_s > reach_s:
                     break
@@ -567,38 +655,24 @@ class MessageBus:
         total = len(frames)
         if total == 0:
             return
-        sent_s = np.fromiter((frame.message.sent_s for frame in frames), float, total)
-        airtime_s = np.fromiter((frame.airtime_s for frame in frames), float, total)
-        error_bits = np.fromiter((frame.payload_bytes for frame in frames), float, total)
-        error_bits *= 8.0
-        error_bits += self.params.header_bits + self.params.mac_overhead_bits
-        # A frame's audience is its message's (``_audience``: the robot count does not change within a run).
-        audience_start = np.zeros(total, dtype=np.int64)
-        audience_count = np.full(total, -1, dtype=np.int64)  # -1: every other robot (a broadcast)
-        listed: list[int] = []
-        for index, frame in enumerate(frames):
-            receivers = frame.message.receivers
-            if receivers is not None:
-                audience_start[index] = len(listed)
-                audience_count[index] = len(receivers)
-                listed.extend(receivers)
         fading_code, gain_scale = self._fading_draw
         out = self._scratch(total, total * max(n - 1, 0))
         popped = np.zeros(n, dtype=np.int64)
-        sure_snr_db = _ZERO_BER_SNR_DB.get(self.params.modulation, np.inf)
-        sent = _schedule_frames(
-            start_s, end_s, self._EPS_S, sense, snr, first, count, sent_s, airtime_s, error_bits, audience_start,
-            audience_count, np.array(listed, dtype=np.int64), fading_code, 2.0 * self.params.rician_k, gain_scale,
-            sure_snr_db, self.rng, popped, *out)
+        sure_snr_db = float(_ZERO_BER_SNR_DB.get(self.params.modulation, np.inf))
+        arguments = (start_s, end_s, self._EPS_S, sense, snr, first, count, np.array(sent_at), np.array(airtimes),
+                     np.array(bits), np.array(audience_start, dtype=np.int64),
+                     np.array(audience_count, dtype=np.int64), np.array(listed, dtype=np.int64), int(fading_code),
+                     float(2.0 * self.params.rician_k), float(gain_scale), sure_snr_db, self.rng, popped, *out)
+        sent = _schedule(arguments)
         if sent == 0:
             return
         sent_frame, sent_finish, sent_draws, _receivers, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure = out
         draws = int(sent_draws[sent])
         # Per-packet fading and loss of every (frame, receiver) tried, with the reference formulas: a frame
         # whose SNR with fading is above the modulation's zero-BER SNR has PER exactly 0 and always arrives.
-        survived = np.ones(draws, dtype=bool)
         unsure = np.flatnonzero(draw_unsure[:draws])
         if len(unsure):
+            survived = np.ones(draws, dtype=bool)
             level = draw_snr[unsure]
             if fading_code != _NO_DRAW or self.params.fading_model != "none":
                 fading_db = np.maximum(draw_gain[unsure], np.finfo(float).tiny)
@@ -608,14 +682,56 @@ class MessageBus:
             per = channel.packet_error_rate_at_snr(self.params.modulation, level, self.params.bandwidth_hz,
                                                    self.params.bitrate_bps, draw_bits[unsure])
             survived[unsure] = draw_uniform[unsure] >= per
-        for sender in np.flatnonzero(popped).tolist():
-            queue = self._queues[sender]
-            for _ in range(int(popped[sender])):
-                self._popped(sender, queue.popleft())
+            survived_list = survived.tolist()
+        else:
+            survived_list = None  # every draw survived
+        for sender, gone in enumerate(popped.tolist()):
+            if gone:
+                queue = self._queues[sender]
+                for _ in range(gone):
+                    if queue.popleft().last:
+                        self._waiting[sender] -= 1
+                        self._waiting_total -= 1
         bounds = sent_draws[:sent + 1].tolist()
         finishes = sent_finish[:sent].tolist()
+        self._arrivals_in_order = all(earlier < later for earlier, later in zip(finishes, finishes[1:]))
+        kinds = self._kinds
+        in_flight = self._in_flight
         for k, index in enumerate(sent_frame[:sent].tolist()):
-            self._received(frames[index], finishes[k], survived[bounds[k]:bounds[k + 1]], n, deliveries)
+            frame = frames[index]
+            finish_s = finishes[k]
+            message = frame.message
+            counters = kinds.get(message.kind)
+            if counters is None or len(counters.airtime_s) < n:
+                counters = self._counters(message.kind, n)
+            counters.frames_sent += 1
+            counters.airtime_s[message.sender] += frame.airtime_s
+            low, high = bounds[k], bounds[k + 1]
+            flight = in_flight.get(message.sequence)
+            if flight is None:
+                audience = self._audience(message, n)
+                if not frame.last:
+                    in_flight[message.sequence] = _InFlight(
+                        audience, [True] * (high - low) if survived_list is None else survived_list[low:high])
+                    continue
+                alive = None if survived_list is None else survived_list[low:high]
+            else:
+                audience = flight.audience
+                if survived_list is not None:
+                    flight.alive = [a and b for a, b in zip(flight.alive, survived_list[low:high])]
+                if not frame.last:
+                    continue
+                alive = flight.alive
+                del in_flight[message.sequence]
+            counters.packets_sent += 1
+            counters.bytes_sent += message.size_bytes
+            counters.addressed += len(audience)
+            reached = audience if alive is None else [receiver for receiver, got in zip(audience, alive) if got]
+            if reached:
+                counters.delivered += len(reached)
+                counters.latencies_s += [finish_s - message.sent_s] * len(reached)
+                for receiver in reached:
+                    deliveries[receiver].append(_delivery(message, receiver, finish_s))
 
     @property
     def _fading_draw(self) -> tuple[int, float]:
@@ -643,40 +759,6 @@ class MessageBus:
                 np.empty(draws, dtype=np.bool_))
         return held
 
-    def _received(self, frame: _Frame, finish_s: float, survived: np.ndarray, n: int,
-                  deliveries: list[list[Delivery]]) -> None:
-        """Counters, the message's surviving receivers and, after its last frame, its deliveries."""
-        message = frame.message
-        counters = self._counters(message.kind, n)
-        counters.frames_sent += 1
-        counters.airtime_s[message.sender] += frame.airtime_s
-        flight = self._in_flight.get(message.sequence)
-        if flight is None:
-            audience = self._audience(message, n)
-            if frame.last:  # a message of one frame: nothing to keep between frames
-                alive = survived if audience else np.zeros(0, dtype=bool)
-            else:
-                flight = self._in_flight[message.sequence] = _InFlight(audience, survived.copy())
-                return
-        else:
-            audience = flight.audience
-            if audience:
-                flight.alive &= survived
-            if not frame.last:
-                return
-            alive = flight.alive
-            del self._in_flight[message.sequence]
-        counters.packets_sent += 1
-        counters.bytes_sent += message.size_bytes
-        counters.addressed += len(audience)
-        reached = [k for k, got in enumerate(alive.tolist()) if got]
-        if reached:
-            counters.delivered += len(reached)
-            counters.latencies_s += [finish_s - message.sent_s] * len(reached)
-            for k in reached:
-                receiver = audience[k]
-                deliveries[receiver].append(Delivery(message, receiver, finish_s))
-
     # --- metrics ---------------------------------------------------------------------------------
 
     def _counters(self, kind: str, n: int) -> _KindCounters:
@@ -691,8 +773,12 @@ class MessageBus:
         return counters
 
     def _totals(self) -> tuple[int, int, int]:
-        return (sum(c.packets_sent for c in self._kinds.values()), sum(c.addressed for c in self._kinds.values()),
-                sum(c.delivered for c in self._kinds.values()))
+        sent = addressed = delivered = 0
+        for counters in self._kinds.values():
+            sent += counters.packets_sent
+            addressed += counters.addressed
+            delivered += counters.delivered
+        return sent, addressed, delivered
 
     @property
     def last_tick(self) -> TickStats:
@@ -745,8 +831,21 @@ class MessageBus:
 
 
 class ReferenceMessageBus(MessageBus):
-    """The same bus, each period stepped by the plain loop that ``MessageBus``'s compiled scheduling replaces:
-    the specification the fast bus is held to (tests/test_radio_bus_fast.py), frame by frame and draw by draw."""
+    """The same bus, each period stepped by the plain loop that ``MessageBus``'s compiled scheduling replaces,
+    and a superseding send's plain filter of the queue: the specification the fast bus is held to
+    (tests/test_radio_bus_fast.py), frame by frame and draw by draw."""
+
+    def _supersede(self, queue: deque[_Frame], newer: Message) -> None:
+        stale = {frame.message.sequence for frame in queue
+                 if frame.message.latest_only and frame.message.kind == newer.kind
+                 and frame.message.sequence not in self._in_flight}
+        if stale:
+            kept = [frame for frame in queue if frame.message.sequence not in stale]
+            queue.clear()
+            queue.extend(kept)
+            self._waiting[newer.sender] -= len(stale)
+            self._waiting_total -= len(stale)
+            self._counters(newer.kind, self._n or newer.sender + 1).superseded += len(stale)
 
     def _step_medium(self, start_s: float, link: LinkState, n: int, deliveries: list[list[Delivery]]) -> None:
         end_s = start_s + self.control_period_s

@@ -114,6 +114,9 @@ class LinkEvents:
     gave_up: tuple[int, ...] = ()
 
 
+_NO_EVENTS = LinkEvents()  # a poll that found nothing (frozen: shared)
+
+
 @dataclass
 class _Outgoing:
     kind: str
@@ -171,6 +174,8 @@ class ReliableLink:
 
         Deliveries that are not reliable data or acks are ignored.
         """
+        if not deliveries and not self._outgoing:
+            return _NO_EVENTS
         received: list[Received] = []
         acknowledged: list[int] = []
         for delivery in deliveries:
@@ -203,6 +208,8 @@ class ReliableLink:
                 out.attempts += 1
                 out.last_sent_s = float(time_s)
                 self._put(transfer, out, time_s)
+        if not (received or acknowledged or gave_up):
+            return _NO_EVENTS
         return LinkEvents(tuple(received), tuple(acknowledged), tuple(gave_up))
 
 
@@ -249,6 +256,8 @@ class TokenHandover:
 
     def handle(self, events: LinkEvents, time_s: float) -> None:
         """Advance on this robot's link events of the tick."""
+        if events is _NO_EVENTS:
+            return
         for transfer in events.acknowledged:
             if self.state == "handing_over" and self._offer is not None and transfer == self._offer[0]:
                 offer, receiver = self._offer
