@@ -254,6 +254,17 @@ class RadioFusion:
         self.lags.append((step, horizon, error))
         return horizon, error
 
+    def tick(self, time_s: float, inbox: Any, records: list[list[RangeMeasurement]] | None, step: int,
+             step_s: float) -> dict[str, float]:
+        """This tick's exchange (``records``: the readings of a new step ``step``, None between readings)
+        and, once a step has ended, its figures: t*(t) (s, nan before any agreement), its lag and e(t)."""
+        self.exchange(time_s, inbox, records)
+        if records is None or step < 1:
+            return {}
+        agreement, error = self.record_lag(step - 1)  # the step just ended: what reached the fusion robot
+        return {"t_star_s": agreement * step_s if agreement >= 0 else math.nan,
+                "t_star_lag_s": (step - 1 - agreement) * step_s, "local_error_m": error}
+
     def summary(self, step_s: float) -> dict:
         lag = np.array([s - a for s, a, _ in self.lags], dtype=float) * step_s
         error = np.array([e for _, _, e in self.lags], dtype=float)

@@ -27,18 +27,9 @@ from controllers.connectivity.travel import consensus_step
 from sim.radio.bus import BusParameters, Delivery, Message, MessageBus, link_conditions
 from sim.radio.presets import PRESETS
 from sim.scenario import load
+from test_connectivity_explore_election import random_graph
 
 PERIOD_S = 0.01
-
-
-def random_graph(rng: np.random.Generator, n: int, density: float, connected: bool) -> np.ndarray:
-    upper = np.triu(rng.random((n, n)) < density, 1)
-    if connected:
-        order = rng.permutation(n)
-        for k in range(1, n):
-            a, b = order[k], order[rng.integers(k)]
-            upper[min(a, b), max(a, b)] = True
-    return upper | upper.T
 
 
 def disk_link(adjacency: np.ndarray):

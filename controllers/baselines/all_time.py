@@ -192,14 +192,10 @@ class AllTimeStrategy(Strategy):
             if self.fusion is None:
                 self._scalars["t_star_s"] = step * self.step_s  # always connected: t*(t) = t
             else:
-                self.fusion.exchange(observation.time_s, observation.inbox, by_robot)
-                if step >= 1:  # t*(t) of the step just ended: what reached the fusion robot within its period
-                    agreement, error = self.fusion.record_lag(step - 1)
-                    self._scalars["t_star_s"] = agreement * self.step_s if agreement >= 0 else math.nan
-                    self._scalars["t_star_lag_s"] = (step - 1 - agreement) * self.step_s
-                    self._scalars["local_error_m"] = error
+                self._scalars.update(self.fusion.tick(observation.time_s, observation.inbox, by_robot, step,
+                                                      self.step_s))
         elif self.fusion is not None:
-            self.fusion.exchange(observation.time_s, observation.inbox, None)
+            self.fusion.tick(observation.time_s, observation.inbox, None, -1, self.step_s)
         self.ticks += 1
         self.connected_ticks += int(team_connected(observation.links.adjacency, tuple(range(len(self.offsets)))))
         if self.segment.finished(t):

@@ -501,15 +501,19 @@ class MessageBus:
             else:
                 everything = False
         if stale:
-            if everything:
-                queue.clear()
-            else:
-                kept = [frame for frame in queue if frame.message.sequence not in stale]
-                queue.clear()
-                queue.extend(kept)
-            self._waiting[newer.sender] -= len(stale)
-            self._waiting_total -= len(stale)
-            self._counters(newer.kind, self._n or newer.sender + 1).superseded += len(stale)
+            self._drop_superseded(queue, newer, stale, everything)
+
+    def _drop_superseded(self, queue: deque[_Frame], newer: Message, stale: set[int], everything: bool) -> None:
+        """Remove the messages ``stale`` (sequences; ``everything``: the whole queue) that ``newer`` replaces."""
+        if everything:
+            queue.clear()
+        else:
+            kept = [frame for frame in queue if frame.message.sequence not in stale]
+            queue.clear()
+            queue.extend(kept)
+        self._waiting[newer.sender] -= len(stale)
+        self._waiting_total -= len(stale)
+        self._counters(newer.kind, self._n or newer.sender + 1).superseded += len(stale)
 
     def queued(self, sender: int | None = None) -> int:
         """Messages waiting (some of their frames not yet on the air), at ``sender`` or at all."""
@@ -840,12 +844,7 @@ class ReferenceMessageBus(MessageBus):
                  if frame.message.latest_only and frame.message.kind == newer.kind
                  and frame.message.sequence not in self._in_flight}
         if stale:
-            kept = [frame for frame in queue if frame.message.sequence not in stale]
-            queue.clear()
-            queue.extend(kept)
-            self._waiting[newer.sender] -= len(stale)
-            self._waiting_total -= len(stale)
-            self._counters(newer.kind, self._n or newer.sender + 1).superseded += len(stale)
+            self._drop_superseded(queue, newer, stale, everything=False)
 
     def _step_medium(self, start_s: float, link: LinkState, n: int, deliveries: list[list[Delivery]]) -> None:
         end_s = start_s + self.control_period_s
