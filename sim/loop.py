@@ -24,7 +24,8 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Protocol, Sequence
+from types import MappingProxyType
+from typing import Any, Callable, Mapping, Protocol, Sequence
 
 import mujoco
 import numpy as np
@@ -39,7 +40,7 @@ from sim.scenario import Scenario, StrategyConfig
 from sim.sensing import RaySensors
 from sim.strategy import Status, Strategy
 from sim.targets import TargetDriver, nominal_path_samples
-from sim.types import Commands, Links, Observation, WorldInfo, readonly
+from sim.types import NO_ARRIVALS, Commands, Links, Observation, WorldInfo, readonly
 from sim.validate import NON_FINITE, sanity_limits, tick_sanity, tick_violation
 from sim.world import World, build_world
 
@@ -149,6 +150,7 @@ class Simulation:
             self._frozen_ctrl: dict[int, np.ndarray] = {}  # drifting robot -> its actuators' last command
         self._no_inbox: tuple[tuple, ...] = ((),) * self.world.n_robots
         self._inbox = self._no_inbox  # the deliveries of the last tick's bus step, for the next observation
+        self._arrivals: Mapping[str, Any] = NO_ARRIVALS  # and its arrivals sent as_arrays (MessageBus.arrivals)
         self._bus_flowed = False  # some tick's step had messages: the bus's per-tick scalars are reported
         self.control = lowlevel_factory(self.world)
         self.substeps = scenario.physics.substeps
@@ -269,7 +271,7 @@ class Simulation:
             quaternion=quaternion, angular_velocity=angular, sensor_position=sensors,
             links=links, target_ranges=ranges, target_step=step,
             decorations_wanted=decorations_wanted, radio=self._radio_state(position, links),
-            inbox=self._inbox,
+            inbox=self._inbox, arrivals=self._arrivals,
         )
 
     def _radio_state(self, position: np.ndarray, links: Links):
@@ -371,12 +373,17 @@ class Simulation:
         if bus.idle:  # no message anywhere: no link state read, nothing drawn
             bus.step(time_s, None)
             self._inbox = self._no_inbox
+            self._arrivals = NO_ARRIVALS
             return
         rows = bus.step(time_s, self.bus_link(observation))
+        arrivals = bus.arrivals
         if self.faults is not None and self.faults.any_failed:  # a silent robot hears nothing
             failed = self.faults.failed
             rows = [() if failed[robot] else row for robot, row in enumerate(rows)]
+            arrivals = {kind: columns.where(~np.asarray(failed, dtype=bool)[columns.receiver])
+                        for kind, columns in arrivals.items()}
         self._inbox = tuple(tuple(row) for row in rows)
+        self._arrivals = MappingProxyType(arrivals) if arrivals else NO_ARRIVALS
         self._bus_flowed = True
 
     def bus_link(self, observation: Observation) -> LinkConditions:

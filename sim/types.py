@@ -17,7 +17,7 @@ import numpy as np
 from sim.geometry import Boxes
 
 if TYPE_CHECKING:
-    from sim.radio.bus import Delivery, Message
+    from sim.radio.bus import Arrivals, Delivery, Message
 
 
 @dataclass(frozen=True)
@@ -194,6 +194,12 @@ class Observation:
     # arrival: the messages the strategy's Commands.outbox sent (its own or earlier ticks'). In a Simulation
     # N tuples; () in a hand-built observation.
     inbox: tuple[tuple[Delivery, ...], ...] = ()
+    # The arrivals of the messages sent ``as_arrays`` (sim.radio.bus.Arrivals, per kind), which are not in
+    # ``inbox``: one array per column instead of a Delivery per receiver. Empty when none arrived.
+    arrivals: Mapping[str, Arrivals] = field(default_factory=lambda: NO_ARRIVALS)
+
+
+NO_ARRIVALS: Mapping[str, Any] = MappingProxyType({})  # an Observation's arrivals when none came
 
 
 def readonly(array: Any) -> np.ndarray:

@@ -64,11 +64,19 @@ def test_the_compiled_bus_is_the_reference_loop(case):
                 continue
             for bus in buses:
                 # even sizes are periodic state (latest_only): the queue's superseding against the reference's
-                bus.send(Message("kind%d" % (size % 3), sender, targets, None, size, latest_only=size % 2 == 0),
+                # sizes divisible by 5 arrive as columns (as_arrays), the consensus's way
+                columns = size % 5 == 0
+                bus.send(Message("kind%d" % (size % 3), sender, targets, float(size) if columns else None, size,
+                                 latest_only=size % 2 == 0, as_arrays=columns),
                          time_s + offset * period_s)
         fast, reference = (bus.step(time_s, link) for bus in buses)
         assert [[(d.receiver, d.message.sequence, d.arrival_s) for d in row] for row in fast] == \
                [[(d.receiver, d.message.sequence, d.arrival_s) for d in row] for row in reference]
+        assert not any(d.message.as_arrays for row in fast for d in row)
+        assert buses[0].arrivals.keys() == buses[1].arrivals.keys()
+        for kind, columns in buses[0].arrivals.items():
+            expected = buses[1].arrivals[kind]
+            assert all(np.array_equal(a, b) for a, b in zip(vars(columns).values(), vars(expected).values()))
         assert buses[0].rng.bit_generator.state == buses[1].rng.bit_generator.state  # the same draws
         assert all(_same(a, b) for a, b in zip(vars(buses[0].last_tick).values(),
                                                vars(buses[1].last_tick).values()))

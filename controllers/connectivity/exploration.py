@@ -236,13 +236,15 @@ class ExplorationController:
 
     # -- one control tick ---------------------------------------------------
 
-    def step(self, time: float, positions, velocities, adjacency, connectivity_force, inbox=()) -> ExplorationStep:
+    def step(self, time: float, positions, velocities, adjacency, connectivity_force, inbox=(),
+             arrivals=None) -> ExplorationStep:
         """Algorithms 1 and 2 for one control tick.
 
         time: s; positions, velocities: (N, 3) virtual points, m and m/s;
         adjacency: (N, N) current communication graph (bool or weights > 0;
         the in-process exchange's); connectivity_force: (N, 3) f_lambda, N;
-        inbox: per robot the bus's deliveries since the last tick (over the bus).
+        inbox: per robot the bus's deliveries since the last tick (over the bus),
+        arrivals: the bus's columns of the messages sent as arrays (the consensus; ``Observation.arrivals``).
         """
         p = self.params
         n = self.n_robots
@@ -289,7 +291,7 @@ class ExplorationController:
             remaining[travelers] = references.remaining
 
         if self.over_bus:  # the consensus messages here, the rest (election, token) to the role machine
-            heard, consensus_links, inbox = split_consensus(inbox, n)
+            heard, consensus_links, inbox = split_consensus(inbox, n, arrivals)
         changes = self.role_machine.step(self.tick, adjacency, got_target, near_target, task_done, remaining,
                                          inbox, float(time))
         roles = changes.roles
@@ -331,8 +333,8 @@ class ExplorationController:
         outbox = ()
         if self.over_bus:
             outbox = (*self.role_machine.outbox,
-                      *(Message(CONSENSUS_KIND, i, None, float(estimates[i]), FLOAT64_BYTES, latest_only=True)
-                        for i in range(n)))
+                      *(Message(CONSENSUS_KIND, i, None, value, FLOAT64_BYTES, latest_only=True, as_arrays=True)
+                        for i, value in enumerate(estimates.tolist())))
 
         self.tick += 1
         self.last_time = float(time)
@@ -360,33 +362,41 @@ class ExplorationController:
         )
 
 
-def heard_estimates(inbox, n_robots: int) -> tuple[np.ndarray, np.ndarray]:
+def heard_estimates(inbox, n_robots: int, arrivals=None) -> tuple[np.ndarray, np.ndarray]:
     """Over the bus: heard[i, j], the estimate hat-Lambda_p^j in the latest consensus message that reached
-    robot i since the last tick (``inbox``, per robot in order of arrival), and which arrived (bool (N, N));
-    NaN and False elsewhere."""
-    heard, arrived, _ = split_consensus(inbox, n_robots)
+    robot i since the last tick (``inbox``, per robot in order of arrival, or ``arrivals``' consensus
+    columns), and which arrived (bool (N, N)); NaN and False elsewhere."""
+    heard, arrived, _ = split_consensus(inbox, n_robots, arrivals)
     return heard, arrived
 
 
-def split_consensus(inbox, n_robots: int) -> tuple[np.ndarray, np.ndarray, list[list]]:
-    """``heard_estimates``' two arrays, and per robot its other deliveries (in order): one pass over the
-    inbox, so the role machine's readers do not walk the N - 1 consensus messages of every robot again."""
-    cells = n_robots * n_robots
-    heard = [math.nan] * cells  # row-major (N, N), as Python lists: cheaper per cell than ndarray indexing
-    arrived = [False] * cells
+def split_consensus(inbox, n_robots: int, arrivals=None) -> tuple[np.ndarray, np.ndarray, list]:
+    """``heard_estimates``' two arrays, and per robot its other deliveries (in order): the consensus's
+    columns (``arrivals``, sent as arrays) in one numpy pass, and one pass over the inbox for consensus
+    messages delivered as rows, so the role machine's readers never walk them."""
+    heard = np.full((n_robots, n_robots), math.nan)
+    arrived = np.zeros((n_robots, n_robots), dtype=bool)
+    columns = arrivals.get(CONSENSUS_KIND) if arrivals else None
+    if columns is not None and len(columns):
+        # In arrival order per receiver; the latest of a pair wins (a latest_only sender has one a tick).
+        cell = columns.receiver * n_robots + columns.sender
+        flat_heard, flat_arrived = heard.reshape(-1), arrived.reshape(-1)
+        last = len(cell) - 1 - np.unique(cell[::-1], return_index=True)[1]
+        flat_heard[cell[last]] = columns.payload[last]
+        flat_arrived[cell] = True
+    if not any(any(d.message.kind == CONSENSUS_KIND for d in row) for row in inbox):
+        return heard, arrived, inbox
     rest: list[list] = [[] for _ in range(n_robots)]
     for robot, deliveries in enumerate(inbox):
         others = rest[robot]
-        row = robot * n_robots
         for delivery in deliveries:
             message = delivery.message
             if message.kind != CONSENSUS_KIND:
                 others.append(delivery)
             elif delivery.receiver == robot:
-                heard[row + message.sender] = message.payload
-                arrived[row + message.sender] = True
-    return (np.array(heard, dtype=float).reshape(n_robots, n_robots),
-            np.array(arrived, dtype=bool).reshape(n_robots, n_robots), rest)
+                heard[robot, message.sender] = message.payload
+                arrived[robot, message.sender] = True
+    return heard, arrived, rest
 
 
 @kernel

@@ -393,7 +393,7 @@ class ConnectedStrategy(Strategy):
 
         start = time.perf_counter()
         if self.heartbeats is not None:
-            for receiver, sender in self.heartbeats.step(t, observation.inbox):
+            for receiver, sender in self.heartbeats.step(t, observation.inbox, observation.arrivals):
                 self._events.append(f"t = {t:.2f} s: {self.names[receiver]} has heard nothing from "
                                     f"{self.names[sender]} for {p.heartbeat_timeout_s:g} s")
         state = connectivity_state(q, self.boxes, p)
@@ -432,7 +432,8 @@ class ConnectedStrategy(Strategy):
         else:
             f_lambda = generalized_connectivity_force(state.links, state.lambda2, state.fiedler, p)
         middle = time.perf_counter()
-        out = self.explorer.step(t, q, v, observation.links.adjacency, f_lambda, observation.inbox)
+        out = self.explorer.step(t, q, v, observation.links.adjacency, f_lambda, observation.inbox,
+                                 observation.arrivals)
         # f_lambda + f (z dropped for planar virtual dynamics), integrated; the acceleration (v' - v) / dt.
         q_next, v_next, acceleration = step_virtual_dynamics_applied(q, v, f_lambda, out.forces, self.planar,
                                                                      self.dt, p)

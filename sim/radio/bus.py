@@ -101,10 +101,15 @@ class Message:
     # True: it replaces its sender's waiting latest_only message of the same kind (none of whose frames has
     # gone out), taking its place in the queue: a state update where only the newest value counts
     latest_only: bool = False
+    # True: its arrivals come as columns (``MessageBus.arrivals``, ``Observation.arrivals``), not as one
+    # ``Delivery`` per receiver in the rows; the payload must be a number. The same frames, draws and losses.
+    as_arrays: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.size_bytes, (int, np.integer)) or self.size_bytes <= 0:
             raise ValueError(f"size_bytes must be a positive integer, got {self.size_bytes!r}")
+        if self.as_arrays and not isinstance(self.payload, (int, float, np.integer, np.floating)):
+            raise ValueError(f"a message sent as_arrays carries a number, got {type(self.payload).__name__}")
         if self.receivers is not None:
             if not isinstance(self.receivers, tuple):
                 raise ValueError("receivers must be a tuple of robot indices or None")
@@ -134,6 +139,42 @@ class Delivery:
     @property
     def latency_s(self) -> float:
         return self.arrival_s - self.message.sent_s
+
+
+@dataclass(frozen=True)
+class Arrivals:
+    """One kind's ``as_arrays`` messages that arrived in one period, one entry per (message, receiver): the
+    ``Delivery``s they stand for, as columns, by receiver, then by (arrival, sequence) as the rows are."""
+
+    receiver: np.ndarray  # (D,) int64
+    sender: np.ndarray  # (D,) int64
+    arrival_s: np.ndarray  # (D,) s
+    sent_s: np.ndarray  # (D,) s
+    sequence: np.ndarray  # (D,) int64
+    payload: np.ndarray  # (D,) float64
+
+    def __len__(self) -> int:
+        return len(self.receiver)
+
+    def where(self, keep: np.ndarray) -> Arrivals:
+        """The entries where ``keep`` ((D,) bool) holds."""
+        return Arrivals(*(column[keep] for column in vars(self).values()))
+
+
+def _arrivals_of(records: list[tuple[Message, list[int], float]]) -> Arrivals:
+    """``Arrivals`` from (message, receivers reached, arrival s) records, in the rows' order."""
+    counts = [len(reached) for _, reached, _ in records]
+    receiver = np.array([r for _, reached, _ in records for r in reached], dtype=np.int64)
+    sender = np.repeat(np.array([m.sender for m, _, _ in records], dtype=np.int64), counts)
+    arrival = np.repeat(np.array([a for _, _, a in records], dtype=float), counts)
+    sent = np.repeat(np.array([m.sent_s for m, _, _ in records], dtype=float), counts)
+    sequence = np.repeat(np.array([m.sequence for m, _, _ in records], dtype=np.int64), counts)
+    payload = np.repeat(np.array([m.payload for m, _, _ in records], dtype=float), counts)
+    order = np.lexsort((sequence, arrival, receiver))
+    columns = [column[order] for column in (receiver, sender, arrival, sent, sequence, payload)]
+    for column in columns:
+        column.flags.writeable = False
+    return Arrivals(*columns)
 
 
 class LinkState(Protocol):
@@ -390,6 +431,38 @@ def _schedule(arguments: tuple) -> int:
 _new_object = object.__new__
 
 
+def _rows_to_records(deliveries: list[list[Delivery]], records: dict[str, list]) -> None:
+    """Move the rows' deliveries of ``as_arrays`` messages into ``records`` (what the compiled period does
+    as it goes; the ideal bus and the reference make them as rows)."""
+    for receiver, row in enumerate(deliveries):
+        if any(d.message.as_arrays for d in row):
+            kept = []
+            for d in row:
+                if d.message.as_arrays:
+                    records.setdefault(d.message.kind, []).append((d.message, (receiver,), d.arrival_s))
+                else:
+                    kept.append(d)
+            deliveries[receiver] = kept
+
+
+def _latencies_in_row_order(deliveries: list[list[Delivery]], arrivals: Any) -> np.ndarray:
+    """Every delivery's latency, rows' and columns', in the order of rows that held them all (by receiver,
+    then (arrival, sequence)): the order the period's mean latency has always been summed in."""
+    rows = [(d.receiver, d.arrival_s, d.message.sequence, d.arrival_s - d.message.sent_s)
+            for row in deliveries for d in row]
+    receiver = [np.array([r[0] for r in rows], dtype=np.int64)]
+    arrival = [np.array([r[1] for r in rows], dtype=float)]
+    sequence = [np.array([r[2] for r in rows], dtype=np.int64)]
+    latency = [np.array([r[3] for r in rows], dtype=float)]
+    for columns in arrivals:
+        receiver.append(columns.receiver)
+        arrival.append(columns.arrival_s)
+        sequence.append(columns.sequence)
+        latency.append(columns.arrival_s - columns.sent_s)
+    order = np.lexsort((np.concatenate(sequence), np.concatenate(arrival), np.concatenate(receiver)))
+    return np.concatenate(latency)[order]
+
+
 def _arrival_order(delivery: Delivery) -> tuple[float, int]:
     return delivery.arrival_s, delivery.message.sequence
 
@@ -425,6 +498,9 @@ class MessageBus:
         # Set by a period whose frames all ended at distinct, increasing instants: each receiver's deliveries,
         # made in that order, are already by (arrival, sequence)
         self._arrivals_in_order = False
+        self._arrays_sent = False  # some message went as_arrays: the rows' such deliveries move to columns
+        self._array_records: dict[str, list[tuple[Message, Any, float]]] = {}  # this period's, per kind
+        self._arrivals: dict[str, Arrivals] = {}
         self._kinds: dict[str, _KindCounters] = {}
         self._elapsed_s = 0.0
         self._last: TickStats | None = TickStats(math.nan, 0, 0, math.nan, math.nan, 0)
@@ -464,6 +540,8 @@ class MessageBus:
                 queue.append(_Frame(stamped, payload, k == last, airtime, bits))
         self._waiting[stamped.sender] = self._waiting.get(stamped.sender, 0) + 1
         self._waiting_total += 1
+        if stamped.as_arrays:
+            self._arrays_sent = True
         return stamped
 
     def _frames(self, size_bytes: int) -> tuple[tuple[int, float, float], ...]:
@@ -526,7 +604,9 @@ class MessageBus:
 
         ``link`` gives this tick's (N, N) ``snr_db`` and ``carrier_sense``; under
         'ideal' it may be None (a broadcast then reaches every other robot).
+        The messages sent ``as_arrays`` are not in the rows: their arrivals are ``arrivals``.
         """
+        self._arrivals = {}
         if not self._queues_busy():
             # Nothing queued (no frame in flight either: a message's frames all go out of one queue).
             self._elapsed_s += self.control_period_s
@@ -537,6 +617,7 @@ class MessageBus:
         n = self._robot_count(link)
         before = self._totals()
         deliveries: list[list[Delivery]] = [[] for _ in range(n)]
+        records = self._array_records = {}
         if self.params.is_ideal:
             self._step_ideal(link, n, deliveries)
         else:
@@ -549,12 +630,22 @@ class MessageBus:
                 if len(row) > 1:
                     row.sort(key=_arrival_order)
         self._arrivals_in_order = False
+        if self._arrays_sent:
+            _rows_to_records(deliveries, records)
         after = self._totals()
         sent, addressed, delivered = (a - b for a, b in zip(after, before))
         latencies = [d.arrival_s - d.message.sent_s for row in deliveries for d in row]  # each one's latency_s
+        if records:
+            self._arrivals = {kind: _arrivals_of(records[kind]) for kind in records}
+            latencies = _latencies_in_row_order(deliveries, self._arrivals.values())
         self._last = TickStats(float(time_s), sent, delivered, delivered / addressed if addressed else math.nan,
-                               float(np.mean(latencies)) if latencies else math.nan, self.queued())
+                               float(np.mean(latencies)) if len(latencies) else math.nan, self.queued())
         return deliveries
+
+    @property
+    def arrivals(self) -> dict[str, Arrivals]:
+        """The last ``step``'s arrivals of the messages sent ``as_arrays``, per kind (only kinds that arrived)."""
+        return self._arrivals
 
     def _queues_busy(self) -> bool:
         return any(self._queues.values()) if self._queues else False
@@ -701,6 +792,7 @@ class MessageBus:
         self._arrivals_in_order = all(earlier < later for earlier, later in zip(finishes, finishes[1:]))
         kinds = self._kinds
         in_flight = self._in_flight
+        records = self._array_records
         for k, index in enumerate(sent_frame[:sent].tolist()):
             frame = frames[index]
             finish_s = finishes[k]
@@ -734,8 +826,14 @@ class MessageBus:
             if reached:
                 counters.delivered += len(reached)
                 counters.latencies_s += [finish_s - message.sent_s] * len(reached)
-                for receiver in reached:
-                    deliveries[receiver].append(_delivery(message, receiver, finish_s))
+                if message.as_arrays:
+                    kind_records = records.get(message.kind)
+                    if kind_records is None:
+                        kind_records = records[message.kind] = []
+                    kind_records.append((message, reached, finish_s))
+                else:
+                    for receiver in reached:
+                        deliveries[receiver].append(_delivery(message, receiver, finish_s))
 
     @property
     def _fading_draw(self) -> tuple[int, float]:

@@ -316,8 +316,10 @@ class HeartbeatMonitor:
         # was detected (a failure's detection time is the first of these after it).
         self.silence_detected_s: list[list[float]] = [[] for _ in range(n_robots)]
 
-    def step(self, time_s: float, inbox: tuple[tuple[Delivery, ...], ...]) -> list[tuple[int, int]]:
-        """Take this tick's inbox (per receiver) at ``time_s`` (s); the pairs (receiver, sender) declared
+    def step(self, time_s: float, inbox: tuple[tuple[Delivery, ...], ...], arrivals: Any = None
+             ) -> list[tuple[int, int]]:
+        """Take this tick's inbox (per receiver) and the bus's columns of messages sent as arrays
+        (``Observation.arrivals``, or None) at ``time_s`` (s); the pairs (receiver, sender) declared
         silent now."""
         last, silent = self.last_heard, self.silent
         for receiver, row in enumerate(inbox):
@@ -327,6 +329,15 @@ class HeartbeatMonitor:
                 if silent[receiver, sender]:
                     silent[receiver, sender] = False
                     self.withdrawn.append((time_s, receiver, sender))
+        for columns in (arrivals.values() if arrivals else ()):
+            np.maximum.at(last, (columns.receiver, columns.sender), columns.arrival_s)
+            heard = np.zeros_like(silent)
+            heard[columns.receiver, columns.sender] = True
+            back = heard & silent
+            if back.any():
+                for receiver, sender in zip(*np.nonzero(back)):
+                    self.withdrawn.append((time_s, int(receiver), int(sender)))
+                silent &= ~back
         quiet = np.isfinite(last) & (last < time_s - self.timeout_s) & ~silent
         new = [(int(i), int(j)) for i, j in zip(*np.nonzero(quiet))]
         for sender in {j for _, j in new}:
