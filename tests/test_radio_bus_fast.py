@@ -10,7 +10,7 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from sim.radio.bus import BusParameters, Message, MessageBus, ReferenceMessageBus, link_conditions
+from sim.radio.bus import BusParameters, Message, MessageBus, ReferenceMessageBus, _arrivals_of, broadcasts, link_conditions
 from sim.radio.presets import IEEE802154, NRF24, WIFI
 
 PRESETS = {"ieee802154": IEEE802154, "nrf24": NRF24, "wifi": WIFI}
@@ -123,3 +123,24 @@ def test_the_802154_curve_is_exactly_zero_from_the_buses_sure_snr():
     assert not np.any(ber)
     assert not np.any(channel.packet_error_rate(ber, 8 * 127))
     assert channel.ber_oqpsk_dsss_802154(np.array([sure - 2.0]))[0] > 0.0  # and the margin is not wide
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 6), st.sets(st.integers(0, 6), min_size=1), st.sampled_from([0.001, 0.002, 0.003])),
+                min_size=1, max_size=12))
+def test_the_columns_are_the_rows_order(records):
+    """``_arrivals_of``'s compiled ordering is numpy's lexsort by (receiver, arrival, sequence)."""
+    messages = [(replace(Message("consensus", sender, None, float(k), 8, as_arrays=True), sequence=k, sent_s=0.0),
+                 sorted(reached - {sender}) or [(sender + 1) % 7], arrival) for k, (sender, reached, arrival)
+                in enumerate(records)]
+    columns = _arrivals_of(messages)
+    entries = [(r, a, m.sequence, m.sender, m.payload) for m, reached, a in messages for r in reached]
+    entries.sort(key=lambda e: (e[0], e[1], e[2]))
+    assert list(zip(columns.receiver.tolist(), columns.arrival_s.tolist(), columns.sequence.tolist(),
+                    columns.sender.tolist(), columns.payload.tolist())) == entries
+
+
+def test_broadcasts_are_the_messages_one_by_one():
+    made = broadcasts("consensus", np.array([0.5, 0.25, 1.0]), 8, latest_only=True, as_arrays=True)
+    assert made == tuple(Message("consensus", i, None, v, 8, latest_only=True, as_arrays=True)
+                         for i, v in enumerate([0.5, 0.25, 1.0]))

@@ -80,7 +80,7 @@ from controllers.connectivity.travel import (
     row_norm,
 )
 from sim.compiled import kernel
-from sim.radio.bus import FLOAT64_BYTES, Message
+from sim.radio.bus import FLOAT64_BYTES, Message, broadcasts
 
 # Floor of the reference speed, as a fraction of cruise, when scaling the efficiency error.
 _MIN_REFERENCE_FRACTION = 0.1
@@ -333,8 +333,7 @@ class ExplorationController:
         outbox = ()
         if self.over_bus:
             outbox = (*self.role_machine.outbox,
-                      *(Message(CONSENSUS_KIND, i, None, value, FLOAT64_BYTES, latest_only=True, as_arrays=True)
-                        for i, value in enumerate(estimates.tolist())))
+                      *broadcasts(CONSENSUS_KIND, estimates, FLOAT64_BYTES, latest_only=True, as_arrays=True))
 
         self.tick += 1
         self.last_time = float(time)
@@ -378,12 +377,7 @@ def split_consensus(inbox, n_robots: int, arrivals=None) -> tuple[np.ndarray, np
     arrived = np.zeros((n_robots, n_robots), dtype=bool)
     columns = arrivals.get(CONSENSUS_KIND) if arrivals else None
     if columns is not None and len(columns):
-        # In arrival order per receiver; the latest of a pair wins (a latest_only sender has one a tick).
-        cell = columns.receiver * n_robots + columns.sender
-        flat_heard, flat_arrived = heard.reshape(-1), arrived.reshape(-1)
-        last = len(cell) - 1 - np.unique(cell[::-1], return_index=True)[1]
-        flat_heard[cell[last]] = columns.payload[last]
-        flat_arrived[cell] = True
+        _heard_cells(columns.receiver, columns.sender, columns.payload, heard, arrived)
     if not any(any(d.message.kind == CONSENSUS_KIND for d in row) for row in inbox):
         return heard, arrived, inbox
     rest: list[list] = [[] for _ in range(n_robots)]
@@ -397,6 +391,15 @@ def split_consensus(inbox, n_robots: int, arrivals=None) -> tuple[np.ndarray, np
                 heard[robot, message.sender] = message.payload
                 arrived[robot, message.sender] = True
     return heard, arrived, rest
+
+
+@kernel
+def _heard_cells(receiver, sender, payload, heard, arrived):
+    """heard[r, s] = the payload, arrived[r, s] = True for each entry in order (by arrival per receiver,
+    so the latest of a pair wins)."""
+    for d in range(receiver.shape[0]):
+        heard[receiver[d], sender[d]] = payload[d]
+        arrived[receiver[d], sender[d]] = True
 
 
 @kernel

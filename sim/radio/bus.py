@@ -119,6 +119,24 @@ class Message:
                 raise ValueError("receivers must not repeat")
 
 
+def broadcasts(kind: str, values: Any, size_bytes: int, latest_only: bool = False,
+               as_arrays: bool = False) -> tuple[Message, ...]:
+    """One broadcast ``Message`` per robot, robot i's carrying ``values[i]`` (a number each): every robot's
+    share of a per-tick state at once, checked once instead of per message."""
+    values = np.asarray(values, dtype=float).tolist()
+    if not values:
+        return ()
+    first = Message(kind, 0, None, values[0], size_bytes, latest_only=latest_only, as_arrays=as_arrays)
+    fields = first.__dict__
+    messages = [first]
+    for sender, value in enumerate(values[1:], start=1):
+        message = _new_object(Message)
+        message.__dict__.update(fields)
+        message.__dict__.update(sender=sender, payload=value)
+        messages.append(message)
+    return tuple(messages)
+
+
 def _stamped(message: Message, sequence: int, sent_s: float) -> Message:
     """``message`` with the bus's stamps: ``dataclasses.replace`` without re-running the checks it passed."""
     stamped = object.__new__(type(message))
@@ -126,6 +144,9 @@ def _stamped(message: Message, sequence: int, sent_s: float) -> Message:
     stamped.__dict__["sequence"] = sequence
     stamped.__dict__["sent_s"] = sent_s
     return stamped
+
+
+_new_object = object.__new__
 
 
 @dataclass(frozen=True)
@@ -161,20 +182,65 @@ class Arrivals:
         return Arrivals(*(column[keep] for column in vars(self).values()))
 
 
-def _arrivals_of(records: list[tuple[Message, list[int], float]]) -> Arrivals:
+def _arrivals_of(records: list[tuple[Message, Any, float]]) -> Arrivals:
     """``Arrivals`` from (message, receivers reached, arrival s) records, in the rows' order."""
-    counts = [len(reached) for _, reached, _ in records]
-    receiver = np.array([r for _, reached, _ in records for r in reached], dtype=np.int64)
-    sender = np.repeat(np.array([m.sender for m, _, _ in records], dtype=np.int64), counts)
-    arrival = np.repeat(np.array([a for _, _, a in records], dtype=float), counts)
-    sent = np.repeat(np.array([m.sent_s for m, _, _ in records], dtype=float), counts)
-    sequence = np.repeat(np.array([m.sequence for m, _, _ in records], dtype=np.int64), counts)
-    payload = np.repeat(np.array([m.payload for m, _, _ in records], dtype=float), counts)
-    order = np.lexsort((sequence, arrival, receiver))
-    columns = [column[order] for column in (receiver, sender, arrival, sent, sequence, payload)]
+    counts = np.array([len(reached) for _, reached, _ in records], dtype=np.int64)
+    receivers = np.array([r for _, reached, _ in records for r in reached], dtype=np.int64)
+    sender = np.array([m.sender for m, _, _ in records], dtype=np.int64)
+    arrival = np.array([a for _, _, a in records], dtype=float)
+    sent = np.array([m.sent_s for m, _, _ in records], dtype=float)
+    sequence = np.array([m.sequence for m, _, _ in records], dtype=np.int64)
+    payload = np.array([m.payload for m, _, _ in records], dtype=float)
+    total = len(receivers)
+    columns = (np.empty(total, dtype=np.int64), np.empty(total, dtype=np.int64), np.empty(total), np.empty(total),
+               np.empty(total, dtype=np.int64), np.empty(total))
+    _arrival_columns(counts, receivers, sender, arrival, sent, sequence, payload, *columns)
     for column in columns:
         column.flags.writeable = False
     return Arrivals(*columns)
+
+
+@kernel
+def _arrival_columns(counts, receivers, sender, arrival, sent, sequence, payload, out_receiver, out_sender,
+                     out_arrival, out_sent, out_sequence, out_payload):
+    """One entry per (message, receiver reached), ordered by receiver, then (arrival, sequence): the messages
+    (their receivers ``receivers``, ``counts`` each) by (arrival, sequence), then a stable counting sort by
+    receiver, which is what ``numpy.lexsort((sequence, arrival, receiver))`` gives (no two entries tie)."""
+    m = counts.shape[0]
+    starts = np.empty(m, dtype=np.int64)
+    total = 0
+    for k in range(m):
+        starts[k] = total
+        total += counts[k]
+    order = np.arange(m)
+    for a in range(1, m):  # insertion sort: the messages come nearly in order of arrival
+        k = order[a]
+        b = a - 1
+        while b >= 0 and (arrival[order[b]] > arrival[k] or (arrival[order[b]] == arrival[k]
+                                                            and sequence[order[b]] > sequence[k])):
+            order[b + 1] = order[b]
+            b -= 1
+        order[b + 1] = k
+    robots = 0
+    for d in range(total):
+        robots = max(robots, receivers[d] + 1)
+    slot = np.zeros(robots + 1, dtype=np.int64)
+    for d in range(total):
+        slot[receivers[d] + 1] += 1
+    for r in range(robots):
+        slot[r + 1] += slot[r]
+    for a in range(m):
+        k = order[a]
+        for d in range(starts[k], starts[k] + counts[k]):
+            receiver = receivers[d]
+            e = slot[receiver]
+            slot[receiver] += 1
+            out_receiver[e] = receiver
+            out_sender[e] = sender[k]
+            out_arrival[e] = arrival[k]
+            out_sent[e] = sent[k]
+            out_sequence[e] = sequence[k]
+            out_payload[e] = payload[k]
 
 
 class LinkState(Protocol):
@@ -428,9 +494,6 @@ def _schedule(arguments: tuple) -> int:
     return sent
 
 
-_new_object = object.__new__
-
-
 def _rows_to_records(deliveries: list[list[Delivery]], records: dict[str, list]) -> None:
     """Move the rows' deliveries of ``as_arrays`` messages into ``records`` (what the compiled period does
     as it goes; the ideal bus and the reference make them as rows)."""
@@ -630,14 +693,18 @@ class MessageBus:
                 if len(row) > 1:
                     row.sort(key=_arrival_order)
         self._arrivals_in_order = False
-        if self._arrays_sent:
+        if self._arrays_sent and (self.params.is_ideal or not self._medium_makes_columns):
             _rows_to_records(deliveries, records)
         after = self._totals()
         sent, addressed, delivered = (a - b for a, b in zip(after, before))
         latencies = [d.arrival_s - d.message.sent_s for row in deliveries for d in row]  # each one's latency_s
         if records:
             self._arrivals = {kind: _arrivals_of(records[kind]) for kind in records}
-            latencies = _latencies_in_row_order(deliveries, self._arrivals.values())
+            if latencies or len(records) > 1:
+                latencies = _latencies_in_row_order(deliveries, self._arrivals.values())
+            else:  # one kind's columns alone: already in the rows' order
+                columns = next(iter(self._arrivals.values()))
+                latencies = columns.arrival_s - columns.sent_s
         self._last = TickStats(float(time_s), sent, delivered, delivered / addressed if addressed else math.nan,
                                float(np.mean(latencies)) if len(latencies) else math.nan, self.queued())
         return deliveries
@@ -702,6 +769,7 @@ class MessageBus:
 
     # Tolerance on instants: airtimes are sums of microseconds; 1 ns never changes an order.
     _EPS_S = 1e-9
+    _medium_makes_columns = True  # _step_medium puts as_arrays messages' arrivals in the columns, not the rows
 
     def _step_medium(self, start_s: float, link: LinkState, n: int, deliveries: list[list[Delivery]]) -> None:
         """The medium's period, scheduled by the compiled ``_schedule_frames``: the same frames, instants and
@@ -936,6 +1004,8 @@ class ReferenceMessageBus(MessageBus):
     """The same bus, each period stepped by the plain loop that ``MessageBus``'s compiled scheduling replaces,
     and a superseding send's plain filter of the queue: the specification the fast bus is held to
     (tests/test_radio_bus_fast.py), frame by frame and draw by draw."""
+
+    _medium_makes_columns = False  # its rows hold every delivery; ``step`` moves the as_arrays ones out
 
     def _supersede(self, queue: deque[_Frame], newer: Message) -> None:
         stale = {frame.message.sequence for frame in queue

@@ -43,6 +43,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from sim.compiled import kernel
 from sim.radio.bus import INT32_BYTES, Delivery, Message
 
 RELIABLE_HEADER_BYTES = INT32_BYTES  # the transfer number
@@ -330,14 +331,9 @@ class HeartbeatMonitor:
                     silent[receiver, sender] = False
                     self.withdrawn.append((time_s, receiver, sender))
         for columns in (arrivals.values() if arrivals else ()):
-            np.maximum.at(last, (columns.receiver, columns.sender), columns.arrival_s)
-            heard = np.zeros_like(silent)
-            heard[columns.receiver, columns.sender] = True
-            back = heard & silent
-            if back.any():
-                for receiver, sender in zip(*np.nonzero(back)):
-                    self.withdrawn.append((time_s, int(receiver), int(sender)))
-                silent &= ~back
+            back = np.empty(len(columns), dtype=np.int64)
+            for k in back[:_hear_columns(columns.receiver, columns.sender, columns.arrival_s, last, silent, back)]:
+                self.withdrawn.append((time_s, int(columns.receiver[k]), int(columns.sender[k])))
         quiet = np.isfinite(last) & (last < time_s - self.timeout_s) & ~silent
         new = [(int(i), int(j)) for i, j in zip(*np.nonzero(quiet))]
         for sender in {j for _, j in new}:
@@ -347,3 +343,19 @@ class HeartbeatMonitor:
             silent[receiver, sender] = True
             self.detections.append((time_s, receiver, sender))
         return new
+
+
+@kernel
+def _hear_columns(receiver, sender, arrival_s, last_heard, silent, back):
+    """``HeartbeatMonitor.step``'s reading of one delivery, for each entry of a bus's columns in order: the
+    latest arrival per (receiver, sender), and a silent pair heard again no longer silent (its entry's index
+    put in ``back``). Returns how many came back."""
+    count = 0
+    for d in range(receiver.shape[0]):
+        r, s = receiver[d], sender[d]
+        last_heard[r, s] = max(last_heard[r, s], arrival_s[d])
+        if silent[r, s]:
+            silent[r, s] = False
+            back[count] = d
+            count += 1
+    return count
