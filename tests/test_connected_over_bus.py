@@ -25,7 +25,8 @@ from controllers.connectivity.exploration import CONSENSUS_KIND, heard_estimates
 from controllers.connectivity.roles import PRIME_CODE, SECONDARY_CODE, Role, RoleMachine
 from controllers.connectivity.travel import consensus_step
 from sim.radio.bus import BusParameters, Delivery, Message, MessageBus, link_conditions
-from sim.radio.presets import PRESETS
+from sim.radio.presets import IDEAL, PRESETS
+from sim.radio.protocols import HeartbeatMonitor
 from sim.scenario import load
 from test_connectivity_explore_election import random_graph
 
@@ -364,3 +365,33 @@ def test_split_consensus_is_heard_estimates_and_the_other_deliveries():
         np.testing.assert_array_equal(heard, expected_heard)
         np.testing.assert_array_equal(arrived, expected_arrived)
         assert rest == [[d for d in row if d.message.kind != CONSENSUS_KIND] for row in inbox]
+
+
+def test_the_consensus_as_columns_is_the_consensus_as_rows():
+    """The same messages sent as rows and as_arrays over two ideal buses: the split and the heartbeat
+    monitor read the same heard values, arrivals, other deliveries and last-heard times from both."""
+    rng = np.random.default_rng(5)
+    n = 5
+    buses = [MessageBus(BusParameters.from_preset(IDEAL), None, PERIOD_S, robot_count=n) for _ in range(2)]
+    monitors = [HeartbeatMonitor(n, 0.05) for _ in range(2)]
+    for tick in range(30):
+        t = tick * PERIOD_S
+        plan = [(int(rng.integers(n)), float(rng.random()), rng.random() < 0.8) for _ in range(int(rng.integers(0, 12)))]
+        for bus, columns in zip(buses, (False, True)):
+            for sender, value, consensus in plan:
+                kind = CONSENSUS_KIND if consensus else "election"
+                bus.send(Message(kind, sender, None, value, 8, as_arrays=columns and consensus), t)
+        rows = [bus.step(t, None) for bus in buses]
+        inboxes = [tuple(tuple(row) for row in r) for r in rows]
+        plain, columnar = (split_consensus(inbox, n, bus.arrivals) for inbox, bus in zip(inboxes, buses))
+        assert not buses[0].arrivals and (CONSENSUS_KIND in buses[1].arrivals) == any(c for *_, c in plan)
+        np.testing.assert_array_equal(plain[0], columnar[0])
+        np.testing.assert_array_equal(plain[1], columnar[1])
+        assert [list(row) for row in plain[2]] == [list(row) for row in columnar[2]]
+        declared = [monitor.step(t, inbox, bus.arrivals) for monitor, inbox, bus in zip(monitors, inboxes, buses)]
+        assert declared[0] == declared[1]
+        np.testing.assert_array_equal(monitors[0].last_heard, monitors[1].last_heard)
+        np.testing.assert_array_equal(monitors[0].silent, monitors[1].silent)
+    assert buses[0].summary() == buses[1].summary()
+    assert sorted(monitors[0].withdrawn) == sorted(monitors[1].withdrawn)
+    assert monitors[0].detections and monitors[0].withdrawn  # silences and hearing again both happened
