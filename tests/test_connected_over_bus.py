@@ -376,7 +376,8 @@ def test_the_consensus_as_columns_is_the_consensus_as_rows():
     monitors = [HeartbeatMonitor(n, 0.05) for _ in range(2)]
     for tick in range(30):
         t = tick * PERIOD_S
-        plan = [(int(rng.integers(n)), float(rng.random()), rng.random() < 0.8) for _ in range(int(rng.integers(0, 12)))]
+        plan = [(int(rng.integers(n)), float(rng.random()), rng.random() < 0.8)
+                for _ in range(int(rng.integers(0, 12)))]
         for bus, columns in zip(buses, (False, True)):
             for sender, value, consensus in plan:
                 kind = CONSENSUS_KIND if consensus else "election"

@@ -10,7 +10,8 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from sim.radio.bus import BusParameters, Message, MessageBus, ReferenceMessageBus, _arrivals_of, broadcasts, link_conditions
+from sim.radio.bus import (BusParameters, Message, MessageBus, ReferenceMessageBus, _arrivals_of, broadcasts,
+                           link_conditions)
 from sim.radio.presets import IEEE802154, NRF24, WIFI
 
 PRESETS = {"ieee802154": IEEE802154, "nrf24": NRF24, "wifi": WIFI}
@@ -126,8 +127,8 @@ def test_the_802154_curve_is_exactly_zero_from_the_buses_sure_snr():
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.tuples(st.integers(0, 6), st.sets(st.integers(0, 6), min_size=1), st.sampled_from([0.001, 0.002, 0.003])),
-                min_size=1, max_size=12))
+@given(st.lists(st.tuples(st.integers(0, 6), st.sets(st.integers(0, 6), min_size=1),
+                          st.sampled_from([0.001, 0.002, 0.003])), min_size=1, max_size=12))
 def test_the_columns_are_the_rows_order(records):
     """``_arrivals_of``'s compiled ordering is numpy's lexsort by (receiver, arrival, sequence)."""
     messages = [(replace(Message("consensus", sender, None, float(k), 8, as_arrays=True), sequence=k, sent_s=0.0),

@@ -119,6 +119,9 @@ class Message:
                 raise ValueError("receivers must not repeat")
 
 
+_new_object = object.__new__
+
+
 def broadcasts(kind: str, values: Any, size_bytes: int, latest_only: bool = False,
                as_arrays: bool = False) -> tuple[Message, ...]:
     """One broadcast ``Message`` per robot, robot i's carrying ``values[i]`` (a number each): every robot's
@@ -144,9 +147,6 @@ def _stamped(message: Message, sequence: int, sent_s: float) -> Message:
     stamped.__dict__["sequence"] = sequence
     stamped.__dict__["sent_s"] = sent_s
     return stamped
-
-
-_new_object = object.__new__
 
 
 @dataclass(frozen=True)
