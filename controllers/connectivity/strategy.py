@@ -402,6 +402,8 @@ class ConnectedStrategy(Strategy):
         self._drop_silent(t, observation.links.adjacency)
         team = None if not self.dropped or self.estimator is not None else self.in_team
         state = connectivity_state(q if team is None else q[team], self.boxes, p)
+        measured = self._measured_state(observation.position_error, team)
+        truth, state = state, state if measured is None else measured  # the force from what is measured
         estimate = None
         if self.estimator is not None:
             links = self._estimator_links(state, observation.links.adjacency)
@@ -454,6 +456,7 @@ class ConnectedStrategy(Strategy):
         body = observation.sensor_position if self.planar else observation.position
         body_obstacle_distance = point_clearance(self.boxes, body)
         robot_distance = pairwise_min_distance(q if team is None else q[team])
+        state = truth  # the invariants and the figures on the truth
         tick = self.stats.record(state, q, q_next, out.roles, obstacle_distance, body,
                                  body_obstacle_distance, robot_distance,
                                  None if estimate is None else estimate.lambda2)
@@ -473,6 +476,17 @@ class ConnectedStrategy(Strategy):
                             outbox=outbox)
         self.q, self.v = q_next, v_next
         return commands
+
+    def _measured_state(self, position_error: np.ndarray | None, team: np.ndarray | None):
+        """Under position noise (exact mode), the connectivity the robots measure: every virtual point
+        q_j seen displaced by robot j's position-fix error, as every robot measures j through the same fix
+        (docs/faults.md); None without noise."""
+        if position_error is None or self.estimator is not None:
+            return None
+        seen = self.q + position_error
+        if self.planar:
+            seen[:, 2] = self.plane_z
+        return connectivity_state(seen if team is None else seen[team], self.boxes, self.params)
 
     def _drop_silent(self, t: float, adjacency: np.ndarray) -> None:
         """Drop from the team every robot its team mates no longer hear (failures.py): out of the graph and
