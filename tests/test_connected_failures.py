@@ -65,8 +65,9 @@ def test_a_failed_explorers_targets_go_to_the_nearest_explorers(tmp_path):
     assert metrics["status"] in ("completed", "time limit")
 
 
-def test_no_one_is_dropped_without_a_fault():
-    sim = build_simulation(load("connected-office", IEEE, duration_s=2.0))
+@pytest.mark.parametrize("radio", [(), tuple(IEEE)], ids=["ideal", "ieee802154"])
+def test_no_one_is_dropped_without_a_fault(radio):
+    sim = build_simulation(load("connected-office", list(radio), duration_s=2.0))
     for _ in range(200):
         sim.tick()
     assert sim.strategy.in_team.all() and sim.strategy.dropped == []

@@ -7,9 +7,11 @@ team has stopped hearing is dropped from the team for good:
   robot still in the team that ever heard j counts j as silent
   (``sim.radio.protocols.HeartbeatMonitor``: nothing from j for
   ``heartbeat_timeout_s``). Under ``ideal`` the in-process exchange reads the
-  adjacency, where a silent robot has no link at all: robot j is dropped on
-  the first tick it has no link to anybody (detection is immediate, like a
-  heartbeat timeout of one tick).
+  adjacency, the disk model: a link between every pair in range and line of
+  sight, so a team mate in sight without a link hears nothing. Robot j is
+  dropped on the first tick at which every team mate in range and sight of
+  it has no link to it (detection is immediate, like a heartbeat timeout of
+  one tick). Without a fault that never happens.
 - **Its graph.** The dropped robot leaves the weights, lambda2, the
   gradient, the election and the consensus; its virtual point is frozen
   where it was (at rest), so it no longer drags the team nor is dragged by
@@ -61,15 +63,19 @@ class DroppedRobot:
                 "targets_lost": self.targets_lost, "token_reissued_to": self.token_reissued_to}
 
 
-def newly_silent(in_team: np.ndarray, adjacency: np.ndarray, heartbeats) -> list[int]:
-    """Robots of the team that every team mate who ever heard them counts as silent now (``heartbeats``,
-    a HeartbeatMonitor), or, under ``ideal`` (``heartbeats`` None), that have no link in ``adjacency``."""
+def newly_silent(in_team: np.ndarray, links, heartbeats) -> list[int]:
+    """Robots of the team that every team mate who ever heard them counts as silent now (``heartbeats``, a
+    HeartbeatMonitor). Under ``ideal`` (``heartbeats`` None) the disk model links every pair in range and
+    line of sight (``links``, the observation's): a team mate that sees j there without a link hears
+    nothing from j, so j is silent once every team mate in range and sight of it has no link to it (and at
+    least one has it in sight)."""
     out = []
     for j in np.flatnonzero(in_team):
         others = in_team.copy()
         others[j] = False
         if heartbeats is None:
-            if not (np.asarray(adjacency)[j, others].any() or np.asarray(adjacency)[others, j].any()):
+            in_sight = others & links.line_of_sight[j]
+            if in_sight.any() and not links.adjacency[j, in_sight].any():
                 out.append(int(j))
             continue
         heard = others & np.isfinite(heartbeats.last_heard[:, j])

@@ -310,6 +310,7 @@ class ConnectedStrategy(Strategy):
         self.stats = MissionStatistics(self.explorers, self.targets_total)
         self.in_team = np.ones(n, dtype=bool)  # robots not dropped as silent (failures.py)
         self.dropped: list[DroppedRobot] = []
+        self._measured_noise = False  # this tick's force came from the noisy measured graph
         self.roles = np.full(n, int(Role.CONNECTOR))
         self.completion_time: float | None = None
         self._finished = False
@@ -368,6 +369,12 @@ class ConnectedStrategy(Strategy):
         lambda2 = scalars.get("lambda2", np.inf)
         if not lambda2 > p.lambda2_min + LAMBDA2_TOLERANCE:
             lost = f"lambda2 = {lambda2:.3g} fell to lambda2_min = {p.lambda2_min:g} (connectivity lost)"
+            if self._measured_noise:
+                lost += ("; the robots keep the graph they measure through their position noise connected, "
+                         "and the true one lost a link")
+            if self.dropped:  # a dropped robot was the only link between parts of the team
+                lost += (f" after the team dropped the silent {', '.join(self.names[d.robot] for d in self.dropped)}"
+                         f" (t = {', '.join(f'{d.at_s:.2f}' for d in self.dropped)} s): its graph split without it")
             if self.estimator_over_radio:
                 estimate = self.estimator.estimate.lambda2
                 lost += (f"; the robots' estimates over the radio were {estimate.min():.3g} to {estimate.max():.3g}, "
@@ -399,10 +406,11 @@ class ConnectedStrategy(Strategy):
             for receiver, sender in self.heartbeats.step(t, observation.inbox):
                 self._events.append(f"t = {t:.2f} s: {self.names[receiver]} has heard nothing from "
                                     f"{self.names[sender]} for {p.heartbeat_timeout_s:g} s")
-        self._drop_silent(t, observation.links.adjacency)
+        self._drop_silent(t, observation.links)
         team = None if not self.dropped or self.estimator is not None else self.in_team
         state = connectivity_state(q if team is None else q[team], self.boxes, p)
         measured = self._measured_state(observation.position_error, team)
+        self._measured_noise = measured is not None
         truth, state = state, state if measured is None else measured  # the force from what is measured
         estimate = None
         if self.estimator is not None:
@@ -488,15 +496,15 @@ class ConnectedStrategy(Strategy):
             seen[:, 2] = self.plane_z
         return connectivity_state(seen if team is None else seen[team], self.boxes, self.params)
 
-    def _drop_silent(self, t: float, adjacency: np.ndarray) -> None:
+    def _drop_silent(self, t: float, links) -> None:
         """Drop from the team every robot its team mates no longer hear (failures.py): out of the graph and
         the election, its token re-issued if it took it along, its targets to the nearest explorer."""
         if self.heartbeats is None:
-            if self.in_team.all() and adjacency.any(axis=0).all():
-                return  # (the common case under ideal, in one pass: everybody has a link)
+            if np.array_equal(links.adjacency, links.line_of_sight):
+                return  # every pair in sight is linked: nobody is silent (always so without a fault)
         elif not self.heartbeats.silent.any():
             return
-        for robot in newly_silent(self.in_team, adjacency, self.heartbeats):
+        for robot in newly_silent(self.in_team, links, self.heartbeats):
             if self.in_team.sum() <= 2:
                 return  # a team of one has nobody to drop anybody
             machine = self.explorer.role_machine
