@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.connectivity.election import Handover, Reply
-from controllers.connectivity.roles import CONNECTOR_CODE, PRIME_CODE
+from controllers.connectivity.roles import CONNECTOR_CODE
 from controllers.connectivity.targets import Target
 
 
@@ -108,14 +108,9 @@ def drop_from_election(machine, robot: int, in_team: np.ndarray) -> tuple[bool, 
     if machine.over_bus:
         machine.tokens[robot].state = "idle"
         for i in np.flatnonzero(in_team):
-            token = machine.tokens[i]
-            if token.state == "handing_over" and token._offer is not None and token._offer[1] == robot:
-                token._offer, token.state = None, "holder"
+            machine.tokens[i].call_off(robot)
+            if machine.tokens[i].acts_as_holder:
                 machine.holds_token[i] = True
-            if token._confirmed is not None and token._confirmed[1] == robot:
-                token._confirmed, token._confirm, token.token_maybe_lost = None, None, False
-            if token.state == "pending" and token._pending is not None and token._pending[0] == robot:
-                token._pending, token._pending_data, token.state = None, None, "idle"
     else:
         machine.network.retire(lambda m: (isinstance(m, Handover) and m.winner == robot)
                                or (isinstance(m, Reply) and m.sender == robot))
@@ -150,7 +145,3 @@ def reassign_targets(explorer, robot: int, in_team: np.ndarray, explorers: np.nd
         nearest = takers[int(np.argmin(np.linalg.norm(q[takers] - target.position, axis=1)))]
         explorer.queues.push(int(nearest), target.position, target.dwell_time)
     return len(orphans), 0
-
-
-def was_prime(machine, robot: int) -> bool:
-    return bool(machine.roles[robot] == PRIME_CODE)

@@ -91,6 +91,10 @@ election.py, targets.py). Here:
   estimator_messages.MessageFedEstimator (one vector; gains
   ``estimator_message_speedup``); each robot's eq. (17) uses the Fiedler
   components it received. Under "ideal" it runs in process as before.
+- Robots never fail in the paper. A robot the team no longer hears is dropped for good (failures.py): out of
+  the graph, the election and the consensus, its virtual point frozen, a lost token re-issued, its targets
+  handed on. Under position noise (exact mode) the force comes from the virtual points as measured, each
+  displaced by its robot's fix error (``Observation.position_error``); the invariants from the true ones.
 - Exact mode with ``spectrum_smoothing`` > 0: V acts on a smooth lower bound
   of lambda2 (smooth_spectrum.py) instead of lambda2 itself.
 - Estimator mode with ``estimator_modes`` K >= 2 (not in the paper): the
