@@ -317,7 +317,7 @@ class Simulation:
         noisy = self.faults.noisy_positions(observation.time_s, observation.position)
         distance = np.linalg.norm(noisy[:, None, :] - noisy[None, :, :], axis=-1)
         links = dataclasses.replace(observation.links, distance=distance)
-        return dataclasses.replace(observation, position=noisy, links=links)
+        return dataclasses.replace(observation, position=noisy, links=links, position_error=noisy - observation.position)
 
     def tick(self, decorations_wanted: bool = True) -> tuple[Frame, bool]:
         """One control period. Returns the frame (state before the step,

@@ -194,6 +194,11 @@ class Observation:
     # arrival: the messages the strategy's Commands.outbox sent (its own or earlier ticks'). In a Simulation
     # N tuples; () in a hand-built observation.
     inbox: tuple[tuple[Delivery, ...], ...] = ()
+    # Under a position_noise fault (sim.faults), what each robot's position fix adds to its true position,
+    # (N, 3), m: the error of ``position``. A strategy that models its own relative measurements (the
+    # continuous-connectivity method's virtual points) applies it to what it measures, never to correct
+    # anything. None without noise.
+    position_error: np.ndarray | None = None
     # The arrivals of the messages sent ``as_arrays`` (sim.radio.bus.Arrivals, per kind), which are not in
     # ``inbox``: one array per column instead of a Delivery per receiver. Empty when none arrived.
     arrivals: Mapping[str, Arrivals] = field(default_factory=lambda: NO_ARRIVALS)

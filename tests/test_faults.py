@@ -226,10 +226,13 @@ def test_a_fault_never_crashes_a_run(tmp_path, scenario, radio):
     result = run(load(scenario, [*radio, faults], duration_s=3.0), tmp_path / "out")
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert metrics["status"] in ("completed", "time limit", "diverged"), metrics["message"]
-    assert "robot 1 failed at 1.0 s (stop)" in metrics["message"] and "robot 2 failed at 1.5 s (drift)" in metrics["message"]
     assert [f["kind"] for f in metrics["faults"]] == ["robot_failure", "robot_failure", "position_noise",
                                                       "radio_blackout"]
-    assert all(f["happened"] for f in metrics["faults"])
+    happened = [f for f in metrics["faults"] if f["happened"]]
+    for fault, named in zip(metrics["faults"][:2], ("robot 1 failed at 1.0 s (stop)", "robot 2 failed at 1.5 s (drift)")):
+        assert (named in metrics["message"]) == fault["happened"], metrics["message"]
+    if len(happened) < len(metrics["faults"]):  # the connected method's measured graph: the true one may break
+        assert metrics["status"] == "diverged" and "position noise" in metrics["message"], metrics["message"]
     assert result.status.value == metrics["status"]
 
 

@@ -489,3 +489,21 @@ def test_new_parameters_take_effect_on_the_next_message():
     slow = float(replace(BusParameters.from_preset(IEEE802154), bitrate_bps=bus.params.bitrate_bps).airtime_s(40))
     assert second.latency_s == pytest.approx(slow, rel=1e-12)
     assert second.latency_s > 1.5 * first.latency_s  # the bits take twice as long; the fixed overhead does not
+
+
+def test_calling_off_a_transfer_to_a_dead_robot_gives_the_token_back_to_its_sender():
+    channel_ = ScriptedChannel([(False, 0)], 3)
+    # the offer to robot 2 leaves at tick 0; robot 2 dies before any of it arrives (its deliveries dropped)
+    links = [ReliableLink(channel_, r, timeout_s=2 * PERIOD_S, max_attempts=50) for r in range(3)]
+    tokens = [TokenHandover(link) for link in links]
+    tokens[0].state = "holder"
+    tokens[0].hand_over(2, 0.0)
+    for k in range(1, 5):
+        rows = channel_.step(k)
+        for robot in range(2):  # robot 2 is silent and deaf
+            tokens[robot].handle(links[robot].poll(k * PERIOD_S, rows[robot]), k * PERIOD_S)
+    assert tokens[0].state == "handing_over" and not any(token.acts_as_holder for token in tokens)
+    tokens[0].call_off(2)
+    assert tokens[0].acts_as_holder and sum(token.acts_as_holder for token in tokens) == 1
+    tokens[1].call_off(2)  # no transfer with robot 2: nothing changes
+    assert tokens[1].state == "idle"

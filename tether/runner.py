@@ -149,15 +149,42 @@ def _failure_detections(metrics: dict[str, Any]) -> None:
     mate counted it silent (the strategy's ``silence_detected_s``; null: never within the run). Only for
     strategies that watch heartbeats."""
     detected = metrics.get("silence_detected_s")
-    if detected is None or "faults" not in metrics:
+    if "faults" not in metrics:
         return
+    dropped = {entry["robot"]: entry for entry in metrics.get("dropped_robots", ())}
     for fault in metrics["faults"]:
-        if fault["kind"] == "robot_failure" and fault["happened"]:
-            after = [t - fault["at_s"] for t in detected[fault["robot"]] if t >= fault["at_s"]]
+        if fault["kind"] != "robot_failure" or not fault["happened"]:
+            continue
+        robot = fault["robot"]
+        if detected is not None:
+            after = [t - fault["at_s"] for t in detected[robot] if t >= fault["at_s"]]
             fault["detected_after_s"] = min(after) if after else None
             noticed = (f"noticed by a team mate {min(after):.2f} s after its failure" if after
                        else "never noticed by its team mates")
-            metrics["message"] += f"; robot {fault['robot']}'s silence {noticed}"
+            metrics["message"] += f"; robot {robot}'s silence {noticed}"
+        if "dropped_robots" in metrics:  # a strategy that drops silent robots from its team
+            _failure_consequence(metrics, fault, dropped.get(robot))
+
+
+def _failure_consequence(metrics: dict[str, Any], fault: dict[str, Any], dropped: dict[str, Any] | None) -> None:
+    """A failed robot's ``dropped_after_s``, ``targets_reassigned`` and ``targets_lost`` in ``faults``
+    (the strategy's ``dropped_robots``), and the consequence in the run's message."""
+    robot, at_s = fault["robot"], fault["at_s"]
+    if dropped is None or dropped["dropped_at_s"] < at_s - 1e-9:
+        fault.update(dropped_after_s=None, targets_reassigned=0, targets_lost=0)
+        metrics["message"] += f"; robot {robot} failed at {at_s:.1f} s and was never dropped from the team"
+        return
+    reassigned, lost = dropped["targets_reassigned"], dropped["targets_lost"]
+    fault.update(dropped_after_s=dropped["dropped_at_s"] - at_s, targets_reassigned=reassigned, targets_lost=lost)
+    fault.setdefault("detected_after_s", dropped["dropped_at_s"] - at_s)
+    text = f"; robot {robot} failed at {at_s:.1f} s"
+    total = reassigned + lost
+    text += f"; {reassigned} of its {total} targets reassigned" if total else "; it had no targets left"
+    if lost:
+        text += f", {lost} lost (no explorer left)"
+    if dropped["token_reissued_to"] is not None:
+        text += f"; the token was re-issued to robot {dropped['token_reissued_to']}"
+    metrics["message"] += text
 
 
 def _metrics(scenario: Scenario, sim: Simulation, status: Status, message: str, wall: float,

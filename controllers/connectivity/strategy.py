@@ -91,6 +91,10 @@ election.py, targets.py). Here:
   estimator_messages.MessageFedEstimator (one vector; gains
   ``estimator_message_speedup``); each robot's eq. (17) uses the Fiedler
   components it received. Under "ideal" it runs in process as before.
+- Robots never fail in the paper. A robot the team no longer hears is dropped for good (failures.py): out of
+  the graph, the election and the consensus, its virtual point frozen, a lost token re-issued, its targets
+  handed on. Under position noise (exact mode) the force comes from the virtual points as measured, each
+  displaced by its robot's fix error (``Observation.position_error``); the invariants from the true ones.
 - Exact mode with ``spectrum_smoothing`` > 0: V acts on a smooth lower bound
   of lambda2 (smooth_spectrum.py) instead of lambda2 itself.
 - Estimator mode with ``estimator_modes`` K >= 2 (not in the paper): the
@@ -112,6 +116,7 @@ from controllers.connectivity.dynamics import step_virtual_dynamics_applied
 from controllers.connectivity.estimator import FiedlerEstimator, SubspaceEstimator, ritz_connectivity_gradient
 from controllers.connectivity.estimator_messages import MessageFedEstimator
 from controllers.connectivity.exploration import ExplorationController, ExplorationStep
+from controllers.connectivity.failures import DroppedRobot, drop_from_election, newly_silent, reassign_targets
 from controllers.connectivity.graph import connectivity_state, generalized_connectivity_force
 from controllers.connectivity.mission import (
     MissionStatistics,
@@ -307,6 +312,9 @@ class ConnectedStrategy(Strategy):
                 for _ in range(warmup_steps):
                     self.estimator.step(weights, _WARMUP_STEP_S, consensus)
         self.stats = MissionStatistics(self.explorers, self.targets_total)
+        self.in_team = np.ones(n, dtype=bool)  # robots not dropped as silent (failures.py)
+        self.dropped: list[DroppedRobot] = []
+        self._measured_noise = False  # this tick's force came from the noisy measured graph
         self.roles = np.full(n, int(Role.CONNECTOR))
         self.completion_time: float | None = None
         self._finished = False
@@ -365,6 +373,12 @@ class ConnectedStrategy(Strategy):
         lambda2 = scalars.get("lambda2", np.inf)
         if not lambda2 > p.lambda2_min + LAMBDA2_TOLERANCE:
             lost = f"lambda2 = {lambda2:.3g} fell to lambda2_min = {p.lambda2_min:g} (connectivity lost)"
+            if self._measured_noise:
+                lost += ("; the robots keep the graph they measure through their position noise connected, "
+                         "and the true one lost a link")
+            if self.dropped:  # a dropped robot was the only link between parts of the team
+                lost += (f" after the team dropped the silent {', '.join(self.names[d.robot] for d in self.dropped)}"
+                         f" (t = {', '.join(f'{d.at_s:.2f}' for d in self.dropped)} s): its graph split without it")
             if self.estimator_over_radio:
                 estimate = self.estimator.estimate.lambda2
                 lost += (f"; the robots' estimates over the radio were {estimate.min():.3g} to {estimate.max():.3g}, "
@@ -396,7 +410,12 @@ class ConnectedStrategy(Strategy):
             for receiver, sender in self.heartbeats.step(t, observation.inbox, observation.arrivals):
                 self._events.append(f"t = {t:.2f} s: {self.names[receiver]} has heard nothing from "
                                     f"{self.names[sender]} for {p.heartbeat_timeout_s:g} s")
-        state = connectivity_state(q, self.boxes, p)
+        self._drop_silent(t, observation.links)
+        team = None if not self.dropped or self.estimator is not None else self.in_team
+        state = connectivity_state(q if team is None else q[team], self.boxes, p)
+        measured = self._measured_state(observation.position_error, team)
+        self._measured_noise = measured is not None
+        truth, state = state, state if measured is None else measured  # the force from what is measured
         estimate = None
         if self.estimator is not None:
             links = self._estimator_links(state, observation.links.adjacency)
@@ -431,19 +450,25 @@ class ConnectedStrategy(Strategy):
             f_lambda = -guarded_potential_slope(smooth, p) * gradient
         else:
             f_lambda = generalized_connectivity_force(state.links, state.lambda2, state.fiedler, p)
+        adjacency = observation.links.adjacency
+        if team is not None:  # the dropped robots feel no force and are no one's neighbour
+            f_lambda = _scatter_rows(f_lambda, team)
+            adjacency = adjacency & team[:, None] & team[None, :]
         middle = time.perf_counter()
-        out = self.explorer.step(t, q, v, observation.links.adjacency, f_lambda, observation.inbox,
-                                 observation.arrivals)
+        out = self.explorer.step(t, q, v, adjacency, f_lambda, observation.inbox, observation.arrivals)
         # f_lambda + f (z dropped for planar virtual dynamics), integrated; the acceleration (v' - v) / dt.
         q_next, v_next, acceleration = step_virtual_dynamics_applied(q, v, f_lambda, out.forces, self.planar,
                                                                      self.dt, p)
+        if team is not None:  # a dropped robot's virtual point stays where it was dropped, at rest
+            q_next[~team], v_next[~team], acceleration[~team] = q[~team], 0.0, 0.0
         self.timings["lambda2"] += middle - start
         self.timings["forces"] += time.perf_counter() - middle
 
         obstacle_distance = point_clearance(self.boxes, q)
         body = observation.sensor_position if self.planar else observation.position
         body_obstacle_distance = point_clearance(self.boxes, body)
-        robot_distance = pairwise_min_distance(q)
+        robot_distance = pairwise_min_distance(q if team is None else q[team])
+        state = truth  # the invariants and the figures on the truth
         tick = self.stats.record(state, q, q_next, out.roles, obstacle_distance, body,
                                  body_obstacle_distance, robot_distance,
                                  None if estimate is None else estimate.lambda2)
@@ -463,6 +488,40 @@ class ConnectedStrategy(Strategy):
                             outbox=outbox)
         self.q, self.v = q_next, v_next
         return commands
+
+    def _measured_state(self, position_error: np.ndarray | None, team: np.ndarray | None):
+        """Under position noise (exact mode), the connectivity the robots measure: every virtual point
+        q_j seen displaced by robot j's position-fix error, as every robot measures j through the same fix
+        (docs/faults.md); None without noise."""
+        if position_error is None or self.estimator is not None:
+            return None
+        seen = self.q + position_error
+        if self.planar:
+            seen[:, 2] = self.plane_z
+        return connectivity_state(seen if team is None else seen[team], self.boxes, self.params)
+
+    def _drop_silent(self, t: float, links) -> None:
+        """Drop from the team every robot its team mates no longer hear (failures.py): out of the graph and
+        the election, its token re-issued if it took it along, its targets to the nearest explorer."""
+        if self.heartbeats is None:
+            if np.array_equal(links.adjacency, links.line_of_sight):
+                return  # every pair in sight is linked: nobody is silent (always so without a fault)
+        elif not self.heartbeats.silent.any():
+            return
+        for robot in newly_silent(self.in_team, links, self.heartbeats):
+            if self.in_team.sum() <= 2:
+                return  # a team of one has nobody to drop anybody
+            machine = self.explorer.role_machine
+            was_prime = bool(machine.roles[robot] == PRIME_CODE)
+            self.in_team[robot] = False
+            held, heir = drop_from_election(machine, robot, self.in_team)
+            reassigned, lost = reassign_targets(self.explorer, robot, self.in_team, self.explorers, self.q)
+            self.v[robot] = 0.0
+            self.dropped.append(DroppedRobot(robot, float(t), was_prime, held, reassigned, lost, heir))
+            self._events.append(f"t = {t:.2f} s: the team drops the silent {self.names[robot]}"
+                                f"{' (prime traveler)' if was_prime else ''}; {reassigned} of its targets "
+                                f"reassigned, {lost} lost"
+                                + (f"; {self.names[heir]} takes a new token" if heir is not None else ""))
 
     # ------------------------------------------------------------------ outputs
     def _note_changes(self, t: float, out: ExplorationStep) -> None:
@@ -538,7 +597,8 @@ class ConnectedStrategy(Strategy):
             robot_scalars=robot_scalars,
             robot_scalar_levels={"role": ROLE_LEVELS},
             legend=LEGEND,
-            link_weights=state.weights,
+            link_weights=state.weights if len(state.weights) == len(roles) else _scatter_square(state.weights,
+                                                                                                self.in_team),
             robot_colors=colors,
             paths=paths,
             markers=out.targets[has_target],
@@ -569,6 +629,7 @@ class ConnectedStrategy(Strategy):
             "token_recoveries": self.explorer.role_machine.token_recoveries,
             **self.stats.summary(),
             **self._heartbeat_summary(),
+            "dropped_robots": [d.summary() for d in self.dropped],
         }
 
     def _heartbeat_summary(self) -> dict:
@@ -580,3 +641,17 @@ class ConnectedStrategy(Strategy):
         return {"silent_neighbour_detections": len(monitor.detections),
                 "silent_neighbour_withdrawals": len(monitor.withdrawn),
                 "silence_detected_s": [list(times) for times in monitor.silence_detected_s]}
+
+
+def _scatter_rows(rows: np.ndarray, team: np.ndarray) -> np.ndarray:
+    """(M, 3) rows of the team's robots as (N, 3), zero for the dropped ones."""
+    out = np.zeros((len(team), rows.shape[1]))
+    out[team] = rows
+    return out
+
+
+def _scatter_square(weights: np.ndarray, team: np.ndarray) -> np.ndarray:
+    """(M, M) weights among the team as (N, N), zero for the dropped robots' links."""
+    out = np.zeros((len(team), len(team)))
+    out[np.ix_(team, team)] = weights
+    return out

@@ -285,6 +285,17 @@ class TokenHandover:
                 self.token_data = self._pending_data
                 self.state = "holder"
 
+    def call_off(self, peer: int) -> None:
+        """Forget every transfer with ``peer``, a robot that will never answer again (dropped as failed):
+        an offer to it is taken back (this robot holds the token again), a confirm to it is no longer
+        re-sent, and an offer from it no longer awaited."""
+        if self.state == "handing_over" and self._offer is not None and self._offer[1] == peer:
+            self._offer, self.state = None, "holder"
+        if self._confirmed is not None and self._confirmed[1] == peer:
+            self._confirmed, self._confirm, self.token_maybe_lost = None, None, False
+        if self.state == "pending" and self._pending is not None and self._pending[0] == peer:
+            self._pending, self._pending_data, self.state = None, None, "idle"
+
     def resend_confirm(self, time_s: float) -> None:
         """After ``token_maybe_lost``: send the last confirm again, as a new reliable transfer.
 
