@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-import tether  # noqa: F401 (registers the built-in scenarios)
+import tether.catalog  # noqa: F401 (registers the built-in scenarios)
 from controllers.lowlevel.actuation import LowLevelControl
 from sim.loop import Simulation
 from sim.radio.bus import Message

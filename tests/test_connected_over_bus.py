@@ -11,7 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import tether  # noqa: F401 (registers the built-in scenarios)
+import tether.catalog  # noqa: F401 (registers the built-in scenarios)
 from controllers.connectivity.election import (
     ELECTION_KIND,
     BusFlooding,

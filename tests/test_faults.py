@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-import tether  # noqa: F401 (registers the built-in scenarios)
+import tether.catalog  # noqa: F401 (registers the built-in scenarios)
 from controllers.lowlevel.actuation import LowLevelControl
 from sim.config import ConfigError
 from sim.faults import IDEAL_BLACKOUT_CUT_DB, FaultState, PositionNoise

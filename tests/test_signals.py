@@ -30,11 +30,11 @@ WAIT_LIMIT_S = 20.0  # what a test waits before it calls the run hung (a loaded 
 class Run:
     """A ``tether run`` in its own process group, its output in files (a pipe could fill)."""
 
-    def __init__(self, tmp_path: Path, *args: str):
+    def __init__(self, tmp_path: Path, *args: str, module: str = "tether.cli"):
         self.out = tmp_path / "out"
         self.log_out, self.log_err = tmp_path / "stdout.txt", tmp_path / "stderr.txt"
         with open(self.log_out, "w") as stdout, open(self.log_err, "w") as stderr:
-            self.proc = subprocess.Popen([sys.executable, "-m", "tether.cli", "run", *args, "--out", str(self.out)],
+            self.proc = subprocess.Popen([sys.executable, "-m", module, "run", *args, "--out", str(self.out)],
                                          stdout=stdout, stderr=stderr, env=ENV, cwd=REPO, start_new_session=True)
         self.staging = tmp_path / f"out.partial-{self.proc.pid}"
         self.started = time.monotonic()
@@ -206,6 +206,48 @@ def test_a_signal_during_setup_writes_nothing(sig, tmp_path):
         assert run.metrics()["status"] == "interrupted"
     else:
         assert "nothing written" in run.output()
+
+
+# ---------------------------------------------------------------- while the command starts
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, pytest.param(signal.SIGTERM, marks=pytest.mark.slow)],
+                         ids=["ctrl-c", "sigterm"])
+def test_a_signal_while_the_libraries_load_prints_one_line(sig, tmp_path):
+    # 0.1 s after the start the command is still importing numpy, scipy and MuJoCo (1 s or more): the
+    # entry point (python -m tether, as the tether command) has taken the signals before those imports.
+    run = Run(tmp_path, str(long_tiny(tmp_path)), "--quiet", module="tether")
+    time.sleep(0.1)
+    took = run.signal_group(sig)
+    assert run.proc.returncode == 130, run.output()
+    assert took < EXIT_LIMIT_S
+    run.assert_clean()
+    lines = run.log_err.read_text().strip().splitlines()
+    assert len(lines) == 1 and "interrupted" in lines[0] and "nothing written" in lines[0], lines
+    assert not run.out.exists() and not run.staging.exists()
+
+
+@pytest.mark.slow
+def test_ctrl_c_at_any_moment_of_a_short_run_is_clean(tmp_path):
+    # Start-up, set-up, ticks, closing and the interpreter's own exit, as the delay grows: every outcome
+    # is 0 (the run was over) or 130, never a traceback, a death by the signal (-2) or a staging folder.
+    codes = []
+    for index, delay_s in enumerate([0.05, 0.4, 0.8, 1.2, 1.6, 2.0, 2.5, 3.0, 4.0]):
+        folder = tmp_path / str(index)
+        folder.mkdir()
+        run = Run(folder, str(tiny(folder)), "--quiet", module="tether")
+        time.sleep(delay_s)
+        try:
+            os.killpg(run.proc.pid, signal.SIGINT)
+        except ProcessLookupError:
+            pass
+        run.proc.wait(timeout=WAIT_LIMIT_S)
+        codes.append(run.proc.returncode)
+        assert run.proc.returncode in (0, 130), (delay_s, run.output())
+        run.assert_clean()
+        assert not run.staging.exists()
+        if run.out.exists():
+            assert run.metrics()["status"] in ("completed", "interrupted")
+    print("exit codes by delay:", codes)
 
 
 # ---------------------------------------------------------------- while closing

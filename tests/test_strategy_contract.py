@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import tether  # noqa: F401 (registers the built-in strategies and scenarios)
+import tether.catalog  # noqa: F401 (registers the built-in strategies and scenarios)
 from sim.config import ConfigError
 from sim.scenario import MODELS_DIR, builtin_scenarios, load
 from sim.strategy import Status, Strategy, WrappingStrategy, strategy_class, strategy_kinds, strategy_params_class

@@ -19,6 +19,7 @@ import sys
 import time
 from pathlib import Path
 
+import tether.catalog  # noqa: F401 (registers the built-in strategies and scenarios)
 from sim.config import ConfigError
 from sim.strategy import Status
 

@@ -14,7 +14,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-import tether  # noqa: F401 (registers the built-in strategies and scenarios)
+import tether.catalog  # noqa: F401 (registers the built-in strategies and scenarios)
 from controllers.lowlevel.actuation import LowLevelControl
 from sim.config import ConfigError
 from sim.estimation_observer import EstimationMetrics
