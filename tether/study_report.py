@@ -45,6 +45,8 @@ TASK_METRICS = (
 FIGURE_PANELS = 4
 FAULT_FIELDS = ("targets_reassigned", "targets_lost", "meetings_missed", "e_g_before_fault_m",
                 "e_g_after_fault_m", "detected_after_s")
+SERIES_KEY_NAMES = {"faults.0.sigma_m": "position noise sigma (m)", "faults.0.robot": "failed robot"}
+DODGE = 0.05  # x offset between series, so that equal series stay visible side by side
 LAMBDA2_ZERO = 1e-9  # a communication graph's lambda2 at or below this is disconnected
 
 
@@ -116,8 +118,8 @@ def _series_name(row: dict, keys: list[str]) -> str:
     parts = [str(row.get("strategy"))]
     for k in keys:
         v = row.get(k)
-        short = k.replace("faults.0.", "fault ").replace("strategy.", "")
-        parts.append(str(v) if k == "scenario" else f"{short}={v}")
+        short = SERIES_KEY_NAMES.get(k, k)
+        parts.append(str(v) if k == "scenario" else f"{short} {v}")
     return ", ".join(parts)
 
 
@@ -235,6 +237,7 @@ def _figure(png: Path, drawn, rungs, names, series, cells, breaks, scenarios) ->
     for ax, (metric, label) in zip(axes.flat, drawn):
         for index, s in enumerate(series):
             color = _color(s, index)
+            shift = (index - (len(series) - 1) / 2) * DODGE
             pos, p10, p25, p50, p75, p90 = [], [], [], [], [], []
             for x, rung in zip(xs, rungs):
                 data = [v for v in (_number(r.get(metric)) for r in cells.get((s, rung), [])) if v is not None]
@@ -245,16 +248,17 @@ def _figure(png: Path, drawn, rungs, names, series, cells, breaks, scenarios) ->
                         store.append(v)
             if not pos:
                 continue
-            ax.plot(pos, p50, "o-", color=color, lw=2, label=s)
-            ax.fill_between(pos, p25, p75, color=color, alpha=0.22, lw=0)
-            ax.fill_between(pos, p10, p90, color=color, alpha=0.09, lw=0)
+            at = np.array(pos) + shift
+            ax.plot(at, p50, "o-", color=color, lw=2, label=s)
+            ax.fill_between(at, p25, p75, color=color, alpha=0.22, lw=0)
+            ax.fill_between(at, p10, p90, color=color, alpha=0.09, lw=0)
             for (name, guarantee), rung in breaks.items():
                 if name == s and rung is not None:
                     x = rungs.index(rung)
                     if x in pos:
-                        ax.plot([x], [p50[pos.index(x)]], marker="X", ms=13, color=color, mec="black",
+                        ax.plot([x + shift], [p50[pos.index(x)]], marker="X", ms=13, color=color, mec="black",
                                 mew=1.0, ls="none")
-        ax.set_xticks(xs, [n.replace(" (", "\n(") for n in names], fontsize=9)
+        ax.set_xticks(xs, [n.replace(", ", "\n").replace(" (", "\n(") for n in names], fontsize=9)
         ax.set_xlabel("radio channel, best to worst (measured delivery ratio)", fontsize=10)
         ax.set_ylabel(label, fontsize=10)
         ax.grid(alpha=0.3)
