@@ -51,11 +51,11 @@ def _write(tmp_path, rows):
 
 def test_break_points_are_the_first_rung_where_a_trial_broke_the_guarantee():
     rungs, series, cells, _ = study_cells(_rows())
-    assert [r[1:] for r in rungs] == [("ideal", -1.0), ("ieee802154", 0.0), ("ieee802154", 6.0), ("ieee802154", 10.0)]
+    assert [r[1:3] for r in rungs] == [("ideal", -1.0), ("ieee802154", 0.0), ("ieee802154", 6.0), ("ieee802154", 10.0)]
     breaks = first_breaks(rungs, series, cells)
-    assert breaks[("intermittent", "delay bound exceeded")][1:] == ("ieee802154", 6.0)
+    assert breaks[("intermittent", "delay bound exceeded")][1:3] == ("ieee802154", 6.0)
     assert breaks[("intermittent", "a meeting not connected")] is None
-    assert breaks[("connected_tracking", "comm graph disconnected (lambda2 = 0)")][1:] == ("ieee802154", 10.0)
+    assert breaks[("connected_tracking", "comm graph disconnected (lambda2 = 0)")][1:3] == ("ieee802154", 10.0)
     assert breaks[("connected_tracking", "two prime travelers")] is None
 
 
@@ -79,6 +79,14 @@ def test_report_without_guarantee_or_fault_metrics_still_writes(tmp_path):
     text = (folder / "report.md").read_text()
     assert "No guarantee metric" in text and "fault_" not in text
     assert (folder / "study.png").is_file()
+
+
+def test_rungs_order_by_wall_loss_then_falling_power():
+    rows = [r | {"radio.tx_power_dbm": power} for r in _rows() if r["radio.preset"] != "ideal"
+            for power in (0.0, -45.0) if r["radio.wall_loss_db"] == 10.0]
+    rungs, _, _, _ = study_cells(rows)
+    from tether.study_report import _rung_name
+    assert [_rung_name(r) for r in rungs] == ["ieee802154, 10 dB/wall, 0 dBm", "ieee802154, 10 dB/wall, -45 dBm"]
 
 
 def test_tables_without_radio_or_faults_get_no_study_section(tmp_path):

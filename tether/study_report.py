@@ -24,7 +24,7 @@ import numpy as np
 from sim.palette import METHOD, SERIES, hex_code
 from tether.sweep import FINISHED
 
-CHANNEL_KEYS = ("radio.preset", "radio.wall_loss_db")
+CHANNEL_KEYS = ("radio.preset", "radio.wall_loss_db", "radio.tx_power_dbm")
 PRESET_ORDER = ("ideal", "wifi", "nrf24", "ieee802154")
 DELIVERY = "radio_delivery_ratio"
 # (column, axis label); the first FIGURE_PANELS present are drawn, all present are tabled.
@@ -94,15 +94,24 @@ def _with_fault_fields(row: dict) -> dict:
 
 
 def _rung(row: dict) -> tuple:
+    """(preset rank, preset, wall loss, -tx power): sorting puts the best channel first
+    (more wall loss, then less power, is worse); -1 / +inf where the key is not swept."""
     preset = str(row.get("radio.preset") or "ideal")
-    wall = _number(row.get("radio.wall_loss_db")) if preset != "ideal" else None
+    real = preset != "ideal"
+    wall = _number(row.get("radio.wall_loss_db")) if real else None
+    power = _number(row.get("radio.tx_power_dbm")) if real else None
     rank = PRESET_ORDER.index(preset) if preset in PRESET_ORDER else len(PRESET_ORDER)
-    return (rank, preset, wall if wall is not None else -1.0)
+    return (rank, preset, wall if wall is not None else -1.0, -power if power is not None else -math.inf)
 
 
 def _rung_name(rung: tuple) -> str:
-    _, preset, wall = rung
-    return preset if wall < 0 else f"{preset}, {wall:g} dB/wall"
+    _, preset, wall, minus_power = rung
+    parts = [preset]
+    if wall >= 0:
+        parts.append(f"{wall:g} dB/wall")
+    if math.isfinite(minus_power):
+        parts.append(f"{-minus_power:g} dBm")
+    return ", ".join(parts)
 
 
 def _series_keys(rows: list[dict], manifest: dict | None) -> list[str]:
