@@ -271,6 +271,13 @@ def _figure(png: Path, drawn, rungs, names, series, cells, breaks, scenarios) ->
         ax.set_xlabel("radio channel, best to worst (measured delivery ratio)", fontsize=10)
         ax.set_ylabel(label, fontsize=10)
         ax.grid(alpha=0.3)
+        # Values equal to a few digits (lambda-bar is set by the targets, not the radio) would get
+        # an unreadable offset axis ("1e-7+2.58e-1"): plain ticks, a range of 10 % around them.
+        ax.ticklabel_format(axis="y", useOffset=False)
+        low, high = ax.get_ylim()
+        middle = (low + high) / 2
+        if high - low < 1e-3 * abs(middle):
+            ax.set_ylim(middle - 0.05 * abs(middle), middle + 0.05 * abs(middle))
     for ax in axes.flat[len(drawn):]:
         ax.set_visible(False)
     handles, labels = axes.flat[0].get_legend_handles_labels()
