@@ -95,3 +95,17 @@ def test_tables_without_radio_or_faults_get_no_study_section(tmp_path):
     write_report(folder)
     assert "faults study" not in (folder / "report.md").read_text()
     assert not (folder / "study.png").exists()
+
+
+def test_reaction_metrics_of_a_failure_are_tabled_when_present(tmp_path):
+    rows = _rows(with_faults=True)
+    for r in rows:
+        r["faults"] = json.dumps([{"kind": "robot_failure", "robot": 0, "at_s": 60.0, "dropped_after_s": 1.5}])
+        r["dropped_robots"] = json.dumps([0])  # the ids, as a list: the report counts them
+        r["meetings_missed"] = 2
+    folder = _write(tmp_path, rows)
+    write_report(folder)
+    text = (folder / "report.md").read_text()
+    assert "`fault_dropped_after_s`" in text and "| intermittent | 1.5 [1.5, 1.5] (n=3/3) |" in text
+    assert "`dropped_robots`" in text and "| intermittent | 1 [1, 1] (n=3/3) |" in text
+    assert "`meetings_missed`" in text and "| intermittent | 2 [2, 2] (n=3/3) |" in text

@@ -41,10 +41,15 @@ TASK_METRICS = (
     ("fault_e_g_before_fault_m", "e_g before the failure (m)"),
     ("fault_e_g_after_fault_m", "e_g after the failure (m)"),
     ("fault_detected_after_s", "failure detected after (s)"),
+    ("fault_dropped_after_s", "failed robot dropped after (s)"),
+    ("dropped_robots", "robots dropped from the team"),
+    ("meetings_missed", "meetings missed"),
+    ("e_g_before_fault_m", "e_g before the fault (m)"),
+    ("e_g_after_fault_m", "e_g after the fault (m)"),
 )
 FIGURE_PANELS = 4
 FAULT_FIELDS = ("targets_reassigned", "targets_lost", "meetings_missed", "e_g_before_fault_m",
-                "e_g_after_fault_m", "detected_after_s")
+                "e_g_after_fault_m", "detected_after_s", "dropped_after_s")
 SERIES_KEY_NAMES = {"faults.0.sigma_m": "position noise sigma (m)", "faults.0.robot": "failed robot"}
 DODGE = 0.05  # x offset between series, so that equal series stay visible side by side
 LAMBDA2_ZERO = 1e-9  # a communication graph's lambda2 at or below this is disconnected
@@ -78,6 +83,14 @@ def _broken(row: dict) -> dict[str, bool]:
 
 def _with_fault_fields(row: dict) -> dict:
     """The row with its first robot failure's reaction figures as ``fault_*`` columns (when present)."""
+    dropped = row.get("dropped_robots")
+    if isinstance(dropped, str) and dropped.startswith("["):
+        try:
+            dropped = json.loads(dropped)
+        except ValueError:
+            pass
+    if isinstance(dropped, (list, tuple)):  # the robots' ids: the report counts them
+        row = dict(row) | {"dropped_robots": len(dropped)}
     text = row.get("faults")
     try:
         entries = json.loads(text) if isinstance(text, str) else (text or [])
