@@ -240,13 +240,14 @@ def study_section(rows: list[dict], out: Path, manifest: dict | None = None) -> 
     files = []
     drawn = [(m, label) for m, label in present if m != DELIVERY][:FIGURE_PANELS]
     if drawn:
-        png = _figure(out / "study.png", drawn, rungs, names, series, cells, breaks, scenarios)
+        sweep = str((manifest or {}).get("sweep") or "")
+        png = _figure(out / "study.png", drawn, rungs, names, series, cells, breaks, scenarios, sweep)
         lines[2:2] = [f"![each task metric against channel quality per method]({png.name})", ""]
         files.append(png)
     return lines, files
 
 
-def _figure(png: Path, drawn, rungs, names, series, cells, breaks, scenarios) -> Path:
+def _figure(png: Path, drawn, rungs, names, series, cells, breaks, scenarios, sweep: str = "") -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -299,7 +300,8 @@ def _figure(png: Path, drawn, rungs, names, series, cells, breaks, scenarios) ->
     handles.append(Line2D([], [], marker="X", ms=11, color="white", mec="black", ls="none"))
     labels.append("first rung where a guarantee breaks (see report.md)")
     fig.legend(handles, labels, fontsize=9, loc="lower center", ncol=min(len(labels), 3))
-    fig.suptitle(f"{', '.join(scenarios)}: each method against channel quality "
+    named = f"sweep {sweep}, " if sweep else ""
+    fig.suptitle(f"{named}{', '.join(scenarios)}: each method against channel quality "
                  "(line: median; bands: 25-75 % and 10-90 % over seeds)", fontsize=11)
     legend_rows = math.ceil(len(labels) / 3)
     fig.tight_layout(rect=(0, 0.04 + 0.035 * legend_rows / rows_n, 1, 0.97))
