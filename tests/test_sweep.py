@@ -54,7 +54,8 @@ def folder_state(folder: Path) -> dict[str, bytes]:
 def test_builtin_sweeps_are_listed_and_expand_to_their_trial_counts(capsys):
     assert main(["sweeps"]) == 0
     listed = [line.split()[0] for line in capsys.readouterr().out.splitlines()]
-    expected = {"fig9-small": 180, "fig9": 1800, "table1": 60, "teams": 20, "paradigms": 160}
+    expected = {"fig9-small": 180, "fig9": 1800, "table1": 60, "teams": 20, "paradigms": 160,
+                "radio-tracking": 200, "radio-exploration": 120, "failures": 80}
     assert sorted(listed) == sorted(expected)
     for name, count in expected.items():
         sweep = load_sweep(name)  # validates every trial

@@ -589,6 +589,11 @@ def write_report(results: str | Path, out: str | Path | None = None, x: str | No
         lines += text
         pngs += files
     from tether.grid_report import grid_section
+    from tether.study_report import study_section
+
+    text, files = study_section(rows, target, manifest)  # the faults study: radio ladder, noise, failures
+    lines += text
+    pngs += files
 
     text, files = grid_section(rows, manifest, target)  # every sweep, the user's own included
     lines += text
