@@ -648,6 +648,11 @@ class MeetingStrategy(Strategy):
         if timed_out:
             text += (f", {timed_out} ended at the {self.params.exchange_timeout_s:g} s exchange timeout with "
                      "records undelivered")
+        missed = [m for m in self.meetings if m.absent]
+        if missed:
+            gone = sorted({r for m in missed for r in m.absent})
+            text += (f"; {len(missed)} meetings held without robot(s) {gone} after "
+                     f"{self.params.member_timeout_s:g} s waits")
         report = self._delay_report() if self.over_radio else None
         if report is not None and not report.within_bound:
             text += (f"; delay bound of {report.bound} epochs exceeded (worst observed {report.worst}, "
