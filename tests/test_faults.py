@@ -283,6 +283,10 @@ def test_a_meeting_goes_on_without_a_dead_member_after_the_wait_and_not_before(t
         assert metrics["meetings_missed"] == 1 and [r for r, _ in metrics["members_given_up"]] == [2]
         assert f"1 meetings held without robot(s) [2] after {timeout:g} s waits" in metrics["message"]
         given_up[timeout] = metrics["members_given_up"][0][1]
+        assert metrics["faults"][0]["detected_after_s"] == pytest.approx(given_up[timeout] - 20.0)
+        assert metrics["e_g_before_fault_m"] > 0 and metrics["e_g_after_fault_m"] > 0
+        assert (f"e_g {metrics['e_g_before_fault_m']:.2f} m before, {metrics['e_g_after_fault_m']:.2f} m after"
+                in metrics["message"])
     # The team mates arrived 59 s into the run: the meeting goes on one wait later, never earlier.
     assert given_up[20.0] - given_up[10.0] == pytest.approx(10.0)
     assert given_up[10.0] >= 20.0 + 10.0
