@@ -337,12 +337,13 @@ class NetworkBeliefs:
         self._packets_of_robot[robot].add(packet)
         self._deliveries.setdefault(packet, {})
 
-    def meet(self, team: int, epoch: int) -> MeetingReport:
-        """Team ``team`` communicates at ``epoch``: its members pool what they
-        gathered since they last met with this team, and the team belief fuses it."""
+    def meet(self, team: int, epoch: int, present: tuple[int, ...] | None = None) -> MeetingReport:
+        """Team ``team`` communicates at ``epoch``: its members (``present``: only those, the
+        others being absent) pool what they gathered since they last met with this team,
+        and the team belief fuses it."""
         if not 0 <= team < self.teams.n_teams:
             raise ValueError(f"team: {team} out of range for {self.teams.n_teams} teams")
-        members = self.teams.members[team]
+        members = self.teams.members[team] if present is None else present
         for robot in members:
             if epoch <= self._last_epoch_of_robot[robot]:
                 raise ValueError(

@@ -26,6 +26,7 @@ class EstimationMetrics(Observer):
     def __init__(self):
         self.steps: list[int] = []
         self.errors: list[float] = []
+        self.times: list[float] = []  # sim time of each error, s
 
     def reads_decorations(self, time_s: float) -> bool:
         return False  # only commands.estimate, which strategies always fill
@@ -35,8 +36,17 @@ class EstimationMetrics(Observer):
         if estimation is not None and estimation.fresh:
             self.steps.append(estimation.step)
             self.errors.append(estimation.e_g_m)
+            self.times.append(frame.observation.time_s)
+
     def close(self, status: str) -> None:
         pass
+
+    def around(self, at_s: float) -> dict[str, Any]:
+        """Mean e_g (steps >= 1) before ``at_s`` and from it on (a fault's time); null where none."""
+        before = [e for s, t, e in zip(self.steps, self.times, self.errors) if s >= 1 and t < at_s]
+        after = [e for s, t, e in zip(self.steps, self.times, self.errors) if s >= 1 and t >= at_s]
+        return {"e_g_before_fault_m": float(np.mean(before)) if before else None,
+                "e_g_after_fault_m": float(np.mean(after)) if after else None}
 
     def summary(self) -> dict[str, Any]:
         values = np.array([e for s, e in zip(self.steps, self.errors) if s >= 1])

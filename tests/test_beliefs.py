@@ -350,3 +350,17 @@ def test_error_and_uncertainty_series_against_direct_formulas():
         localization_error_series(estimates, truths[:3])
     assert local_error(np.zeros((0, 24)), np.zeros((0, 24))) == 0.0
     assert local_error(np.zeros((2, 3)), np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 1.0]])) == pytest.approx(3.0)
+
+
+def test_a_meeting_without_a_member_pools_only_the_members_present():
+    teams = Teams([(0, 1, 2), (0, 3), (1, 2, 3)])
+    network = NetworkBeliefs(teams, paper_motion(), paper_prior())
+    records = random_records(np.random.default_rng(3), paper_motion(), robots=(0, 1, 2), steps=3)
+    for robot in (0, 1, 2):
+        network.collect(robot, [r for r in records if r.robot == robot])
+    network.meet(0, 1, present=(0, 1))
+    pooled = {r.key for r in network.team_beliefs[0].records_since(0)}
+    assert pooled == {r.key for r in records if r.robot in (0, 1)}
+    assert not any(r.robot == 2 for r in network.robot_beliefs[0].records_since(0))
+    network.meet(0, 2)  # robot 2 back: its records reach the team at the next meeting
+    assert {r.key for r in network.team_beliefs[0].records_since(0)} == {r.key for r in records}

@@ -271,3 +271,25 @@ def test_the_connected_method_detects_a_failed_robot_over_the_radio(tmp_path):
     assert 0.5 <= fault["detected_after_s"] <= 0.5 + 0.1, fault  # the timeout, plus the last message's age
     assert result.metrics["silent_neighbour_detections"] >= 1
     assert "robot 4's silence noticed by a team mate 0.5" in result.metrics["message"], result.metrics["message"]
+
+
+def test_a_meeting_goes_on_without_a_dead_member_after_the_wait_and_not_before(tmp_path):
+    from tether.runner import run
+
+    fault = 'faults=[{kind="robot_failure", robot=2, at_s=20.0}]'
+    given_up = {}
+    for timeout in (10.0, 20.0):
+        out = tmp_path / f"wait{timeout:g}"
+        run(load("intermittent-8", [fault, f"strategy.member_timeout_s={timeout}"], duration_s=95.0), out)
+        metrics = json.loads((out / "metrics.json").read_text())
+        assert metrics["status"] == "completed", metrics["message"]
+        assert metrics["meetings_missed"] == 1 and [r for r, _ in metrics["members_given_up"]] == [2]
+        assert f"1 meetings held without robot(s) [2] after {timeout:g} s waits" in metrics["message"]
+        given_up[timeout] = metrics["members_given_up"][0][1]
+        assert metrics["faults"][0]["detected_after_s"] == pytest.approx(given_up[timeout] - 20.0)
+        assert metrics["e_g_before_fault_m"] > 0 and metrics["e_g_after_fault_m"] > 0
+        assert (f"e_g {metrics['e_g_before_fault_m']:.2f} m before, {metrics['e_g_after_fault_m']:.2f} m after"
+                in metrics["message"])
+    # The team mates arrived 59 s into the run: the meeting goes on one wait later, never earlier.
+    assert given_up[20.0] - given_up[10.0] == pytest.approx(10.0)
+    assert given_up[10.0] >= 20.0 + 10.0

@@ -187,6 +187,30 @@ def _failure_consequence(metrics: dict[str, Any], fault: dict[str, Any], dropped
     metrics["message"] += text
 
 
+def _meetings_without_failed(metrics: dict[str, Any]) -> None:
+    """For the meeting methods: each failed robot's ``detected_after_s``, from its failure to the
+    first meeting that went on without it (``members_given_up``; null: none within the run)."""
+    given_up = metrics.get("members_given_up")
+    if given_up is None or "faults" not in metrics:
+        return
+    for fault in metrics["faults"]:
+        if fault["kind"] == "robot_failure" and fault["happened"]:
+            after = [t - fault["at_s"] for r, t in given_up if r == fault["robot"] and t >= fault["at_s"]]
+            fault["detected_after_s"] = min(after) if after else None
+
+
+def _errors_around_failure(metrics: dict[str, Any], estimation: EstimationMetrics) -> None:
+    """Mean e_g before and after the first robot failure that happened, for a tracking run."""
+    failures = [f for f in metrics.get("faults", ()) if f["kind"] == "robot_failure" and f["happened"]]
+    if not failures or not estimation.steps:
+        return
+    around = estimation.around(min(f["at_s"] for f in failures))
+    metrics.update(around)
+    if around["e_g_before_fault_m"] is not None and around["e_g_after_fault_m"] is not None:
+        metrics["message"] += (f"; e_g {around['e_g_before_fault_m']:.2f} m before, "
+                               f"{around['e_g_after_fault_m']:.2f} m after")
+
+
 def _metrics(scenario: Scenario, sim: Simulation, status: Status, message: str, wall: float,
              named: dict[str, Any], timing: dict[str, Any]) -> dict[str, Any]:
     """The run's metrics.json: the foundation's figures and the strategy's
@@ -216,6 +240,8 @@ def _metrics(scenario: Scenario, sim: Simulation, status: Status, message: str, 
         **sim.strategy.summary(),
     }
     _failure_detections(metrics)
+    _meetings_without_failed(metrics)
+    _errors_around_failure(metrics, named["estimation"])
     missing = non_finite_fields(metrics)
     if missing:
         note = f"not finite, written as null: {', '.join(missing)}"

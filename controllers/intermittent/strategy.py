@@ -136,6 +136,7 @@ class Meeting:
     positions_at_hold: np.ndarray | None = None  # (n, 2) body positions when held, m
     exchange: Exchange | None = None  # under a real radio: the records sent and received
     timed_out: bool = False  # ended at strategy.exchange_timeout_s without every member's records
+    absent: tuple[int, ...] = ()  # members not at their point after strategy.member_timeout_s: held without them
 
     def point_of(self, robot: int) -> np.ndarray:
         return self.points[self.members.index(robot)]
@@ -294,6 +295,7 @@ class MeetingStrategy(Strategy):
         self.exchange_times: list[float] = []  # exchange start to the meeting's end, s
         self.records_sent = 0  # range records handed to the bus, every copy (each member, each retransmission), -
         self.open_exchanges: dict[tuple[int, int], Meeting] = {}  # (team, epoch) -> meeting exchanging
+        self.members_given_up: list[tuple[int, float]] = []  # (robot, sim time a meeting went on without it)
         # Footnote 4: the paths to the first meeting of every team, a priori.
         for epoch in range(1, self.schedule.period + 1):
             for team in self.schedule.teams_meeting_at(epoch):
@@ -425,21 +427,23 @@ class MeetingStrategy(Strategy):
                 else:
                     self.beliefs.robot_beliefs[robot].receive(records)
 
-    def _hold(self, meeting: Meeting, observation: Observation, timed_out: bool = False) -> None:
+    def _hold(self, meeting: Meeting, observation: Observation, timed_out: bool = False,
+              members: tuple[int, ...] | None = None) -> None:
         t = observation.time_s
+        present = meeting.members if members is None else members
         meeting.held_s = t
         meeting.timed_out = timed_out
-        meeting.connected = team_connected(self._adjacency(observation), meeting.members)
+        meeting.connected = team_connected(self._adjacency(observation), present)
         meeting.positions_at_hold = observation.position[list(meeting.members), :2].copy()
         exchange = meeting.exchange
         if exchange is None:
-            report = self.beliefs.meet(meeting.team, meeting.epoch)
+            report = self.beliefs.meet(meeting.team, meeting.epoch, None if members is None else present)
         else:
             report = self.beliefs.meet_over_radio(meeting.team, meeting.epoch, exchange.sent, exchange.heard,
                                                   exchange.cursors)
             self.exchange_times.append(t - exchange.started_s)
             del self.open_exchanges[(meeting.team, meeting.epoch)]
-        for robot in meeting.members:
+        for robot in present:
             self.waits.append(t - meeting.arrivals.get(robot, t))
             done = self.queues[robot].popleft()
             assert done.meeting is meeting
@@ -496,6 +500,9 @@ class MeetingStrategy(Strategy):
                 meeting.arrivals[robot] = t
         for meeting in sorted(heads.values(), key=lambda m: m.epoch):
             if not self._ready(meeting, t):
+                absent = self._absent_members(meeting, t)
+                if absent:
+                    self._hold_without(meeting, observation, absent)
                 continue
             if meeting.exchange is not None:  # under a real radio: the records are on their way
                 if meeting.exchange.complete(meeting.members):
@@ -554,6 +561,38 @@ class MeetingStrategy(Strategy):
         # No observer reads the figures and decorations: only the estimate (sim.types.Observation).
         return dataclasses.replace(commands, estimate=self.series.estimate)
 
+    def _absent_members(self, meeting: Meeting, t: float) -> tuple[int, ...]:
+        """The members still not at their point once every member there has waited
+        ``member_timeout_s`` (empty: keep waiting). Read from where the robots are, not from the faults."""
+        timeout = self.params.member_timeout_s
+        if not math.isfinite(timeout) or meeting.held_s is not None:
+            return ()
+        present = [r for r in meeting.members if r in meeting.arrivals and self.queues[r][0].meeting is meeting]
+        if not present or len(present) == len(meeting.members):
+            return ()
+        if t - max(meeting.arrivals[r] for r in present) < timeout - 1e-9:
+            return ()
+        return tuple(r for r in meeting.members if r not in present)
+
+    def _hold_without(self, meeting: Meeting, observation: Observation, absent: tuple[int, ...]) -> None:
+        """Hold the meeting with the members that came; an absent member's segment to it is dropped."""
+        t = observation.time_s
+        meeting.absent = absent
+        self.members_given_up.extend((r, t) for r in absent)
+        for robot in absent:
+            queue = self.queues[robot]
+            for index, segment in enumerate(queue):
+                if segment.meeting is meeting:
+                    del queue[index]
+                    break
+            if queue and not queue[0].started:
+                queue[0].started = True
+                queue[0].timed.offset_s = max(0.0, t - queue[0].timed.path.start_time * self.step_s)
+        present = tuple(r for r in meeting.members if r not in absent)
+        self.events.append(f"team {meeting.team} epoch {meeting.epoch}: robot(s) {list(absent)} not at the meeting "
+                           f"{self.params.member_timeout_s:g} s after the others arrived; held without them")
+        self._hold(meeting, observation, members=present)
+
     def _ready(self, meeting: Meeting, t: float) -> bool:
         """Every member's current segment leads to ``meeting`` and has reached its end."""
         queues = self.queues
@@ -609,6 +648,11 @@ class MeetingStrategy(Strategy):
         if timed_out:
             text += (f", {timed_out} ended at the {self.params.exchange_timeout_s:g} s exchange timeout with "
                      "records undelivered")
+        missed = [m for m in self.meetings if m.absent]
+        if missed:
+            gone = sorted({r for m in missed for r in m.absent})
+            text += (f"; {len(missed)} meetings held without robot(s) {gone} after "
+                     f"{self.params.member_timeout_s:g} s waits")
         report = self._delay_report() if self.over_radio else None
         if report is not None and not report.within_bound:
             text += (f"; delay bound of {report.bound} epochs exceeded (worst observed {report.worst}, "
@@ -661,6 +705,12 @@ class MeetingStrategy(Strategy):
             "local_error_mean_m": float(local.mean()) if local.size else 0.0,
             "meetings_over_radio": bool(self.over_radio),
         }
+        if math.isfinite(self.params.member_timeout_s):
+            out.update({
+                "member_timeout_s": self.params.member_timeout_s,
+                "meetings_missed": sum(bool(m.absent) for m in self.meetings),
+                "members_given_up": [[r, t] for r, t in self.members_given_up],
+            })
         if self.over_radio:
             out.update({
                 "exchange_time_mean_s": float(np.mean(self.exchange_times)) if self.exchange_times else None,
