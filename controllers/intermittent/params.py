@@ -66,7 +66,7 @@ class IntermittentParams:
     # a meeting whose present members have all waited this long at their points for a member who
     # has not arrived is held without it (counted in meetings_missed); inf: wait for ever, as the
     # schedule of Khodayi-mehr et al. 2019 assumes, s
-    member_timeout_s: float = param(math.inf, unit="s", above=0.0, allow_inf=True)
+    member_timeout_s: float = param(60.0, unit="s", above=0.0, allow_inf=True)
     # Under a real radio: a range-records message without an ack this long is sent again, s
     retransmit_after_s: float = task_param("retransmit_after_s")
 
