@@ -11,6 +11,8 @@ EKF from the same prior and report the same e_g and lambda-bar:
 - :func:`check_time_base` - the target model and one reading per step;
 - :func:`prior_state` - x^0 and C(0) of Sec. IV;
 - :func:`neutral_prior` - the prior made non-informative in another scene;
+- :func:`target_initialiser` - without an informed prior, each target's EKF
+  started from its first readings (:mod:`estimation.target_init`);
 - :func:`measurement_records` - an Observation's range readings as
   :class:`estimation.beliefs.RangeMeasurement` records, per robot;
 - :class:`EstimateSeries` - lambda_max(C_g(t)) per step and the latest
@@ -42,6 +44,7 @@ import numpy as np
 
 from estimation.beliefs import AgreementTracker, Belief, RangeMeasurement
 from estimation.ekf import PAPER_INITIAL_ESTIMATE, FilterState
+from estimation.target_init import ReadingsInitialiser
 from estimation.metrics import local_error
 from sim.config import ConfigError, param
 from sim.radio.bus import range_records_bytes
@@ -55,6 +58,8 @@ TASK_PARAMS: dict[str, dict] = {
     "prior_mean": dict(default=(), unit="m"),  # empty: the paper's x^0
     "prior_variance_m2": dict(default=0.25, unit="m^2", above=0.0),  # paper: C(0) = 0.25 I
     "resolve_mirror": dict(default=True),
+    # false: the paper's informed prior; true (set by --scene): each target's EKF starts from its readings
+    "init_from_readings": dict(default=False),
     # Under a real radio (radio.preset other than ideal): a reliable message without an ack this long is sent again
     "retransmit_after_s": dict(default=2.0, unit="s", above=0.0, max=600.0),
 }
@@ -87,9 +92,12 @@ def neutral_prior(strategy_table: dict, change: SceneChange, keep: frozenset[str
     """The EKF prior of a scenario moved into another scene (the methods' ``adapt_to_scene``).
 
     A built-in's prior is a guess about its own scene; in another one every
-    target starts at the scene's centre with a variance that spans the scene.
-    ``strategy.prior_mean`` or ``strategy.prior_variance_m2`` set by the user
-    (in ``keep``) stay.
+    target starts at the scene's centre with a variance that spans the scene,
+    and its EKF fuses its readings only once they fix it
+    (``strategy.init_from_readings``, :func:`target_initialiser`).
+    ``strategy.prior_mean``, ``strategy.prior_variance_m2`` or
+    ``strategy.init_from_readings`` set by the user (in ``keep``) stay: a
+    prior_mean of the user's is informed.
     """
     if not change.n_targets or "strategy.prior_mean" in keep:
         return []
@@ -100,11 +108,29 @@ def neutral_prior(strategy_table: dict, change: SceneChange, keep: frozenset[str
     strategy_table["prior_mean"] = [centre] * change.n_targets
     if "strategy.prior_variance_m2" not in keep:
         strategy_table["prior_variance_m2"] = variance
+    if "strategy.init_from_readings" not in keep:
+        strategy_table["init_from_readings"] = True
+    if strategy_table.get("init_from_readings", False):
+        return [f"strategy.prior_mean: the built-in's EKF prior describes its own scene; in {change.scene_name} "
+                "each target's estimate starts from its first readings (multilateration once they fix it; "
+                f"until then the scene's centre, {tuple(centre)} m, C(0) = "
+                f"{strategy_table['prior_variance_m2']:g} I m^2); if you know roughly where the targets are, "
+                "set strategy.prior_mean there"]
     return [f"strategy.prior_mean: the built-in's EKF prior describes its own scene; every target's estimate "
             f"now starts at the centre of {change.scene_name}, {tuple(centre)} m, with C(0) = "
             f"{strategy_table['prior_variance_m2']:g} I m^2 (non-informative; if you know roughly where "
             "the targets are, set strategy.prior_mean there: a range-only EKF started far off can settle "
             "on a wrong point)"]
+
+
+def target_initialiser(params, world: WorldInfo) -> ReadingsInitialiser | None:
+    """The initialiser every belief of the task gets: None with the informed prior (the paper's),
+    one that starts each target from its readings with ``strategy.init_from_readings`` (targets
+    between the scene's floor and ceiling)."""
+    if not params.init_from_readings:
+        return None
+    low, high = (float(v) for v in np.asarray(world.bounds, dtype=float)[:, 2])
+    return ReadingsInitialiser(height_range=(low, high))
 
 
 def check_time_base(world: WorldInfo) -> float:

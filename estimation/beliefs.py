@@ -46,6 +46,7 @@ import numpy as np
 
 from estimation.ekf import FilterState, RangeReadings, TargetEKF
 from estimation.metrics import local_error
+from estimation.target_init import ReadingsInitialiser
 from estimation.target_motion import TargetMotion
 
 MeasurementKey = tuple[int, int, int]  # (step, robot, target)
@@ -124,11 +125,26 @@ class Belief:
     reading. ``estimate(k)`` is the posterior at step k given the records with
     step <= k received so far; it is computed lazily and cached.
     mirror_plane_z: see :class:`estimation.ekf.TargetEKF` (None: plain EKF).
+
+    initialiser: None (default): every target starts from ``prior`` and every
+    reading is fused. Given (a run without an informed prior), a target's
+    readings are kept out of the EKF until, at some step k, its readings of the
+    initialiser's window fix it (:mod:`estimation.target_init`); its block of
+    the posterior at k is then that fix (no cross-covariance), and its readings
+    of later steps are fused. Until then its block is the prior's, predicted.
+    Which targets are fixed is checkpointed with each posterior, so the
+    posterior at k still depends only on the records with step <= k.
     """
 
-    def __init__(self, motion: TargetMotion, prior: FilterState, mirror_plane_z: float | None = None):
+    def __init__(self, motion: TargetMotion, prior: FilterState, mirror_plane_z: float | None = None,
+                 initialiser: ReadingsInitialiser | None = None):
         self._ekf = TargetEKF(motion, prior, mirror_plane_z)
+        self._motion = motion
         self._prior = prior
+        self._initialiser = initialiser
+        # Per posterior (and for _root), the targets fixed by then; only used with an initialiser.
+        self._fixed: list[frozenset[int]] = []
+        self._root_fixed: frozenset[int] = frozenset()
         self._records: dict[MeasurementKey, RangeMeasurement] = {}
         self._by_step: dict[int, dict[MeasurementKey, RangeMeasurement]] = {}
         self._arrivals: list[RangeMeasurement] = []
@@ -198,6 +214,7 @@ class Belief:
             earliest_new = record.step if earliest_new is None else min(earliest_new, record.step)
         if earliest_new is not None:
             del self._posteriors[max(earliest_new - self._origin, 0) :]
+            del self._fixed[max(earliest_new - self._origin, 0) :]
         return added
 
     def estimate(self, step: int) -> FilterState:
@@ -205,8 +222,70 @@ class Belief:
         if step < self._origin:
             raise ValueError(f"step: {step} is before this belief's earliest step {self._origin}")
         while self.computed_until < step:
-            self._posteriors.append(self._filter_next())
+            if self._initialiser is None:
+                self._posteriors.append(self._filter_next())
+            else:
+                posterior, fixed = self._filter_next_initialising()
+                self._posteriors.append(posterior)
+                self._fixed.append(fixed)
         return self._posteriors[step - self._origin]
+
+    def fixed_targets(self, step: int) -> frozenset[int]:
+        """Targets whose readings the posterior at ``step`` fuses: all without an initialiser,
+        else those fixed from their readings by then."""
+        if self._initialiser is None:
+            return frozenset(range(self.n_targets))
+        self.estimate(step)
+        return self._fixed[step - self._origin]
+
+    def _filter_next_initialising(self) -> tuple[FilterState, frozenset[int]]:
+        """:meth:`_filter_next` for a belief with an initialiser: readings of targets not yet
+        fixed wait; each such target with a reading this step is tried for a fix."""
+        step = self.computed_until + 1
+        if self._posteriors:
+            self._ekf.reset(self._posteriors[-1])
+            self._ekf.predict()
+            fixed = self._fixed[-1]
+        elif self._root is not None:
+            self._ekf.reset(self._root)
+            self._ekf.predict()
+            fixed = self._root_fixed
+        else:
+            self._ekf.reset(self._prior)
+            fixed = frozenset()
+        self.filtered_steps += 1
+        records = self._by_step.get(step)
+        if not records:
+            return self._ekf.state, fixed
+        fused = [r for r in records.values() if r.target in fixed]
+        state = self._ekf.update(readings_from_records(fused)) if fused else self._ekf.state
+        waiting = sorted({r.target for r in records.values()} - fixed)
+        if not waiting:
+            return state, fixed
+        mean, covariance = np.array(state.mean), np.array(state.covariance)
+        newly = []
+        first = max(step - self._initialiser.window_steps + 1, self._origin)
+        windows: dict[int, list[RangeMeasurement]] = {target: [] for target in waiting}
+        for s in range(first, step + 1):
+            for key in sorted(self._by_step.get(s, {})):  # (step, robot, target): a fixed order
+                if key[2] in windows:
+                    windows[key[2]].append(self._by_step[s][key])
+        for target in waiting:
+            window = windows[target]
+            result = self._initialiser.fix(self._motion, target, step, [r.step for r in window],
+                                           np.array([r.sensor_position for r in window]),
+                                           np.array([r.measured_range for r in window]))
+            if result is None:
+                continue
+            block = slice(3 * target, 3 * target + 3)
+            mean[block] = result.position
+            covariance[block, :] = 0.0
+            covariance[:, block] = 0.0
+            covariance[block, block] = result.covariance
+            newly.append(target)
+        if not newly:
+            return state, fixed
+        return FilterState(step, mean, covariance), fixed | frozenset(newly)
 
     def _filter_next(self) -> FilterState:
         step = self.computed_until + 1
@@ -237,6 +316,9 @@ class Belief:
             return
         self.estimate(step - 1)
         self._root = self._posteriors[step - 1 - self._origin]
+        if self._initialiser is not None:
+            self._root_fixed = self._fixed[step - 1 - self._origin]
+            del self._fixed[: step - self._origin]
         del self._posteriors[: step - self._origin]
         self._origin = step
 
@@ -302,15 +384,16 @@ class NetworkBeliefs:
 
     teams: the team structure; motion: the target model; prior: the common
     initial belief (Sec. IV: x^0, C(0) = 0.25 I); mirror_plane_z: passed to
-    every belief's EKF (see :class:`estimation.ekf.TargetEKF`).
+    every belief's EKF (see :class:`estimation.ekf.TargetEKF`); initialiser:
+    passed to every belief (see :class:`Belief`; None: the prior is informed).
     """
 
     def __init__(self, teams: TeamStructure, motion: TargetMotion, prior: FilterState,
-                 mirror_plane_z: float | None = None):
+                 mirror_plane_z: float | None = None, initialiser: ReadingsInitialiser | None = None):
         self.teams = teams
-        self.global_belief = Belief(motion, prior, mirror_plane_z)
-        self.team_beliefs = tuple(Belief(motion, prior, mirror_plane_z) for _ in range(teams.n_teams))
-        self.robot_beliefs = {robot: Belief(motion, prior, mirror_plane_z) for robot in teams.robots}
+        self.global_belief = Belief(motion, prior, mirror_plane_z, initialiser)
+        self.team_beliefs = tuple(Belief(motion, prior, mirror_plane_z, initialiser) for _ in range(teams.n_teams))
+        self.robot_beliefs = {robot: Belief(motion, prior, mirror_plane_z, initialiser) for robot in teams.robots}
         # Arrival-list positions at the last meeting of each (robot, team) pair:
         # what the robot had then, and what the team had then.
         self._robot_cursor: dict[tuple[int, int], int] = {}

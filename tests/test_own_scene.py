@@ -102,13 +102,16 @@ def test_intermittent_prior_is_non_informative_over_the_new_scene_and_printed(fl
     # 2 sigma reach from the centre to the scene's corners.
     assert 2 * np.sqrt(params.prior_variance_m2) == pytest.approx(
         np.linalg.norm(flat.bounds[1, :2] - flat.bounds[0, :2]) / 2, rel=1e-3)
-    assert any(n.startswith("strategy.prior_mean:") and "non-informative" in n for n in notes)
+    # No informed prior: each target's estimate starts from its readings (estimation.target_init).
+    assert params.init_from_readings
+    assert any(n.startswith("strategy.prior_mean:") and "starts from its first readings" in n for n in notes)
 
 
 def test_values_set_with_set_are_kept():
     scenario, notes = load_in_scene(INTERMITTENT, str(FLAT), ["strategy.prior_mean=[[1,1,1],[2,2,1],[3,3,1],[4,4,1]]"])
     assert scenario.strategy.params.prior_mean[1] == (2.0, 2.0, 1.0)
     assert not any(n.startswith("strategy.prior_mean") for n in notes)
+    assert not scenario.strategy.params.init_from_readings  # the user's prior is informed
 
 
 def test_placement_is_deterministic():

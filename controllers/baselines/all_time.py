@@ -54,7 +54,7 @@ from controllers.intermittent.runtime import (
     team_color,
 )
 from controllers.intermittent.strategy import team_connected
-from controllers.task import RadioFusion, neutral_prior, over_radio
+from controllers.task import RadioFusion, neutral_prior, over_radio, target_initialiser
 from estimation.beliefs import Belief
 from sim.config import ConfigError
 from sim.types import Commands, Decorations, Observation, SceneChange, WorldInfo, readonly
@@ -97,14 +97,14 @@ class AllTimeStrategy(Strategy):
         self.motion = world.target_motion
         self.prior = prior_state(params, world.n_targets)
         mirror = self.planning.sensor_height if params.resolve_mirror else None
-        self.belief = Belief(self.motion, self.prior, mirror)
+        self.belief = Belief(self.motion, self.prior, mirror, target_initialiser(params, world))
         # Under the ideal radio every reading is fused the tick it is taken (the paper's baseline); under a
         # real one the formation plans with the belief its fusion robot (nearest the centre) holds, fed
         # over the bus, and self.belief stays the fictitious global one of e_g and lambda-bar.
         self.fusion: RadioFusion | None = None
         self.plan_belief = self.belief
         if over_radio(initial):
-            self.plan_belief = Belief(self.motion, self.prior, mirror)
+            self.plan_belief = Belief(self.motion, self.prior, mirror, target_initialiser(params, world))
             self.fusion = RadioFusion(n, int(np.argmin(np.linalg.norm(self.offsets, axis=1))), self.plan_belief,
                                       self.belief, params.retransmit_after_s)
         self.series = EstimateSeries()

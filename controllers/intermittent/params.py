@@ -80,6 +80,9 @@ class IntermittentParams:
     # its mirror image below that plane; reflect estimates that fall below it
     # (targets are above the floor). false: the paper's plain EKF.
     resolve_mirror: bool = task_param("resolve_mirror")
+    # Without an informed prior: keep each target's readings out of the EKF until they fix its
+    # position (multilateration), then start its estimate there (set in another scene, --scene)
+    init_from_readings: bool = task_param("init_from_readings")
 
     # -- outputs and baselines
 

@@ -86,7 +86,7 @@ from controllers.intermittent.runtime import (
     team_color,
 )
 from controllers.intermittent.schedules import build_schedule
-from controllers.task import neutral_prior
+from controllers.task import neutral_prior, target_initialiser
 from estimation.beliefs import NetworkBeliefs
 from estimation.ekf import FilterState
 from estimation.metrics import delay_report
@@ -257,7 +257,8 @@ class MeetingStrategy(Strategy):
         self.motion = world.target_motion
         self.prior = prior_state(params, world.n_targets)
         mirror = self.planning.sensor_height if params.resolve_mirror else None
-        self.beliefs = NetworkBeliefs(self.teams, self.motion, self.prior, mirror_plane_z=mirror)
+        self.beliefs = NetworkBeliefs(self.teams, self.motion, self.prior, mirror_plane_z=mirror,
+                                      initialiser=target_initialiser(params, world))
         self.series = EstimateSeries()
         starts = initial.position[:, :2].copy()
         free = points_free(self.planning.boxes, self.planning.bounds, starts, self.planning.sensor_height,

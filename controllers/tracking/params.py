@@ -38,6 +38,9 @@ class ConnectedTrackingParams:
     # Reflect estimates that fall below the sensors' plane (range readings cannot tell a target
     # from its mirror image); false: the paper's plain EKF.
     resolve_mirror: bool = task_param("resolve_mirror")
+    # Without an informed prior: keep each target's readings out of the EKF until they fix its
+    # position (multilateration), then start its estimate there (set in another scene, --scene)
+    init_from_readings: bool = task_param("init_from_readings")
     # Under a real radio: a reading's message to the fusion robot without an ack this long is sent again, s
     retransmit_after_s: float = task_param("retransmit_after_s")
 

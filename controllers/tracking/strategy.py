@@ -39,7 +39,7 @@ import numpy as np
 from controllers.connectivity.connected_params import ConnectedParams
 from controllers.connectivity.strategy import ConnectedStrategy
 from controllers.task import (EstimateSeries, RadioFusion, check_time_base, measurement_records, neutral_prior,
-                              over_radio, prior_state)
+                              over_radio, prior_state, target_initialiser)
 from controllers.tracking.generator import EKFTargetGenerator, spread_robots
 from controllers.tracking.params import ConnectedTrackingParams
 from estimation.beliefs import Belief
@@ -83,7 +83,8 @@ class ConnectedTrackingStrategy(WrappingStrategy):
         self.motion = world.target_motion
         self.prior = prior_state(params, world.n_targets)
         self.plane_z = float(np.mean(initial.sensor_position[:, 2]))
-        self.belief = Belief(self.motion, self.prior, self.plane_z if params.resolve_mirror else None)
+        self.belief = Belief(self.motion, self.prior, self.plane_z if params.resolve_mirror else None,
+                             target_initialiser(params, world))
         self.series = EstimateSeries()
         self.last_step: int | None = None
         self.readings_fused = 0
@@ -100,7 +101,8 @@ class ConnectedTrackingStrategy(WrappingStrategy):
             starts = initial.position[:, :2]
             distance = np.linalg.norm(starts - starts.mean(axis=0), axis=1)
             distance[self.generator.explorers] = np.inf  # explorers leave; a connector stays amid the team
-            self.team_belief = Belief(self.motion, self.prior, self.plane_z if params.resolve_mirror else None)
+            self.team_belief = Belief(self.motion, self.prior, self.plane_z if params.resolve_mirror else None,
+                                      target_initialiser(params, world))
             self.fusion = RadioFusion(n, int(np.argmin(distance)), self.team_belief, self.belief,
                                       params.retransmit_after_s)
         self._scalars = {"lambda_max_m2": float(np.linalg.eigvalsh(self.prior.covariance)[-1]), "t_star_s": 0.0,
