@@ -148,7 +148,7 @@ def test_estimation_observer_measures_e_g_against_the_truth():
         assert e_g == pytest.approx(shift * np.sqrt(2))
         assert estimation_error(estimate, step + 1, truth) is None  # a reading of another step
         assert estimation_error(estimate, None, truth) is None  # no reading this tick
-        frame = Frame(SimpleNamespace(target_step=step),
+        frame = Frame(SimpleNamespace(target_step=step, time_s=0.1 * step),
                       SimpleNamespace(estimate=estimate, scalars={"lambda_max_m2": 1.0}), truth,
                       estimation=EstimationError(e_g, step, fresh=True))
         observer.on_tick(frame)
