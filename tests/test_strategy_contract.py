@@ -164,7 +164,8 @@ def test_scene_adaptation_goes_through_every_kind(kind, monkeypatch):
     if hasattr(params, "prior_mean"):
         flat = SceneGeometry(FLAT)
         assert np.allclose(params.prior_mean, [flat.center] * len(scenario.targets))
-        assert any(n.startswith("strategy.prior_mean:") and "non-informative" in n for n in notes)
+        assert any(n.startswith("strategy.prior_mean:") and "first readings" in n for n in notes)
+        assert params.init_from_readings
     else:
         assert not any(n.startswith("strategy.prior_mean") for n in notes)
 
