@@ -45,11 +45,19 @@ import numpy as np
 from estimation.beliefs import AgreementTracker, Belief, RangeMeasurement
 from estimation.ekf import PAPER_INITIAL_ESTIMATE, FilterState
 from estimation.target_init import ReadingsInitialiser
+from estimation.target_search import SearchSpace, grid_points
 from estimation.metrics import local_error
 from sim.config import ConfigError, param
 from sim.radio.bus import range_records_bytes
 from sim.radio.protocols import Outbox, ReliableLink, deliveries_of
 from sim.types import Observation, SceneChange, TargetEstimate, WorldInfo
+
+from controllers.intermittent.planner_geometry import segments_blocked
+
+# The search's cells: across (m) and heights between the scene's floor and ceiling (a 10 x 10 m
+# room: about 2,300 hypotheses per target, each a reading's few microseconds).
+SEARCH_CELL_M = 0.35
+SEARCH_LEVELS = 3
 
 # The task's keys, shared by the four methods that run it (a scenario runs under any of them).
 TASK_PARAMS: dict[str, dict] = {
@@ -126,11 +134,33 @@ def neutral_prior(strategy_table: dict, change: SceneChange, keep: frozenset[str
 def target_initialiser(params, world: WorldInfo) -> ReadingsInitialiser | None:
     """The initialiser every belief of the task gets: None with the informed prior (the paper's),
     one that starts each target from its readings with ``strategy.init_from_readings`` (targets
-    between the scene's floor and ceiling)."""
+    between the scene's floor and ceiling), searching for it over the scene's free space until
+    then (:func:`search_space`)."""
     if not params.init_from_readings:
         return None
     low, high = (float(v) for v in np.asarray(world.bounds, dtype=float)[:, 2])
-    return ReadingsInitialiser(height_range=(low, high))
+    return ReadingsInitialiser(height_range=(low, high), search=search_space(world))
+
+
+def search_space(world: WorldInfo) -> SearchSpace:
+    """Hypotheses of a target's position over the scene's free space (cells of
+    :data:`SEARCH_CELL_M` across, :data:`SEARCH_LEVELS` heights between floor and ceiling),
+    sensed up to the sensors' range with line of sight past the scene's obstacles."""
+    bounds = np.asarray(world.bounds, dtype=float)
+    boxes = world.obstacles
+    height = bounds[1, 2] - bounds[0, 2]
+    spacing = np.array([SEARCH_CELL_M, SEARCH_CELL_M, height / SEARCH_LEVELS])
+
+    def free(points: np.ndarray) -> np.ndarray:
+        return ~segments_blocked(boxes, points, points)
+
+    def line_of_sight(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return ~segments_blocked(boxes, a, b)
+
+    points = grid_points(bounds[0], bounds[1], spacing, free)
+    if not len(points):
+        points = grid_points(bounds[0], bounds[1], spacing)
+    return SearchSpace(points, spacing, world.target_range_m, line_of_sight)
 
 
 def check_time_base(world: WorldInfo) -> float:

@@ -47,6 +47,7 @@ import numpy as np
 from estimation.ekf import FilterState, RangeReadings, TargetEKF
 from estimation.metrics import local_error
 from estimation.target_init import ReadingsInitialiser
+from estimation.target_search import HypothesisMotion, StepLooks, collapse, moments, normalised, update_log_weights
 from estimation.target_motion import TargetMotion
 
 MeasurementKey = tuple[int, int, int]  # (step, robot, target)
@@ -145,6 +146,11 @@ class Belief:
         # Per posterior (and for _root), the targets fixed by then; only used with an initialiser.
         self._fixed: list[frozenset[int]] = []
         self._root_fixed: frozenset[int] = frozenset()
+        # With a search space: per posterior (and for _root), {target not fixed: its hypotheses' log-weights}.
+        self._search = initialiser.search if initialiser is not None else None
+        self._hypothesis_motion = HypothesisMotion(motion, prior.step) if self._search is not None else None
+        self._weights: list[dict[int, np.ndarray]] = []
+        self._root_weights: dict[int, np.ndarray] = {}
         self._records: dict[MeasurementKey, RangeMeasurement] = {}
         self._by_step: dict[int, dict[MeasurementKey, RangeMeasurement]] = {}
         self._arrivals: list[RangeMeasurement] = []
@@ -215,6 +221,7 @@ class Belief:
         if earliest_new is not None:
             del self._posteriors[max(earliest_new - self._origin, 0) :]
             del self._fixed[max(earliest_new - self._origin, 0) :]
+            del self._weights[max(earliest_new - self._origin, 0) :]
         return added
 
     def estimate(self, step: int) -> FilterState:
@@ -225,10 +232,22 @@ class Belief:
             if self._initialiser is None:
                 self._posteriors.append(self._filter_next())
             else:
-                posterior, fixed = self._filter_next_initialising()
+                posterior, fixed, weights = self._filter_next_initialising()
                 self._posteriors.append(posterior)
                 self._fixed.append(fixed)
+                self._weights.append(weights)
         return self._posteriors[step - self._origin]
+
+    def hypotheses(self, step: int, target: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """Where ``target`` may be at ``step`` by the search (positions (N, 3), m, and weights (N,)
+        summing to 1), or None: no search space, or the target is fixed by then."""
+        if self._search is None:
+            return None
+        self.estimate(step)
+        log_weights = self._weights[step - self._origin].get(target)
+        if log_weights is None:
+            return None
+        return (self._hypothesis_motion.positions(self._search.points, target, step), normalised(log_weights))
 
     def fixed_targets(self, step: int) -> frozenset[int]:
         """Targets whose readings the posterior at ``step`` fuses: all without an initialiser,
@@ -238,54 +257,101 @@ class Belief:
         self.estimate(step)
         return self._fixed[step - self._origin]
 
-    def _filter_next_initialising(self) -> tuple[FilterState, frozenset[int]]:
+    def _filter_next_initialising(self) -> tuple[FilterState, frozenset[int], dict[int, np.ndarray]]:
         """:meth:`_filter_next` for a belief with an initialiser: readings of targets not yet
-        fixed wait; each such target with a reading this step is tried for a fix."""
+        fixed wait; each such target with a reading this step is tried for a fix. With a search
+        space, the hypotheses of every target not fixed are weighed by this step's readings and
+        non-readings; their moments are its block of the posterior, and their collapse fixes it
+        when multilateration does not."""
         step = self.computed_until + 1
         if self._posteriors:
             self._ekf.reset(self._posteriors[-1])
             self._ekf.predict()
             fixed = self._fixed[-1]
+            weights = self._weights[-1]
         elif self._root is not None:
             self._ekf.reset(self._root)
             self._ekf.predict()
             fixed = self._root_fixed
+            weights = self._root_weights
         else:
             self._ekf.reset(self._prior)
             fixed = frozenset()
+            weights = ({} if self._search is None else
+                       {a: np.zeros(self._search.n_hypotheses) for a in range(self.n_targets)})
         self.filtered_steps += 1
-        records = self._by_step.get(step)
-        if not records:
-            return self._ekf.state, fixed
+        records = self._by_step.get(step) or {}
         fused = [r for r in records.values() if r.target in fixed]
         state = self._ekf.update(readings_from_records(fused)) if fused else self._ekf.state
-        waiting = sorted({r.target for r in records.values()} - fixed)
-        if not waiting:
-            return state, fixed
+        read = {r.target for r in records.values()} - fixed
+        if not read and self._search is None:
+            return state, fixed, weights
         mean, covariance = np.array(state.mean), np.array(state.covariance)
         newly = []
-        first = max(step - self._initialiser.window_steps + 1, self._origin)
-        windows: dict[int, list[RangeMeasurement]] = {target: [] for target in waiting}
-        for s in range(first, step + 1):
-            for key in sorted(self._by_step.get(s, {})):  # (step, robot, target): a fixed order
-                if key[2] in windows:
-                    windows[key[2]].append(self._by_step[s][key])
-        for target in waiting:
-            window = windows[target]
-            result = self._initialiser.fix(self._motion, target, step, [r.step for r in window],
-                                           np.array([r.sensor_position for r in window]),
-                                           np.array([r.measured_range for r in window]))
-            if result is None:
+        if read:
+            first = max(step - self._initialiser.window_steps + 1, self._origin)
+            windows: dict[int, list[RangeMeasurement]] = {target: [] for target in read}
+            for s in range(first, step + 1):
+                for key in sorted(self._by_step.get(s, {})):  # (step, robot, target): a fixed order
+                    if key[2] in windows:
+                        windows[key[2]].append(self._by_step[s][key])
+            for target in sorted(read):
+                window = windows[target]
+                result = self._initialiser.fix(self._motion, target, step, [r.step for r in window],
+                                               np.array([r.sensor_position for r in window]),
+                                               np.array([r.measured_range for r in window]))
+                if result is None:
+                    continue
+                self._set_block(mean, covariance, target, result.position, result.covariance)
+                newly.append(target)
+        if self._search is not None:
+            weights = self._search_step(step, records, fixed | frozenset(newly), weights, mean, covariance,
+                                        newly)
+        if not newly and self._search is None:
+            return state, fixed, weights
+        return FilterState(step, mean, covariance), fixed | frozenset(newly), weights
+
+    @staticmethod
+    def _set_block(mean: np.ndarray, covariance: np.ndarray, target: int, position: np.ndarray,
+                   block_covariance: np.ndarray) -> None:
+        block = slice(3 * target, 3 * target + 3)
+        mean[block] = position
+        covariance[block, :] = 0.0
+        covariance[:, block] = 0.0
+        covariance[block, block] = block_covariance
+
+    def _search_step(self, step: int, records: Mapping[MeasurementKey, RangeMeasurement], fixed: frozenset[int],
+                     weights: dict[int, np.ndarray], mean: np.ndarray, covariance: np.ndarray,
+                     newly: list[int]) -> dict[int, np.ndarray]:
+        """Weighs the hypotheses of the targets not ``fixed`` by this step's looks (a robot's records
+        of a step travel together, so a robot with a record of this step read every target it saw),
+        writes their moments into ``mean`` / ``covariance`` and fixes (appending to ``newly``) those
+        that collapse. Returns the log-weights of the targets still not fixed."""
+        space = self._search
+        looks: dict[int, StepLooks] = {}
+        for key in sorted(records):
+            record = records[key]
+            look = looks.setdefault(record.robot, StepLooks(np.array(record.sensor_position)))
+            look.ranges[record.target] = record.measured_range
+        ordered = [looks[robot] for robot in sorted(looks)]
+        out: dict[int, np.ndarray] = {}
+        for target in range(self.n_targets):
+            if target in fixed:
                 continue
-            block = slice(3 * target, 3 * target + 3)
-            mean[block] = result.position
-            covariance[block, :] = 0.0
-            covariance[:, block] = 0.0
-            covariance[block, block] = result.covariance
-            newly.append(target)
-        if not newly:
-            return state, fixed
-        return FilterState(step, mean, covariance), fixed | frozenset(newly)
+            positions = self._hypothesis_motion.positions(space.points, target, step)
+            log_weights = weights[target]
+            if ordered:
+                drift = float(self._motion.process_noise[3 * target, 3 * target]) * (step - self._prior.step)
+                log_weights = update_log_weights(space, positions, log_weights, target, ordered, drift)
+                result = collapse(positions, log_weights, space.cell_covariance,
+                                  self._initialiser.accepted_variance_m2)
+                if result is not None:
+                    self._set_block(mean, covariance, target, *result)
+                    newly.append(target)
+                    continue
+            self._set_block(mean, covariance, target, *moments(positions, log_weights, space.cell_covariance))
+            out[target] = log_weights
+        return out
 
     def _filter_next(self) -> FilterState:
         step = self.computed_until + 1
@@ -318,7 +384,9 @@ class Belief:
         self._root = self._posteriors[step - 1 - self._origin]
         if self._initialiser is not None:
             self._root_fixed = self._fixed[step - 1 - self._origin]
+            self._root_weights = self._weights[step - 1 - self._origin]
             del self._fixed[: step - self._origin]
+            del self._weights[: step - self._origin]
         del self._posteriors[: step - self._origin]
         self._origin = step
 

@@ -40,6 +40,7 @@ import numpy as np
 
 from estimation.range_model import range_sigma
 from estimation.target_motion import TargetMotion
+from estimation.target_search import SearchSpace
 
 # A fix is accepted once no direction of its covariance exceeds this, m^2 (1 m standard
 # deviation): the paper's informed x^0 is up to 2.1 m off its targets, so the EKF starts from
@@ -272,11 +273,16 @@ class ReadingsInitialiser:
     sigma(l)^2 + (k - s) q, q the target model's process noise per step and axis.
     height_range: optional (low, high) z of the targets, m (the scene's floor and
     ceiling): a uniform height prior, mean (low + high) / 2, variance (high - low)^2 / 12.
+    search: optional hypotheses over the scene's free space
+    (:mod:`estimation.target_search`): a belief then weighs them by every reading and
+    non-reading of a target not yet fixed, reports their moments as its estimate,
+    and fixes the target from them once they collapse (when multilateration cannot yet).
     """
 
     window_steps: int = 60
     accepted_variance_m2: float = ACCEPTED_VARIANCE_M2
     height_range: tuple[float, float] | None = None
+    search: SearchSpace | None = None
 
     def __post_init__(self) -> None:
         if self.window_steps < 1:

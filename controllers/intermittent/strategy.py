@@ -99,6 +99,10 @@ from sim.types import Commands, Decorations, Observation, SceneChange, WorldInfo
 from sim.strategy import Strategy
 
 RECORDS_KIND = "range_records"  # the bus's message kind of a meeting's exchange
+# A target not yet fixed is planned for as a Gaussian of this variance at a drawn hypothesis, m^2: the
+# largest a fix is accepted with (estimation.target_init), so it comes first in the planner's order
+# of uncertain targets while the goal (its variance below delta) stays reachable from one visit.
+SEARCH_PLAN_VARIANCE_M2 = 1.0
 RING_RADIUS_M = 0.06  # members of a geodesic meeting stop on a ring this wide around its point, m
 IDLE_COLOR = palette.IDLE
 
@@ -260,6 +264,9 @@ class MeetingStrategy(Strategy):
         self.beliefs = NetworkBeliefs(self.teams, self.motion, self.prior, mirror_plane_z=mirror,
                                       initialiser=target_initialiser(params, world))
         self.series = EstimateSeries()
+        # Without an informed prior, plans look for the targets not yet fixed (search_estimate); its
+        # draws come from a stream of their own, so the informed prior's runs draw as before.
+        self.search_rng = rng.spawn(1)[0] if params.init_from_readings else None
         starts = initial.position[:, :2].copy()
         free = points_free(self.planning.boxes, self.planning.bounds, starts, self.planning.sensor_height,
                            params.clearance_m)
@@ -346,6 +353,31 @@ class MeetingStrategy(Strategy):
         )
         self._visual_dirty = True
         return meeting
+
+    def search_estimate(self, team: int, belief_step: int, estimate: FilterState) -> FilterState:
+        """The belief a team plans with when it looks for targets it has not fixed: each such
+        target's block becomes one of its search hypotheses, drawn by weight (Thompson sampling:
+        teams go where a target is likely, and a look that finds nothing there moves the weight
+        elsewhere), with :data:`SEARCH_PLAN_VARIANCE_M2` I as its covariance, so the planner's
+        goal (the most uncertain target brought below delta) sends the team to look there.
+        Unchanged without a search (the informed prior)."""
+        if self.search_rng is None:
+            return estimate
+        belief = self.beliefs.team_beliefs[team]
+        mean, covariance = np.array(estimate.mean), np.array(estimate.covariance)
+        changed = False
+        for target in range(self.world.n_targets):
+            hypotheses = belief.hypotheses(belief_step, target)
+            if hypotheses is None:
+                continue
+            positions, weights = hypotheses
+            block = slice(3 * target, 3 * target + 3)
+            mean[block] = positions[self.search_rng.choice(len(weights), p=weights)]
+            covariance[block, :] = 0.0
+            covariance[:, block] = 0.0
+            covariance[block, block] = SEARCH_PLAN_VARIANCE_M2 * np.eye(3)
+            changed = True
+        return FilterState(estimate.step, mean, covariance) if changed else estimate
 
     def geodesic_design(self, members: tuple[int, ...], starts: list[MemberStart], points: np.ndarray) -> TeamDesign | None:
         """Geodesic paths from the starts to ``points`` at full speed; every
@@ -727,6 +759,7 @@ class IntermittentStrategy(MeetingStrategy):
     kind = "intermittent"
 
     def design(self, team, epoch, members, starts, belief_step, estimate) -> TeamDesign:
+        estimate = self.search_estimate(team, belief_step, estimate)
         problem = PlanningProblem(
             start_positions=np.array([s.position for s in starts]),
             start_times=np.array([s.time for s in starts]),
