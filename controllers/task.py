@@ -120,8 +120,9 @@ def neutral_prior(strategy_table: dict, change: SceneChange, keep: frozenset[str
         strategy_table["init_from_readings"] = True
     if strategy_table.get("init_from_readings", False):
         return [f"strategy.prior_mean: the built-in's EKF prior describes its own scene; in {change.scene_name} "
-                "each target's estimate starts from its first readings (multilateration once they fix it; "
-                f"until then the scene's centre, {tuple(centre)} m, C(0) = "
+                "each target's estimate starts from its first readings (multilateration once they fix it, or a "
+                "search over the scene's free space once what was and was not read narrows it to one place; "
+                f"before any reading the scene's centre, {tuple(centre)} m, C(0) = "
                 f"{strategy_table['prior_variance_m2']:g} I m^2); if you know roughly where the targets are, "
                 "set strategy.prior_mean there"]
     return [f"strategy.prior_mean: the built-in's EKF prior describes its own scene; every target's estimate "
