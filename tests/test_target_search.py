@@ -196,3 +196,22 @@ def test_forgetting_keeps_the_hypotheses():
     belief.forget_before(20)
     again = belief.hypotheses(29, 0)
     assert np.array_equal(reference[1], again[1])
+
+
+@pytest.mark.slow
+def test_intermittent_in_a_held_out_room_without_a_prior_is_within_1_5_times_the_office():
+    """The newcomer's case of issue 22: intermittent-8 moved into a room it was never tuned in
+    (10 x 10 m, two L-shaped walls, four pillars), no prior given: over 300 s its e_g is within
+    1.5 times what it gets in the built-in office with the paper's informed prior (same seed)."""
+    from pathlib import Path
+
+    from sim.scenario import load
+    from tether.placement import load_in_scene
+    from tether.runner import run
+
+    room = Path(__file__).parent / "data" / "room_l_walls.xml"
+    scenario, notes = load_in_scene("intermittent-8", str(room), seed=1, duration_s=300.0)
+    assert scenario.strategy.params.init_from_readings
+    held_out = run(scenario).metrics["e_g_mean_m"]
+    office = run(load("intermittent-8", seed=1, duration_s=300.0)).metrics["e_g_mean_m"]
+    assert held_out <= 1.5 * office, (held_out, office)
