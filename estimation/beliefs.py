@@ -135,6 +135,10 @@ class Belief:
     of later steps are fused. Until then its block is the prior's, predicted.
     Which targets are fixed is checkpointed with each posterior, so the
     posterior at k still depends only on the records with step <= k.
+    With the initialiser's search space (:mod:`estimation.target_search`), the
+    block of a target not yet fixed is instead the moments of its hypotheses,
+    weighed by every reading and non-reading of steps <= k (checkpointed too:
+    :meth:`hypotheses`), and their collapse also fixes it.
     """
 
     def __init__(self, motion: TargetMotion, prior: FilterState, mirror_plane_z: float | None = None,

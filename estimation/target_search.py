@@ -50,7 +50,7 @@ COLLAPSE_VARIANCE_M2 = 1.0
 LineOfSight = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (K, 3), (K, 3) -> (K,) bool: clear
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # arrays: compared by identity
 class SearchSpace:
     """The hypotheses of a target's position at the belief's first step and how sensing is modelled.
 

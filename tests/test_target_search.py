@@ -88,7 +88,6 @@ def test_hypotheses_move_with_the_target_model():
     carried = HypothesisMotion(motion)
     points = np.random.default_rng(1).uniform(0, 4, (6, 3))
     for target in (0, 1):
-        state = np.tile(points[0], 2)
         expected = [points]
         states = np.tile(points, (1, 2))
         for k in range(45):
@@ -96,7 +95,6 @@ def test_hypotheses_move_with_the_target_model():
             expected.append(states[:, 3 * target:3 * target + 3])
         for k in (0, 1, 17, 45):
             assert carried.positions(points, target, k) == pytest.approx(expected[k], abs=1e-9)
-        del state
 
 
 @settings(max_examples=25, deadline=None)
