@@ -59,6 +59,10 @@ from controllers.intermittent.planner_geometry import segments_blocked
 # time, and the coarser 0.35 m x 3 heights gave e_g 0.84 / 1.09 / 0.91 m on seeds 1-3 against 0.79 / 1.12 / 0.78).
 SEARCH_CELL_M = 0.25
 SEARCH_LEVELS = 5
+# A target not yet fixed is planned for as a Gaussian of this variance at a drawn hypothesis, m^2: the
+# largest a fix is accepted with (estimation.target_init), so it comes first in the planners' order
+# of uncertain targets while their goal (its variance below delta) stays reachable from one visit.
+SEARCH_PLAN_VARIANCE_M2 = 1.0
 
 # The task's keys, shared by the four methods that run it (a scenario runs under any of them).
 TASK_PARAMS: dict[str, dict] = {

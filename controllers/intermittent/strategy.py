@@ -86,7 +86,7 @@ from controllers.intermittent.runtime import (
     team_color,
 )
 from controllers.intermittent.schedules import build_schedule
-from controllers.task import neutral_prior, target_initialiser
+from controllers.task import SEARCH_PLAN_VARIANCE_M2, neutral_prior, target_initialiser
 from estimation.beliefs import NetworkBeliefs
 from estimation.ekf import FilterState
 from estimation.metrics import delay_report
@@ -99,10 +99,7 @@ from sim.types import Commands, Decorations, Observation, SceneChange, WorldInfo
 from sim.strategy import Strategy
 
 RECORDS_KIND = "range_records"  # the bus's message kind of a meeting's exchange
-# A target not yet fixed is planned for as a Gaussian of this variance at a drawn hypothesis, m^2: the
-# largest a fix is accepted with (estimation.target_init), so it comes first in the planner's order
-# of uncertain targets while the goal (its variance below delta) stays reachable from one visit.
-SEARCH_PLAN_VARIANCE_M2 = 1.0
+
 RING_RADIUS_M = 0.06  # members of a geodesic meeting stop on a ring this wide around its point, m
 IDLE_COLOR = palette.IDLE
 
