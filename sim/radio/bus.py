@@ -288,6 +288,7 @@ def link_from_pairs(n: int, pairs: tuple[np.ndarray, np.ndarray], snr_db: np.nda
 
 @kernel
 def _pair_matrices(n, first, second, snr_db, rx_power_dbm, carrier_sense_dbm):
+    """``link_from_pairs``' two (N, N) matrices, both triangles from each pair."""
     snr = np.empty((n, n))
     sense = np.zeros((n, n), dtype=np.bool_)
     for p in range(first.shape[0]):
