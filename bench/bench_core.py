@@ -205,7 +205,7 @@ def radio_cost(scenario_name: str, overrides: list[str], seconds: float, warmup_
             "delivery": bus["radio_delivery_ratio"], "queued": bus["radio_packets_queued"]}
 
 
-def radio_section(seconds: float, warmup_s: float, rows: list[str] | None) -> None:
+def radio_section(seconds: float, warmup_s: float, rows: list[str] | None, synthetic_load: bool = True) -> None:
     print(f"radio: {RADIO_PRESET} / ideal CPU time per tick, {seconds:g} s simulated after {warmup_s:g} s; ratio = "
           f"median over pairs of blocks of {BLOCK_TICKS} ticks, one per preset, alternating (target <= "
           f"{RADIO_TARGET:.2f}); ratio of sums beside it")
@@ -215,7 +215,7 @@ def radio_section(seconds: float, warmup_s: float, rows: list[str] | None) -> No
     for label, name, overrides in RADIO_ROWS:
         if rows and not any(key in label for key in rows):
             continue
-        for synthetic in (False, True):
+        for synthetic in (False, True) if synthetic_load else (False,):
             cost = radio_cost(name, overrides, seconds, warmup_s, synthetic)
             load_name = "synthetic load" if synthetic else "the methods'"
             delivery = "-" if cost["delivery"] != cost["delivery"] else f"{cost['delivery']:.2f}"
@@ -280,6 +280,8 @@ def main() -> None:
                         help="simulated seconds measured per row of the radio section")
     parser.add_argument("--no-radio", action="store_true", help="skip the radio section")
     parser.add_argument("--radio-only", action="store_true", help="only the radio section")
+    parser.add_argument("--no-synthetic", action="store_true",
+                        help="the radio section under the methods' messages only (no synthetic-load rows)")
     parser.add_argument("--quick", action="store_true", help="core rows only: no planner, no video, no fixed costs")
     parser.add_argument("--fixed-duration", type=float, default=20.0, help="simulated seconds of the fixed-cost runs")
     args = parser.parse_args()
@@ -290,7 +292,7 @@ def main() -> None:
     if args.radio_only:
         print(machine)
         print()
-        radio_section(args.radio_seconds, args.warmup, args.rows)
+        radio_section(args.radio_seconds, args.warmup, args.rows, not args.no_synthetic)
         return
     print(f"{machine}; {args.seconds:g} s simulated per row after {args.warmup:g} s")
     print("ratio = full tick / bare mj_step of the same world (thread CPU time, interleaved blocks)")
@@ -320,7 +322,7 @@ def main() -> None:
         print("\n".join(radio_ratios))
     if not args.no_radio:
         print()
-        radio_section(args.radio_seconds, args.warmup, args.rows)
+        radio_section(args.radio_seconds, args.warmup, args.rows, not args.no_synthetic)
     if args.quick:
         return
     print()

@@ -33,7 +33,7 @@ import numpy as np
 from sim.config import ConfigError
 from sim.faults import FaultState
 from sim.observers import EstimationError, Frame, Observer, PhysicsState, estimation_error
-from sim.radio.bus import LinkConditions, MessageBus, link_conditions
+from sim.radio.bus import LinkConditions, MessageBus, link_conditions, link_from_pairs
 from sim.radio.config import RadioConfig
 from sim.radio.link import RadioChannel
 from sim.scenario import Scenario, StrategyConfig
@@ -395,9 +395,9 @@ class Simulation:
             adjacency = observation.links.adjacency
             return link_conditions(np.where(adjacency, np.inf, -np.inf), adjacency)
         radio = observation.radio
-        with np.errstate(invalid="ignore"):
-            sense = radio.rx_power_dbm >= self.scenario.radio.carrier_sense_dbm
-        return LinkConditions(radio.snr_db, sense)
+        channel = radio.channel_pairs
+        return link_from_pairs(len(radio.distance), radio.pairs, channel["snr_db"], channel["rx_power_dbm"],
+                               self.scenario.radio.carrier_sense_dbm)
 
     def fault_summary(self) -> dict[str, Any]:
         """metrics.json's ``faults`` (what was injected, and whether it came to pass); {} without faults, so

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import tether.catalog  # noqa: F401 (registers the built-in scenarios)
 from controllers.lowlevel.actuation import LowLevelControl
@@ -18,7 +20,7 @@ from sim.config import ConfigError
 from sim.faults import IDEAL_BLACKOUT_CUT_DB, FaultState, PositionNoise
 from sim.loop import Simulation
 from sim.radio.bus import Delivery, Message
-from sim.radio.protocols import HeartbeatMonitor
+from sim.radio.protocols import HeartbeatMonitor, _quiet_pairs
 from sim.scenario import load
 from sim.strategy import Strategy, build_strategy
 from sim.types import Commands
@@ -293,3 +295,19 @@ def test_a_meeting_goes_on_without_a_dead_member_after_the_wait_and_not_before(t
     # The team mates arrived 59 s into the run: the meeting goes on one wait later, never earlier.
     assert given_up[20.0] - given_up[10.0] == pytest.approx(10.0)
     assert given_up[10.0] >= 20.0 + 10.0
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 8).flatmap(lambda n: st.tuples(
+    st.lists(st.sampled_from([-np.inf, 0.0, 0.2, 0.45, 0.5, 0.7]), min_size=n * n, max_size=n * n),
+    st.lists(st.booleans(), min_size=n * n, max_size=n * n))), st.sampled_from([0.0, 0.45, 0.5, 1.0]))
+def test_the_heartbeats_compiled_quiet_pairs_are_numpys(case, before_s):
+    """``_quiet_pairs`` lists the pairs heard once, last before the limit and not yet silent, in the order
+    ``numpy.nonzero`` gives them (the order the detections are recorded in)."""
+    last, silent = case
+    n = int(round(len(last) ** 0.5))
+    last, silent = np.array(last).reshape(n, n), np.array(silent).reshape(n, n)
+    expected = np.nonzero(np.isfinite(last) & (last < before_s) & ~silent)
+    got = _quiet_pairs(last, silent, before_s)
+    assert got.shape == (2, len(expected[0]))
+    assert got[0].tolist() == expected[0].tolist() and got[1].tolist() == expected[1].tolist()

@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from sim.radio.bus import (BusParameters, Message, MessageBus, ReferenceMessageBus, _arrivals_of, broadcasts,
-                           link_conditions)
+                           link_conditions, link_from_pairs)
 from sim.radio.presets import IEEE802154, NRF24, WIFI
 
 PRESETS = {"ieee802154": IEEE802154, "nrf24": NRF24, "wifi": WIFI}
@@ -145,3 +145,32 @@ def test_broadcasts_are_the_messages_one_by_one():
     made = broadcasts("consensus", np.array([0.5, 0.25, 1.0]), 8, latest_only=True, as_arrays=True)
     assert made == tuple(Message("consensus", i, None, v, 8, latest_only=True, as_arrays=True)
                          for i, v in enumerate([0.5, 0.25, 1.0]))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 9).flatmap(lambda n: st.tuples(
+    st.just(n),
+    st.lists(st.sampled_from([-math.inf, math.nan, -120.0, -95.0, -85.0, -85.0 + 1e-12, -40.0, math.inf]),
+             min_size=n * (n - 1) // 2, max_size=n * (n - 1) // 2),
+    st.lists(st.floats(-50.0, 80.0) | st.sampled_from([-math.inf, math.nan]),
+             min_size=n * (n - 1) // 2, max_size=n * (n - 1) // 2))))
+def test_the_link_from_pairs_is_the_radio_states_matrices(case):
+    """``link_from_pairs``' compiled pass gives the matrices the bus was given before: the radio state's SNR
+    (``RadioState._matrix``: both triangles, NaN diagonal) and rx power >= the carrier-sense level."""
+    n, rx, snr = case
+    first, second = np.triu_indices(n, 1)
+    rx, snr = np.array(rx, dtype=float), np.array(snr, dtype=float)
+    expected_snr = np.empty((n, n))
+    expected_snr[first, second] = snr
+    expected_snr[second, first] = snr
+    np.fill_diagonal(expected_snr, np.nan)
+    expected_rx = np.empty((n, n))
+    expected_rx[first, second] = rx
+    expected_rx[second, first] = rx
+    np.fill_diagonal(expected_rx, np.nan)
+    with np.errstate(invalid="ignore"):
+        expected_sense = expected_rx >= -85.0
+    link = link_from_pairs(n, (first, second), snr, rx, -85.0)
+    assert np.array_equal(link.snr_db, expected_snr, equal_nan=True)
+    assert link.snr_db.dtype == expected_snr.dtype and not link.snr_db.flags.writeable
+    assert np.array_equal(link.carrier_sense, expected_sense) and link.carrier_sense.dtype == bool

@@ -273,6 +273,36 @@ def link_conditions(snr_db: Any, carrier_sense: Any = True) -> LinkConditions:
     return LinkConditions(snr, sense)
 
 
+def link_from_pairs(n: int, pairs: tuple[np.ndarray, np.ndarray], snr_db: np.ndarray, rx_power_dbm: np.ndarray,
+                    carrier_sense_dbm: float) -> LinkConditions:
+    """The bus's ``LinkState`` from a channel's per-pair figures ((P,) over the pairs (first[p], second[p]),
+    i < j, every pair of ``n`` robots): the SNR matrix (NaN on the diagonal) and carrier sense where the mean
+    received power reaches ``carrier_sense_dbm``, as ``RadioState.snr_db`` and
+    ``RadioState.rx_power_dbm >= carrier_sense_dbm`` give them, in one compiled pass."""
+    first, second = pairs
+    snr, sense = _pair_matrices(int(n), first, second, np.asarray(snr_db, dtype=float),
+                                np.asarray(rx_power_dbm, dtype=float), float(carrier_sense_dbm))
+    snr.flags.writeable = False
+    return LinkConditions(snr, sense)
+
+
+@kernel
+def _pair_matrices(n, first, second, snr_db, rx_power_dbm, carrier_sense_dbm):
+    """``link_from_pairs``' two (N, N) matrices, both triangles from each pair."""
+    snr = np.empty((n, n))
+    sense = np.zeros((n, n), dtype=np.bool_)
+    for p in range(first.shape[0]):
+        i, j = first[p], second[p]
+        snr[i, j] = snr_db[p]
+        snr[j, i] = snr_db[p]
+        heard = rx_power_dbm[p] >= carrier_sense_dbm
+        sense[i, j] = heard
+        sense[j, i] = heard
+    for i in range(n):
+        snr[i, i] = np.nan
+    return snr, sense
+
+
 @dataclass(frozen=True)
 class BusParameters:
     """What the bus needs of a channel preset (``from_preset``)."""
@@ -705,8 +735,14 @@ class MessageBus:
             else:  # one kind's columns alone: already in the rows' order
                 columns = next(iter(self._arrivals.values()))
                 latencies = columns.arrival_s - columns.sent_s
+        if len(latencies):
+            latencies = np.asarray(latencies, dtype=float)
+            # numpy.mean's own sum and division, without its wrapper (this runs every tick)
+            latency_mean_s = float(np.add.reduce(latencies) / latencies.size)
+        else:
+            latency_mean_s = math.nan
         self._last = TickStats(float(time_s), sent, delivered, delivered / addressed if addressed else math.nan,
-                               float(np.mean(latencies)) if len(latencies) else math.nan, self.queued())
+                               latency_mean_s, self.queued())
         return deliveries
 
     @property

@@ -345,8 +345,8 @@ class HeartbeatMonitor:
             back = np.empty(len(columns), dtype=np.int64)
             for k in back[:_hear_columns(columns.receiver, columns.sender, columns.arrival_s, last, silent, back)]:
                 self.withdrawn.append((time_s, int(columns.receiver[k]), int(columns.sender[k])))
-        quiet = np.isfinite(last) & (last < time_s - self.timeout_s) & ~silent
-        new = [(int(i), int(j)) for i, j in zip(*np.nonzero(quiet))]
+        quiet = _quiet_pairs(last, silent, time_s - self.timeout_s)
+        new = list(zip(quiet[0].tolist(), quiet[1].tolist())) if quiet.shape[1] else []
         for sender in {j for _, j in new}:
             if not silent[:, sender].any():
                 self.silence_detected_s[sender].append(float(time_s))
@@ -370,3 +370,26 @@ def _hear_columns(receiver, sender, arrival_s, last_heard, silent, back):
             back[count] = d
             count += 1
     return count
+
+
+@kernel
+def _quiet_pairs(last_heard, silent, before_s):
+    """The pairs (receiver, sender), row-major as ``numpy.nonzero`` lists them, heard at least once, last
+    before ``before_s`` and not yet silent: (2, Q) int64."""
+    n, m = last_heard.shape
+    count = 0
+    for i in range(n):
+        for j in range(m):
+            heard = last_heard[i, j]
+            if np.isfinite(heard) and heard < before_s and not silent[i, j]:
+                count += 1
+    pairs = np.empty((2, count), dtype=np.int64)
+    k = 0
+    for i in range(n):
+        for j in range(m):
+            heard = last_heard[i, j]
+            if np.isfinite(heard) and heard < before_s and not silent[i, j]:
+                pairs[0, k] = i
+                pairs[1, k] = j
+                k += 1
+    return pairs
