@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import http.server
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -249,6 +250,54 @@ def test_a_grpc_port_that_is_not_ray_ends_in_a_minute(tmp_path):
         listener.close()
     assert "ray.init had not connected within" in proc.error
     assert RAY_INIT_TIMEOUT_S <= proc.took_s < RAY_INIT_TIMEOUT_S + 60
+
+
+def _ray_head_group(address: str) -> int:
+    """The process group of ``ray start --head`` on ``address``'s port (local_ray_cluster's own group)."""
+    port = address.rpartition(":")[2]
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            words = cmdline.read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"start" in words and b"--head" in words and f"--port={port}".encode() in words:
+            return os.getpgid(int(cmdline.parent.name))
+    raise AssertionError(f"no ray start --head on port {port}")
+
+
+@pytest.mark.slow
+def test_a_killed_ray_head_stops_the_sweep_in_seconds_with_one_line(tmp_path, tmp_path_factory):
+    """Every process of the head killed mid-sweep (SIGKILL to its group): Ray itself would notice after a
+    minute and end the process with its own lines (or, for a raylet, ~47 lines of its state); the driver
+    notices within seconds, prints its summary and one line, keeps its rows, and the sweep resumes."""
+    pytest.importorskip("ray")
+    from tether.sweep import local_ray_cluster
+
+    sweep = sweep_file(tmp_path, "seeds = 6\n", 2.0)
+    out = tmp_path / "out"
+    with local_ray_cluster(num_cpus=1, temp_dir=tmp_path_factory.mktemp("ray")) as address:
+        driver = Driver(tmp_path, str(sweep), "--out", "out", "--ray", address, "--no-report")
+        wait_until(lambda: driver.stored(out) >= 2, driver)
+        killed = time.monotonic()
+        os.killpg(_ray_head_group(address), signal.SIGKILL)
+        code = driver.wait(timeout=60)
+        took = time.monotonic() - killed
+    text = driver.output()
+    print(f"exit {code} {took:.1f} s after the head was killed")
+    assert code == 1, text
+    assert took < 20.0, f"{took:.1f} s to stop"  # ~2 s to notice, ray.shutdown bounded at 10 s
+    assert "Traceback" not in text and "state-dump" not in text and "raylet" not in text, text
+    progress = re.compile(r"  s: \d+/6 trials, ")
+    lines = [line for line in driver.err_path.read_text().splitlines() if not progress.match(line)]
+    assert lines == [f"stopped: the Ray cluster at {address} is gone; run the same command again to resume"], text
+    summary = driver.out_path.read_text().strip().splitlines()
+    assert len(summary) == 1 and summary[0].startswith("s: ") and "not run of 6" in summary[0], text
+    rows = pq.read_table(out / "results.parquet")
+    assert rows.num_rows == driver.stored(out) >= 2
+    assert set(rows.column("status").to_pylist()) == {"completed"}  # the trials cut off have no row
+    again = _tether(["sweep", str(sweep), "--out", "out", "--workers", "2", "--no-report"], tmp_path)
+    assert again.returncode == 0 and "6 finished" in again.stdout, again.stdout + again.stderr
+    assert pq.read_table(out / "results.parquet").num_rows == 6
 
 
 # ---------------------------------------------------------------- files cut short, names that clash
