@@ -625,4 +625,6 @@ def _silence_stdout() -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from tether.entry import end_process
+
+    end_process(main())
