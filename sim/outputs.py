@@ -253,6 +253,27 @@ def non_finite_fields(obj: Any, prefix: str = "") -> list[str]:
     return []
 
 
+SPACE_PROBE_BYTES = 64 * 1024  # written to tell a full disk from another failure of a writer
+
+
+def no_space_left(folder: Path) -> bool:
+    """Whether ``folder``'s file system refuses SPACE_PROBE_BYTES more (tried, not guessed from
+    statvfs: reserved blocks and quotas count too). For a writer (Rerun's, a child's encoder) that
+    stopped without saying why."""
+    probe = Path(folder) / f".space-probe-{os.getpid()}"
+    try:
+        with open(probe, "wb") as f:
+            f.write(b"\0" * SPACE_PROBE_BYTES)
+            f.flush()
+            os.fsync(f.fileno())
+        return False
+    except OSError as err:
+        return err.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+    finally:
+        with contextlib.suppress(OSError):
+            probe.unlink()
+
+
 def write_json(path: Path, payload: Any) -> None:
     """Write valid JSON (non-finite numbers as null) through a temporary file."""
     path = Path(path)

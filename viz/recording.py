@@ -65,6 +65,7 @@ from rerun.chunk import RrdReader  # noqa: E402
 
 from sim.loop import ObserverFailure  # noqa: E402
 from sim.observers import Frame, Observer, link_figures, tracking_errors  # noqa: E402
+from sim.outputs import no_space_left  # noqa: E402
 from sim.strategy import Status  # noqa: E402
 from sim.world import INFINITE_PLANE_HALF_SIZE, World  # noqa: E402
 from sim import palette  # noqa: E402
@@ -92,7 +93,6 @@ MERGE_FLUSH_TIMEOUT_S = 20.0  # ... plus a second per MERGE_BYTES_PER_S of the s
 MERGE_BYTES_PER_S = 10 * 1024 * 1024
 DISCONNECT_TIMEOUT_S = 5.0
 MERGE_SPARE_BYTES = 256 * 1024  # free space the merge needs beyond the segments' own size
-SPACE_PROBE_BYTES = 64 * 1024  # written to tell a full disk from another failure of the writer
 PROPERTIES = "/__properties"  # Rerun's recording properties entity  # ... in run.rrd.segments/, merged into run.rrd when the run ends
 
 
@@ -148,23 +148,6 @@ def _bounded(call, timeout_s: float) -> bool:
 
     threading.Thread(target=target, name="rerun-wait", daemon=True).start()
     return finished.wait(timeout_s)
-
-
-def _no_space_left(folder: Path) -> bool:
-    """Whether ``folder``'s file system refuses SPACE_PROBE_BYTES more (tried, not guessed from
-    statvfs: reserved blocks and quotas count too)."""
-    probe = folder / f".space-probe-{os.getpid()}"
-    try:
-        with open(probe, "wb") as f:
-            f.write(b"\0" * SPACE_PROBE_BYTES)
-            f.flush()
-            os.fsync(f.fileno())
-        return False
-    except OSError as err:
-        return err.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
-    finally:
-        with contextlib.suppress(OSError):
-            probe.unlink()
 
 
 class LiveViewer:
@@ -395,7 +378,7 @@ class RerunRecorder(Observer):
         run "failed" with the reason (ObserverFailure). A writer that stopped without saying why, on a
         file system with no room left, is a full disk."""
         code = err.errno
-        if code != errno.ENOSPC and _no_space_left(self.segments.parent):
+        if code != errno.ENOSPC and no_space_left(self.segments.parent):
             code = errno.ENOSPC
         reason = err.strerror if code == err.errno else os.strerror(code)
         self.failed = f"recording failed, {self.path.name} not written: {reason} ({errno.errorcode.get(code, code)})"
