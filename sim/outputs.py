@@ -28,6 +28,8 @@ JSON files are always valid JSON: NaN and infinities become null
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import math
 import os
@@ -251,6 +253,27 @@ def non_finite_fields(obj: Any, prefix: str = "") -> list[str]:
     return []
 
 
+SPACE_PROBE_BYTES = 64 * 1024  # written to tell a full disk from another failure of a writer
+
+
+def no_space_left(folder: Path) -> bool:
+    """Whether ``folder``'s file system refuses SPACE_PROBE_BYTES more (tried, not guessed from
+    statvfs: reserved blocks and quotas count too). For a writer (Rerun's, a child's encoder) that
+    stopped without saying why."""
+    probe = Path(folder) / f".space-probe-{os.getpid()}"
+    try:
+        with open(probe, "wb") as f:
+            f.write(b"\0" * SPACE_PROBE_BYTES)
+            f.flush()
+            os.fsync(f.fileno())
+        return False
+    except OSError as err:
+        return err.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+    finally:
+        with contextlib.suppress(OSError):
+            probe.unlink()
+
+
 def write_json(path: Path, payload: Any) -> None:
     """Write valid JSON (non-finite numbers as null) through a temporary file."""
     path = Path(path)
@@ -327,15 +350,32 @@ class ProgressFile(Observer):
         self._clock = clock or time.monotonic
         self._next = 0.0
         self._latest: dict[str, Any] = {}
+        self.failed = False
+
+    def _write(self, payload: dict[str, Any]) -> None:
+        """write_json; a full disk ends the run "failed" naming it (ObserverFailure), then nothing more."""
+        try:
+            write_json(self.path, payload)
+        except OSError as err:
+            from sim.loop import ObserverFailure  # sim.loop imports this module
+
+            self.failed = True
+            with contextlib.suppress(OSError):
+                self.path.with_name(self.path.name + ".tmp").unlink()
+            code = errno.errorcode.get(err.errno, err.errno)
+            raise ObserverFailure(f"{self.path.name} not written: {err.strerror} ({code})") from None
 
     def on_tick(self, frame) -> None:
+        if self.failed:
+            return
         obs = frame.observation
         self._latest = {"status": Status.RUNNING.value, "sim_time_s": obs.time_s, "tick": obs.tick,
                         "links": int(len(obs.links.edges)), **frame.scalars}
         now = self._clock()
         if now >= self._next:
             self._next = now + self.period_s
-            write_json(self.path, self._latest)
+            self._write(self._latest)
 
     def close(self, status: str) -> None:
-        write_json(self.path, {**self._latest, "status": str(status)})
+        if not self.failed:
+            self._write({**self._latest, "status": str(status)})

@@ -142,3 +142,38 @@ def test_intermittent_in_a_1_km_scene_is_one_line(tmp_path):
                   tmp_path)
     assert_refused(proc, "scene:", "geodesic planner", "cells")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["km.xml"]
+
+
+def test_connected_office_in_a_1_km_office_names_the_coarsened_grid(tmp_path):
+    """The office's walls in 1 km bounds: the connectivity planner's 400,000-cell cap coarsens its
+    0.25 m cells to 2.7 m, which cuts the start room off. The refusal names that, not the targets'
+    clearance, and comes before 10^5 draws are each tested for a path."""
+    scene = (REPO / "models" / "scenes" / "indoor.xml").read_text().replace('data="0 0 0 10 10 5"',
+                                                                            'data="0 0 0 1000 1000 5"')
+    (tmp_path / "km.xml").write_text(scene)
+    proc = tether(["run", "connected-office", "--scene", "km.xml", "--duration", "1", "--out", "out", "--quiet"],
+                  tmp_path)
+    line = assert_refused(proc, "scene:", "connectivity planner's grid is coarsened from 0.25 m to 2.7 m",
+                          "400,000 cells", "smaller scene")
+    assert "target_clearance_m" not in line
+    assert proc.took_s < 20.0, f"{proc.took_s:.0f} s to refuse"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["km.xml"]
+
+
+def test_connected_to_answers_as_connected_one_point_at_a_time():
+    from controllers.connectivity.paths import GridPlanner
+    from sim.geometry import Boxes
+
+    # a wall across the room with a door: two rooms, and points inside the wall
+    wall = Boxes(np.array([[2.0, 5.0, 2.5], [7.5, 5.0, 2.5]]), np.array([[2.0, 0.1, 2.5], [2.5, 0.1, 2.5]]),
+                 np.repeat(np.eye(3)[None], 2, axis=0))
+    closed = Boxes(np.array([[5.0, 5.0, 2.5]]), np.array([[5.0, 0.1, 2.5]]), np.eye(3)[None])
+    points = np.random.default_rng(3).uniform([0, 0, 0], [10, 10, 5], size=(300, 3))
+    for boxes in (wall, closed):
+        planner = GridPlanner(boxes, [0, 0, 0], [10, 10, 5], 0.5, 0.4, 0.2)
+        one_by_one = np.array([planner.connected([1.0, 1.0, 1.0], p) for p in points])
+        assert np.array_equal(planner.connected_to([1.0, 1.0, 1.0], points), one_by_one)
+        assert 0 < one_by_one.sum() < len(points)
+        assert not planner.coarsened
+    coarse = GridPlanner(wall, [0, 0, 0], [10, 10, 5], 0.05, 0.4, 0.2)
+    assert coarse.coarsened and "coarsened from 0.05 m to" in coarse.coarsening()

@@ -325,3 +325,63 @@ def test_sigterm_during_intermittent_8_setup_leaves_nothing(tmp_path):
     run.assert_clean()
     assert not run.staging.exists()
     assert not run.out.exists() or run.metrics()["status"] == "interrupted"
+
+
+# ---------------------------------------------------------------- a signal the set-up swallows
+
+SWALLOWED = r'''
+import ctypes, os, signal, sys, threading, time
+from tether import cli
+
+signal.signal(signal.SIGINT, cli._raise_interrupt)
+cli._resend.armed, cli._resend.generation = True, 1
+
+def busy():  # Python code called from C: the KeyboardInterrupt raised in it is printed and dropped
+    end = time.monotonic() + 1.0
+    while time.monotonic() < end:
+        pass
+
+threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT)).start()
+ctypes.CFUNCTYPE(None)(busy)()
+swallowed = time.monotonic()
+print("swallowed", flush=True)
+try:
+    time.sleep(30)  # the set-up going on
+except KeyboardInterrupt:
+    print(f"interrupted {time.monotonic() - swallowed:.1f} s after", flush=True)
+    sys.exit(130)
+'''
+
+
+def test_a_signal_swallowed_by_a_callback_during_setup_comes_again(tmp_path):
+    # A ctypes callback (as a compiled or C library's callback into Python): Python prints "Exception
+    # ignored" and drops the KeyboardInterrupt. The set-up's handler sends the signal again.
+    proc = subprocess.run([sys.executable, "-c", SWALLOWED], env=ENV, cwd=tmp_path, capture_output=True, text=True,
+                          timeout=60)
+    assert "Exception ignored" in proc.stderr and "KeyboardInterrupt" in proc.stderr, proc.stderr  # really lost
+    assert proc.returncode == 130, proc.stdout + proc.stderr
+    lines = proc.stdout.splitlines()
+    assert lines[0] == "swallowed" and lines[1].startswith("interrupted"), lines
+    from tether.cli import RESEND_AFTER_S
+
+    assert float(lines[1].split()[1]) < RESEND_AFTER_S + 2.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_a_signal_to_the_group_during_intermittent_8_planning_writes_nothing(sig, tmp_path):
+    # intermittent-8 plans for seconds before its first tick (numba kernels loading, the geodesic
+    # grid, the meeting schedule); the tether command's entry point, as a user runs it.
+    run = Run(tmp_path, "intermittent-8", "--duration", "30", module="tether")
+    run.wait_for(lambda: run.staging.exists(), timeout_s=60)  # the staging folder: the set-up's last part
+    took = run.signal_group(sig)
+    print(f"exit {took:.2f} s after {signal.Signals(sig).name}")
+    assert run.proc.returncode == 130, run.output()
+    assert took < EXIT_LIMIT_S, f"{took:.1f} s to exit"
+    run.assert_clean()
+    assert not list(tmp_path.glob("out.partial-*"))
+    if run.out.exists():  # a fast machine was ticking already
+        assert run.metrics()["status"] == "interrupted"
+    else:
+        lines = [line for line in run.log_err.read_text().splitlines() if line.strip()]
+        assert lines == ["tether: interrupted before the run started; nothing written"], lines

@@ -231,6 +231,15 @@ def _fail(message: str) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    # a signal in the set-up that is swallowed comes again (see _resend_swallowed)
+    _resend.armed, _resend.thread, _resend.generation = True, None, _resend.generation + 1
+    try:
+        return _run_command(args)
+    finally:
+        _resend.armed = False
+
+
+def _run_command(args: argparse.Namespace) -> int:
     from sim.validate import check_output_folder
 
     try:
@@ -275,6 +284,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     except BaseException as error:  # noqa: BLE001
         if not _was_interrupted(error):
             raise
+        _resend.armed = False
         # before the run's own handlers were in place (a KeyboardInterrupt, or what an import made of one)
         if progress:
             progress.close()
@@ -532,13 +542,51 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 _interrupted: list[str] = []  # the signals that interrupted the command outside a run's ticks
+RESEND_AFTER_S = 2.0  # a run's set-up ends within a second of a signal it took (docs/robustness.md)
+RESEND_TRIES = 5
+
+
+class _Resend:
+    """Whether a signal during a run's set-up is sent again when the set-up goes on (``armed``: from
+    cmd_run's start until its interrupt is dealt with or the run returns)."""
+
+    armed = False
+    thread = None
+    generation = 0  # one per cmd_run: a thread left from an earlier command (tests call main) sends nothing
+
+
+_resend = _Resend()
 
 
 def _raise_interrupt(signum, _frame) -> None:
     import signal
 
     _interrupted.append(signal.Signals(signum).name)
+    if _resend.armed and _resend.thread is None:
+        import threading
+
+        _resend.thread = threading.Thread(target=_resend_swallowed, args=(signum, _resend.generation),
+                                          name="resend-signal", daemon=True)
+        _resend.thread.start()
     raise KeyboardInterrupt
+
+
+def _resend_swallowed(signum: int, generation: int) -> None:
+    """The KeyboardInterrupt raised for a signal is lost when it lands in code that swallows
+    exceptions: a ``__del__`` or a weakref callback run by the garbage collector, a ctypes or compiled
+    callback, a library's broad ``except``. Python then prints "Exception ignored" (or nothing) and
+    the set-up goes on. While it does, the signal is sent again; once the run's ticks have taken the
+    signals (sim.loop) one more is theirs (the run ends "interrupted"), and no more is sent."""
+    import signal
+
+    for _ in range(RESEND_TRIES):
+        time.sleep(RESEND_AFTER_S)
+        if not _resend.armed or _resend.generation != generation:
+            return
+        ours = signal.getsignal(signum) is _raise_interrupt
+        os.kill(os.getpid(), signum)
+        if not ours:
+            return
 
 
 def _was_interrupted(error: BaseException) -> bool:
@@ -625,4 +673,6 @@ def _silence_stdout() -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from tether.entry import end_process
+
+    end_process(main())

@@ -58,7 +58,6 @@ def _observers(sim: Simulation, folder: Path | None, video: bool, rrd: bool, liv
     named["plots"] = PlotRecorder(sim.world.robot_kinds, folder / "plots", robot_names=sim.world.robot_names,
                                   title=run_title(scenario.name, scenario.strategy.kind, scenario.seed))
     named["progress"] = ProgressFile(folder / "progress.json")
-    observers += [named["plots"], named["progress"]]
     if video:
         from viz.video import VideoRecorder
 
@@ -75,6 +74,9 @@ def _observers(sim: Simulation, folder: Path | None, video: bool, rrd: bool, liv
             named["recorder"].log_radio_map(world_radio_map(sim.world, scenario.radio, cells=RECORDING_CELLS),
                                             sim.world.robot_names[0])
         observers.append(named["recorder"])
+    # The plots close last: a recording given up on a full disk has removed its files by then, and the
+    # pages fit where they can (their painters start drawing when closing starts, for all observers).
+    observers += [named["plots"], named["progress"]]
     return observers, named, files
 
 
@@ -138,6 +140,7 @@ def run(
             staging.discard()
         raise
     if staging is not None:
+        files = {name: path for name, path in files.items() if Path(path).exists()}  # e.g. a recording given up
         if named["plots"].files:
             files["plots"] = staging.final("plots")
         files["metrics"] = staging.final("metrics.json")

@@ -706,8 +706,6 @@ class RayCluster(Engine):
 
     def __init__(self, address: str):
         self.address = address
-        # Ray's C++ client logs every failed connection attempt to stderr: errors only
-        os.environ.setdefault("RAY_BACKEND_LOG_LEVEL", "error")
         try:
             import ray
         except ImportError:
@@ -741,23 +739,87 @@ class RayCluster(Engine):
                                        f"{str(outcome[0]).splitlines()[0]}") from None
         if outcome[0] is not None:
             raise outcome[0]
+        _quiet_cluster_errors(ray)
+        host, _, port = ray.get_runtime_context().gcs_address.rpartition(":")
+        self.gcs = (host, int(port))
+        self.name = address if address != "auto" else f"{host}:{port}"
+
+    def head_answers(self) -> bool:
+        """Whether the head's GCS port still accepts a connection (a killed head refuses it at once)."""
+        try:
+            socket.create_connection(self.gcs, timeout=RAY_HEAD_PROBE_TIMEOUT_S).close()
+            return True
+        except OSError:
+            return False
 
     def run(self, trials, recordings):
         ray = self.ray
         task = ray.remote(num_cpus=1, max_retries=self.MAX_RETRIES)(run_trial)
         pending = {task.remote(trial, recordings): trial for trial in trials}
+        # Ray itself notices a dead head only after a minute (its GCS reconnection timeout) and then ends
+        # the process: the driver looks at the head every second and stops with its rows first.
+        misses, checked = 0, time.monotonic()
         while pending:
-            done, _ = ray.wait(list(pending), num_returns=1)
+            done, _ = ray.wait(list(pending), num_returns=1, timeout=RAY_HEAD_CHECK_S)
+            if time.monotonic() - checked >= RAY_HEAD_CHECK_S or not done:
+                checked = time.monotonic()
+                misses = 0 if self.head_answers() else misses + 1
+                if misses >= RAY_HEAD_MISSES:
+                    raise SweepStopped(f"the Ray cluster at {self.name} is gone")
+            if not done:
+                continue
             trial = pending.pop(done[0])
             try:
-                yield ray.get(done[0])
+                row = ray.get(done[0])
             except ray.exceptions.RayError as err:  # worker or node lost more than MAX_RETRIES times
+                if not self.head_answers():  # not the trial's failure: it has no row and runs again
+                    raise SweepStopped(f"the Ray cluster at {self.name} is gone") from None
                 row = _error_row(trial, f"{type(err).__name__}: {str(err).splitlines()[0]}")
-                yield row
+            yield row
 
     def close(self):
-        if self.ray.is_initialized():
-            self.ray.shutdown()
+        """ray.shutdown, waited for at most RAY_SHUTDOWN_TIMEOUT_S (with the head gone it may wait for
+        the GCS): past that the driver goes on, and Ray's own shutdown at exit is dropped too."""
+        import atexit
+        import threading
+
+        ray = self.ray
+        if not ray.is_initialized():
+            return
+        finished = threading.Event()
+
+        def shutdown() -> None:
+            try:
+                ray.shutdown()
+            finally:
+                finished.set()
+
+        threading.Thread(target=shutdown, name="ray-shutdown", daemon=True).start()
+        if not finished.wait(RAY_SHUTDOWN_TIMEOUT_S):
+            atexit.unregister(ray.shutdown)
+
+
+def _quiet_cluster_errors(ray) -> None:
+    """Drop the cluster's error messages that Ray prints into the driver's stdout (a node's death comes
+    with the last 20 lines of its raylet's log, ~47 lines in all). ``log_to_driver=False`` silences the
+    workers' output but not this channel, which ``ray.init`` always listens to; Ray (2.60) prints it
+    through ``ray._private.worker.print_to_stdstream``, replaced here for the records of that channel
+    (``pid`` "raylet"). The sweep says what became of its trials itself: a row per trial, and one line
+    when the cluster is gone."""
+    import ray._private.worker as ray_worker
+
+    if _ray_printer:  # replaced once per process
+        return
+    _ray_printer.append(ray_worker.print_to_stdstream)
+
+    def print_to_stdstream(data, ignore_prefix: bool) -> None:
+        if data.get("pid") != "raylet":
+            _ray_printer[0](data, ignore_prefix)
+
+    ray_worker.print_to_stdstream = print_to_stdstream
+
+
+_ray_printer: list = []  # Ray's own printer, once _quiet_cluster_errors has replaced it
 
 
 def _error_row(trial: Trial, error: str) -> dict:
@@ -769,6 +831,10 @@ def _error_row(trial: Trial, error: str) -> dict:
 
 
 RAY_INIT_TIMEOUT_S = 60.0  # a Ray head answers within seconds; its own retries go on for ever
+RAY_HEAD_CHECK_S = 0.5  # how often the driver looks at the head during a sweep
+RAY_HEAD_PROBE_TIMEOUT_S = 1.0
+RAY_HEAD_MISSES = 3  # probes in a row the head must miss to be gone (one missed probe may be a busy head)
+RAY_SHUTDOWN_TIMEOUT_S = 10.0
 RAY_PROBE_TIMEOUT_S = 3.0
 # HTTP/2's connection preface and an empty SETTINGS frame: a Ray head's GCS (gRPC) answers with a SETTINGS frame.
 HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"

@@ -16,11 +16,13 @@ while the run goes on, so a run's end waits only for filling them in.
 
 from __future__ import annotations
 
+import errno
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 
+from sim.loop import ObserverFailure
 from sim.observers import Frame, Observer, link_figures, tracking_errors
 from viz.painter import Painters, page_layout
 
@@ -169,7 +171,12 @@ class PlotRecorder(Observer):
     def close(self, status: str) -> None:
         if not self._closing:
             self.start_closing(status)
-        self.files += self._painters.finish()
+        try:
+            self.files += self._painters.finish()
+        except OSError as err:  # a full disk: the pages written stay, the run ends "failed" naming it
+            self.files += [path for path, _ in self._pages() if Path(path).is_file()]
+            code = errno.errorcode.get(err.errno, err.errno)
+            raise ObserverFailure(f"plots failed, not every page written: {err.strerror} ({code})") from None
 
     def _pages(self) -> list[tuple[str, list]]:
         """[(png path, panels)], ``PANELS_PER_FIGURE`` panels a page (see viz.painter.Panel)."""

@@ -53,15 +53,24 @@ from pathlib import Path
 from urllib.parse import quote
 
 import numpy as np
-import rerun as rr
-import rerun.blueprint as rrb
-from rerun.chunk import RrdReader
 
-from sim.observers import Frame, Observer, link_figures, tracking_errors
-from sim.strategy import Status
-from sim.world import INFINITE_PLANE_HALF_SIZE, World
-from sim import palette
-from viz.decorations import (colour_name, frame_legend, link_values, log_events, log_recording_decorations,
+# Rerun's Rust side logs its file writer's errors (a full disk: three lines, coloured, of which none names
+# the file the run lost) to stderr: the recorder reports a recording it could not write itself, in the
+# run's message. Rerun reads RUST_LOG when it is imported; one the user set is kept.
+os.environ.setdefault("RUST_LOG", "off")
+
+import rerun as rr  # noqa: E402  (after RUST_LOG)
+import rerun.blueprint as rrb  # noqa: E402
+from rerun.chunk import RrdReader  # noqa: E402
+
+from sim.loop import ObserverFailure  # noqa: E402
+from sim.observers import Frame, Observer, link_figures, tracking_errors  # noqa: E402
+from sim.outputs import no_space_left  # noqa: E402
+from sim.strategy import Status  # noqa: E402
+from sim.world import INFINITE_PLANE_HALF_SIZE, World  # noqa: E402
+from sim import palette  # noqa: E402
+from viz.decorations import (colour_name,  # noqa: E402
+                              frame_legend, link_values, log_events, log_recording_decorations,
                              robot_colors_rgb8)
 
 KIND_COLORS = {kind: palette.rgb8(rgba) for kind, rgba in palette.KIND.items()}
@@ -77,6 +86,13 @@ SEGMENT_FIRST_S = 1.0
 SEGMENT_MAX_S = 30.0
 SEGMENTS_SUFFIX = ".segments"
 RADIO_MAP_LIFT_M = 0.01  # the radio map's mesh lies this far above the floor, m
+# Every wait on Rerun's file writer is bounded: once it has failed (a full disk) a flush without a timeout,
+# and a disconnect after it, wait for ever. A segment holds at most FILE_FLUSH_BYTES of unwritten rows.
+SEGMENT_FLUSH_TIMEOUT_S = 20.0
+MERGE_FLUSH_TIMEOUT_S = 20.0  # ... plus a second per MERGE_BYTES_PER_S of the segments
+MERGE_BYTES_PER_S = 10 * 1024 * 1024
+DISCONNECT_TIMEOUT_S = 5.0
+MERGE_SPARE_BYTES = 256 * 1024  # free space the merge needs beyond the segments' own size
 PROPERTIES = "/__properties"  # Rerun's recording properties entity  # ... in run.rrd.segments/, merged into run.rrd when the run ends
 
 
@@ -109,6 +125,30 @@ def _rerun_writing(path: Path):
             code = int(found.group(1))
             raise OSError(code, os.strerror(code), str(path)) from None
         raise OSError(errno.EIO, f"Rerun could not write it ({str(err).splitlines()[0]})", str(path)) from None
+
+# Streams whose file writer failed, kept for the life of the process: the one dropped, Rerun (0.41) flushes
+# it without a timeout when it or any other stream is collected (``disconnect_orphaned_recordings``), and
+# waits for ever. The process ends with os._exit (tether.entry), which collects nothing.
+_FAILED_STREAMS: list = []
+
+
+def _bounded(call, timeout_s: float) -> bool:
+    """``call()`` in a thread of its own, waited for ``timeout_s``: whether it returned."""
+    import threading
+
+    finished = threading.Event()
+
+    def target() -> None:
+        try:
+            call()
+        except Exception:  # noqa: BLE001  (a stream that failed: the recording is given up anyway)
+            pass
+        finally:
+            finished.set()
+
+    threading.Thread(target=target, name="rerun-wait", daemon=True).start()
+    return finished.wait(timeout_s)
+
 
 class LiveViewer:
     """Rerun's gRPC server and web viewer on ``host`` (default 127.0.0.1:
@@ -255,6 +295,7 @@ class RerunRecorder(Observer):
         self._rotate_at = time.monotonic() + self._segment_period_s
         file_stream = self._segment_stream()
         self.rec = file_stream if live_stream is None else _Tee(file_stream, live_stream)
+        self.failed = ""  # why the recording was given up ("": it was not)
         self.rows = 0
         self._next_time = 0.0
         self._unlogged: Frame | None = None  # the latest frame, when the period skipped it
@@ -281,31 +322,72 @@ class RerunRecorder(Observer):
     def _file_stream(self) -> rr.RecordingStream:
         return self.rec.file_stream if isinstance(self.rec, _Tee) else self.rec
 
+    def _finish(self, stream: rr.RecordingStream, path: Path, timeout_s: float) -> None:
+        """Flush ``stream`` to ``path`` and disconnect it, each wait bounded; OSError if it failed."""
+        try:
+            with _rerun_writing(path):
+                stream.flush(timeout_sec=timeout_s)
+        except OSError:
+            _FAILED_STREAMS.append(stream)
+            raise
+        if not _bounded(stream.disconnect, DISCONNECT_TIMEOUT_S):
+            _FAILED_STREAMS.append(stream)
+            raise OSError(errno.EIO, f"Rerun's writer did not finish it within {DISCONNECT_TIMEOUT_S:g} s", str(path))
+
     def _rotate(self) -> None:
         """Finish the current segment (a complete .rrd file, footer included) and start the next."""
         old = self._file_stream()
-        fresh = self._segment_stream()
-        if isinstance(self.rec, _Tee):
-            self.rec.file_stream = fresh
-        else:
-            self.rec = fresh
-        old.flush()
-        old.disconnect()
+        finished = self.segments / f"part-{self._segment_count - 1:05d}.rrd"
+        try:
+            fresh = self._segment_stream()
+            if isinstance(self.rec, _Tee):
+                self.rec.file_stream = fresh
+            else:
+                self.rec = fresh
+            self._finish(old, finished, SEGMENT_FLUSH_TIMEOUT_S)
+        except OSError as err:
+            self._give_up(err)
         self._segment_period_s = min(2 * self._segment_period_s, SEGMENT_MAX_S)
         self._rotate_at = time.monotonic() + self._segment_period_s
 
     def _merge(self) -> None:
-        """run.rrd: every segment's chunks in one file; the segments go."""
+        """run.rrd: every segment's chunks in one file; the segments go. The merged file is about as
+        large as the segments together: the file system must have that much room first."""
         parts = sorted(self.segments.glob("part-*.rrd"))
-        with _rerun_writing(self.path):
-            merged = rr.RecordingStream("tether", recording_id=self.recording_id)
-            merged.save(str(self.path), default_blueprint=default_blueprint())
-            for part in parts:  # each segment carries its own recording properties: the merged file has one set
-                rr.send_chunks((c for c in RrdReader(part).stream()
-                                if not str(c.entity_path).startswith(PROPERTIES)), recording=merged)
-            merged.flush()
-            merged.disconnect()
+        size = sum(part.stat().st_size for part in parts)
+        free = shutil.disk_usage(self.segments).free
+        if free < size + MERGE_SPARE_BYTES:
+            raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} (the merge needs about "
+                                        f"{(size + MERGE_SPARE_BYTES) / 1024:.0f} KiB, {free / 1024:.0f} KiB free)",
+                          str(self.path))
+        merged = rr.RecordingStream("tether", recording_id=self.recording_id)
+        try:
+            with _rerun_writing(self.path):
+                merged.save(str(self.path), default_blueprint=default_blueprint())
+                for part in parts:  # each segment has its own recording properties: the merged file has one set
+                    rr.send_chunks((c for c in RrdReader(part).stream()
+                                    if not str(c.entity_path).startswith(PROPERTIES)), recording=merged)
+        except OSError:
+            _FAILED_STREAMS.append(merged)
+            raise
+        self._finish(merged, self.path, MERGE_FLUSH_TIMEOUT_S + size / MERGE_BYTES_PER_S)
         shutil.rmtree(self.segments)
+
+    def _give_up(self, err: OSError) -> None:
+        """The recording cannot be written: remove its files (tether's own), stop writing, and end the
+        run "failed" with the reason (ObserverFailure). A writer that stopped without saying why, on a
+        file system with no room left, is a full disk."""
+        code = err.errno
+        if code != errno.ENOSPC and no_space_left(self.segments.parent):
+            code = errno.ENOSPC
+        reason = err.strerror if code == err.errno else os.strerror(code)
+        self.failed = f"recording failed, {self.path.name} not written: {reason} ({errno.errorcode.get(code, code)})"
+        _FAILED_STREAMS.append(self._file_stream())
+        rr.unregister_shutdown()  # Rerun's exit handler would flush the failed stream, waiting for ever
+        shutil.rmtree(self.segments, ignore_errors=True)
+        with contextlib.suppress(OSError):
+            self.path.unlink()
+        raise ObserverFailure(self.failed)
 
     def _log_static(self, scenario_name: str) -> None:
         boxes = self.world.obstacles
@@ -339,6 +421,8 @@ class RerunRecorder(Observer):
             self._latest = (time_s, tick)
 
     def on_tick(self, frame: Frame) -> None:
+        if self.failed:
+            return
         if time.monotonic() >= self._rotate_at:
             self._rotate()
         log_events(self, frame)  # a strategy's decorations' events, every tick
@@ -418,19 +502,28 @@ class RerunRecorder(Observer):
 
     def on_event(self, time_s: float, text: str, level: str = "INFO", tick: int | None = None) -> None:
         """One line of the event log at ``time_s`` (and ``tick``, when known)."""
+        if self.failed:
+            return
         self._set_time(time_s, tick)
         self.rec.log("events", rr.TextLog(text, level=level))
 
     def close(self, status: str) -> None:
+        if self.failed:  # given up during the ticks: its files are gone already
+            return
         if self._unlogged is not None:  # the run's last frame, off the period's grid
             self.log_frame(self._unlogged)
             self._unlogged = None
         time_s, tick = self._latest
         self.on_event(time_s, f"run ended: {status}", level="INFO" if Status(status).finished else "WARN",
                       tick=tick)
-        self.rec.flush()
-        self.rec.disconnect()
-        self._merge()
+        if isinstance(self.rec, _Tee):
+            self.rec.live_stream.flush()
+        last = self.segments / f"part-{self._segment_count - 1:05d}.rrd"
+        try:
+            self._finish(self._file_stream(), last, SEGMENT_FLUSH_TIMEOUT_S)
+            self._merge()
+        except OSError as err:
+            self._give_up(err)
 
 
 def _quat_xyzw(rotation: np.ndarray) -> np.ndarray:

@@ -625,6 +625,12 @@ class VideoRecorder(Observer):
                                f"{lines[-1] if lines else 'no report'}"
             else:
                 self.failure = f"video renderer died ({exit_reason(self._process.exitcode)})"
+                from pathlib import Path
+
+                from sim.outputs import no_space_left
+
+                if no_space_left(Path(self.path).parent):  # its encoder's disk is full: say so
+                    self.failure += f", {Path(self.path).name} cut short: No space left on device (ENOSPC)"
         from sim.loop import ObserverFailure
 
         return ObserverFailure(self.failure)

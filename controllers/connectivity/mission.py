@@ -90,12 +90,13 @@ def _random_points(rng: np.random.Generator, planner: GridPlanner, count: int, p
         if len(chosen) >= count:
             break
         draws = rng.uniform(lower, upper, size=(_SAMPLE_BATCH, 3))
-        for point in draws[planner.is_free(draws, params.target_clearance_m)]:
-            if planner.connected(reachable_from, point):
-                chosen.append(point)
-                if len(chosen) == count:
-                    break
+        free = draws[planner.is_free(draws, params.target_clearance_m)]
+        chosen.extend(free[planner.connected_to(reachable_from, free)][:count - len(chosen)])
     if len(chosen) < count:
+        if planner.coarsened:
+            raise ConfigError("scene", f"{planner.coarsening()}: at that spacing only {len(chosen)} of {count} "
+                                       "random targets could be joined to robot 0's start; use a smaller scene "
+                                       "(its tether_bounds)")
         raise ConfigError("strategy.target_clearance_m",
                           f"found only {len(chosen)} of {count} free targets {params.target_clearance_m:g} m "
                           f"from obstacles in the height band; lower it or the band")
@@ -124,12 +125,21 @@ def target_queues(params: ConnectedParams, planner: GridPlanner, starts: np.ndar
                     raise ConfigError(f"strategy.target_lists.{robot}.{k}",
                                       f"target {point.tolist()} is inside an obstacle or outside the scene")
                 if not planner.connected(starts[robot], point):
+                    _refuse_coarse_grid(planner, starts[robot], robot)
                     raise ConfigError(f"strategy.target_lists.{robot}.{k}",
                                       f"target {point.tolist()} cannot be reached from robot {robot}'s start")
         return TargetQueues.from_lists(lists, dwell)
     counts = target_counts(params, n)
     points = _random_points(rng, planner, int(sum(counts)), params, starts[0])
     return TargetQueues.from_lists(np.split(points, np.cumsum(counts)[:-1]), dwell)
+
+
+def _refuse_coarse_grid(planner: GridPlanner, start: np.ndarray, robot: int) -> None:
+    """ConfigError('scene', ...) when a grid coarsened by its cell cap is why ``start`` plans nowhere."""
+    if planner.coarsened:
+        where = ", ".join(f"{v:g}" for v in np.round(start, 2))
+        raise ConfigError("scene", f"{planner.coarsening()}: at that spacing robot {robot}'s start ({where}) is "
+                                   "cut off from its targets; use a smaller scene (its tether_bounds)")
 
 
 def check_start(state: ConnectivityState, positions: np.ndarray, boxes: Boxes, names: tuple[str, ...],

@@ -423,6 +423,8 @@ class GridPlanner:
             raise ValueError(f"min_clearance ({min_clearance}) must lie in [0, clearance ({clearance})]")
         if smoothing_tolerance < 0:
             raise ValueError(f"smoothing_tolerance must be non-negative, got {smoothing_tolerance!r}")
+        self.preferred_resolution = float(resolution)
+        self.max_cells = int(max_cells)
         self.resolution = planning_resolution(self.lower, self.upper, resolution, max_cells)
         self.clearance = float(clearance)
         self.min_clearance = float(min_clearance)
@@ -451,6 +453,17 @@ class GridPlanner:
             params.smoothing_tolerance_m,
         )
 
+    @property
+    def coarsened(self) -> bool:
+        """Whether the cell cap made the grid coarser than the resolution asked for."""
+        return self.resolution > self.preferred_resolution * (1 + 1e-9)
+
+    def coarsening(self) -> str:
+        """The cell cap's effect, for messages: what a failure on a coarsened grid really comes from."""
+        span = " x ".join(f"{v:g}" for v in self.upper - self.lower)
+        return (f"the connectivity planner's grid is coarsened from {self.preferred_resolution:g} m to "
+                f"{self.resolution:.2g} m cells over the {span} m bounds (at most {self.max_cells:,} cells)")
+
     # -- geometry queries ---------------------------------------------------
 
     def bounds_clearance(self, points) -> np.ndarray:
@@ -478,6 +491,25 @@ class GridPlanner:
         graph = self._graph(self.margins[-1])
         nodes = self._snap(graph, np.stack([np.asarray(a, float), np.asarray(b, float)]))
         return bool(np.all(nodes >= 0) and graph.components[nodes[0]] == graph.components[nodes[1]])
+
+    def connected_to(self, a, points) -> np.ndarray:
+        """Boolean (P,): ``connected(a, point)`` for each of ``points`` (P, 3), with ``a`` snapped once and
+        the points whose snap candidates all lie outside ``a``'s component skipped (the snap picks one of
+        them): the same answers, without a segment test per point in a scene where few are reachable."""
+        points = np.asarray(points, dtype=float).reshape(-1, 3)
+        result = np.zeros(len(points), dtype=bool)
+        graph = self._graph(self.margins[-1])
+        start = self._snap(graph, np.asarray(a, dtype=float).reshape(1, 3))[0]
+        if start < 0 or not len(points):
+            return result
+        k = min(_SNAP_CANDIDATES, len(graph.positions))
+        _, candidates = graph.tree.query(points, k=k)
+        component = graph.components[start]
+        hopeful = np.flatnonzero(np.any(graph.components[np.asarray(candidates).reshape(len(points), k)] == component,
+                                        axis=1))
+        nodes = self._snap(graph, points[hopeful])
+        result[hopeful] = (nodes >= 0) & (graph.components[nodes] == component)
+        return result
 
     # -- planning -----------------------------------------------------------
 
