@@ -41,7 +41,7 @@ class Driver:
     def __init__(self, folder: Path, *args: str, name: str = "driver"):
         self.err_path, self.out_path = folder / f"{name}.err", folder / f"{name}.out"
         with open(self.out_path, "w") as out, open(self.err_path, "w") as err:
-            self.proc = subprocess.Popen([sys.executable, "-m", "tether.cli", "sweep", *args], cwd=folder, env=ENV,
+            self.proc = subprocess.Popen([sys.executable, "-m", "tether", "sweep", *args], cwd=folder, env=ENV,
                                          stdout=out, stderr=err, start_new_session=True)
 
     def wait(self, timeout: float = WAIT_S) -> int:

@@ -58,6 +58,8 @@ def _observers(sim: Simulation, folder: Path | None, video: bool, rrd: bool, liv
     named["plots"] = PlotRecorder(sim.world.robot_kinds, folder / "plots", robot_names=sim.world.robot_names,
                                   title=run_title(scenario.name, scenario.strategy.kind, scenario.seed))
     named["progress"] = ProgressFile(folder / "progress.json")
+    # Progress closes first: its status leaves "running" as closing starts (the video may drain for a while).
+    observers.append(named["progress"])
     if video:
         from viz.video import VideoRecorder
 
@@ -76,7 +78,7 @@ def _observers(sim: Simulation, folder: Path | None, video: bool, rrd: bool, liv
         observers.append(named["recorder"])
     # The plots close last: a recording given up on a full disk has removed its files by then, and the
     # pages fit where they can (their painters start drawing when closing starts, for all observers).
-    observers += [named["plots"], named["progress"]]
+    observers.append(named["plots"])
     return observers, named, files
 
 
