@@ -239,13 +239,16 @@ def plan_times(plans: int) -> list[str]:
     return lines
 
 
-def video_factor(seconds: float) -> tuple[float, float]:
-    """Real-time factors of ``tether run hover`` headless and with ``--video`` (each in a fresh process
-    would add imports; here both in this one, one after the other)."""
-    scenario = load("hover", duration_s=seconds)
+VIDEO_RUNS = (("hover", 2.0), ("connected-office", 3.0))  # (scenario, the video's wall-time budget x headless)
+
+
+def video_factor(name: str, seconds: float) -> tuple[float, float]:
+    """Wall seconds of ``tether run NAME`` headless and with ``--video`` (both in this process, one after
+    the other: the ratio of the two is the figure; each in a fresh process would add imports)."""
+    scenario = load(name, duration_s=seconds)
     with tempfile.TemporaryDirectory() as out:
-        headless = run(scenario, out).metrics["real_time_factor"]
-        video = run(scenario, out, video=True).metrics["real_time_factor"]
+        headless = run(scenario, out).metrics["wall_time_s"]
+        video = run(scenario, out, video=True).metrics["wall_time_s"]
     return headless, video
 
 
@@ -283,6 +286,7 @@ def main() -> None:
     parser.add_argument("--no-synthetic", action="store_true",
                         help="the radio section under the methods' messages only (no synthetic-load rows)")
     parser.add_argument("--quick", action="store_true", help="core rows only: no planner, no video, no fixed costs")
+    parser.add_argument("--video-duration", type=float, default=20.0, help="simulated seconds of the --video runs")
     parser.add_argument("--fixed-duration", type=float, default=20.0, help="simulated seconds of the fixed-cost runs")
     args = parser.parse_args()
 
@@ -332,9 +336,12 @@ def main() -> None:
     for line in plan_times(args.plans):
         print(line, flush=True)
     print()
-    headless, video = video_factor(2 * args.seconds)
-    print(f"hover, {2 * args.seconds:g} s: real-time factor headless {headless:.2f}, --video {video:.2f} "
-          f"(video / headless {video / headless:.2f})")
+    print(f"--video: wall time of the run with video / headless, {args.video_duration:g} s simulated")
+    print("| run | headless s | --video s | ratio | budget |")
+    print("| --- | --- | --- | --- | --- |")
+    for name, budget in VIDEO_RUNS:
+        headless, video = video_factor(name, args.video_duration)
+        print(f"| {name} | {headless:.2f} | {video:.2f} | {video / headless:.2f} | {budget:g} |", flush=True)
     print()
     print(f"fixed costs: `tether run NAME --duration {args.fixed_duration:g} --out DIR` in a fresh process "
           "(wall s; start = imports, CLI and exit; closing = end-of-run plots and files)")

@@ -250,6 +250,9 @@ _EMPTY: Mapping = MappingProxyType({})
 Rgba = np.ndarray  # (4,) red, green, blue, alpha in 0..1
 
 
+PATH_STYLES = ("solid", "dashed", "dotted")  # Decorations.path_styles
+
+
 @dataclass(frozen=True)
 class Decorations(_PicklableMappings):
     """What a strategy draws in the video, the recording, the viewer, the
@@ -273,6 +276,9 @@ class Decorations(_PicklableMappings):
     # Polylines (points (K, 3) m, rgba): planned paths. None: no plans drawn
     # (the recording keeps the last logged); () clears them.
     paths: tuple[tuple[np.ndarray, Rgba], ...] | None = None
+    # Per path, its line style (PATH_STYLES: "solid", "dashed", "dotted"), so paths of similar colours
+    # (eight teams) are told apart by their line too; None: every path solid.
+    path_styles: tuple[str, ...] | None = None
     meeting_points: np.ndarray | None = None  # (P, 3) m
     meeting_point_colors: np.ndarray | None = None  # (P, 4)
     markers: np.ndarray | None = None  # (K, 3) m, points of interest (the connected method's targets)
@@ -296,6 +302,12 @@ class Decorations(_PicklableMappings):
             object.__setattr__(self, "paths", tuple((readonly(points), readonly(rgba)) for points, rgba in self.paths))
         if not _frozen_pairs(self.legend):
             object.__setattr__(self, "legend", tuple((label, readonly(rgba)) for label, rgba in self.legend))
+        if self.path_styles is not None:
+            styles = tuple(self.path_styles)
+            unknown = sorted(set(styles) - set(PATH_STYLES))
+            if unknown:
+                raise ValueError(f"Decorations.path_styles: unknown style(s) {unknown} (choose from {PATH_STYLES})")
+            object.__setattr__(self, "path_styles", styles)
         if not isinstance(self.events, tuple):
             object.__setattr__(self, "events", tuple(self.events))
 

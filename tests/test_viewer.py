@@ -149,3 +149,22 @@ def test_a_display_that_does_not_exist_is_one_line_and_leaves_no_log(tmp_path):
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr
     assert "cannot open the display ':97'" in lines[0] and "tether run --video" in lines[0]
     assert not list(tmp_path.iterdir())
+
+
+def test_the_viewer_s_walls_are_translucent_and_still_block_line_of_sight():
+    import mujoco
+
+    from sim.scenario import load
+    from tether.runner import build_simulation
+    from viz.viewer import WALL_ALPHA, see_through_walls
+
+    sim = build_simulation(load("connected-office", duration_s=0.1))
+    model, data = sim.world.model, sim.world.data
+    start, across = np.array([2.0, 3.0, 1.0]), np.array([0.0, 1.0, 0.0])  # through wall_mid_west at y = 5
+    geomid = np.zeros(1, dtype=np.int32)
+    before = mujoco.mj_ray(model, data, start, across, np.array([1, 0, 0, 0, 0, 0], np.uint8), 1, -1, geomid)
+    assert see_through_walls(model) >= 4
+    wall = model.geom("wall_mid_west").id
+    assert model.geom_rgba[wall, 3] == WALL_ALPHA and model.geom_matid[wall] == -1
+    after = mujoco.mj_ray(model, data, start, across, np.array([1, 0, 0, 0, 0, 0], np.uint8), 1, -1, geomid)
+    assert after == before and geomid[0] == wall  # the sensing's rays see the same wall

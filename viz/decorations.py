@@ -140,12 +140,13 @@ def draw_video_decorations(renderer, frame) -> None:
     ``_add_sphere``)."""
     decorations = frame.commands.decorations
     width = renderer.at_least(PATH_WIDTH_M, PATH_MIN_PX)
-    for points, rgba in decorations.paths or ():
+    period = renderer.at_least(DASH_PERIOD_M, DASH_PERIOD_PX)
+    styles = decorations.path_styles
+    for k, (points, rgba) in enumerate(decorations.paths or ()):
         rgba = np.asarray(rgba, dtype=np.float32)
-        points = np.asarray(points, dtype=float)
-        for a, b in zip(points[:-1], points[1:]):
-            if np.linalg.norm(b - a) > 1e-6:
-                renderer._add_capsule(a, b, width, rgba)
+        style = styles[k] if styles is not None and k < len(styles) else "solid"
+        for a, b in styled_segments(np.asarray(points, dtype=float), style, period):
+            renderer._add_capsule(a, b, width, rgba)
     _draw_spheres(renderer, decorations.meeting_points, decorations.meeting_point_colors,
                   renderer.at_least(MEETING_RADIUS_M, MARKER_MIN_PX),
                   np.array([1, 1, 1, 0.5], np.float32))
@@ -163,6 +164,37 @@ def draw_video_decorations(renderer, frame) -> None:
         rgba = robot_colors[i] if robot_colors is not None and i < len(robot_colors) else palette.KIND["quadrotor"]
         top = positions[i] + np.array([0.0, 0.0, QUAD_MARK_HEIGHT_M])
         renderer._add_sphere(top, renderer.at_least(QUAD_MARK_RADIUS_M, MARKER_MIN_PX), np.asarray(rgba, np.float32))
+
+
+DASH_PERIOD_M = 0.3  # a dashed or dotted path's pattern repeats every this many metres ...
+DASH_PERIOD_PX = 18.0  # ... and at least every this many pixels of a view of the whole floor
+DASH_ON_SHARE = {"dashed": 0.6, "dotted": 0.2}  # the drawn share of each period
+
+
+def styled_segments(points: np.ndarray, style: str, period_m: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The pieces (start, end) of the polyline ``points`` (K, 3) to draw in ``style``: its
+    segments ("solid"), or along its length the first ``DASH_ON_SHARE`` of every ``period_m``
+    ("dashed", "dotted"; the pattern runs on across corners). Zero-length segments are dropped."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(points) < 2:
+        return []
+    steps = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    if style == "solid":
+        return [(points[i], points[i + 1]) for i in np.flatnonzero(steps > 1e-6)]
+    on = DASH_ON_SHARE[style] * period_m
+    along = np.concatenate([[0.0], np.cumsum(steps)])
+    pieces = []
+    for start in np.arange(0.0, along[-1], period_m):
+        stop = min(start + on, along[-1])
+        if stop - start > 1e-6:
+            pieces.append((_at(points, along, start), _at(points, along, stop)))
+    return pieces
+
+
+def _at(points: np.ndarray, along: np.ndarray, s: float) -> np.ndarray:
+    """The point at arc length ``s`` of the polyline (``along``: arc length at each vertex).
+    A dash across a corner is drawn straight: at 0.3 m periods the corner cut is a few cm."""
+    return np.array([np.interp(s, along, points[:, d]) for d in range(3)])
 
 
 def _draw_spheres(renderer, points, colors, radius: float, default_rgba: np.ndarray) -> None:

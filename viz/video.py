@@ -6,6 +6,11 @@ the video fps in sim time; a renderer process draws them and writes them
 one by one to the encoder (an ffmpeg process fed through a pipe), so the
 simulation does not wait for rendering or encoding (beyond a bounded
 queue's back-pressure) and memory does not grow with the video's length.
+The simulation builds its decorations only on ticks with a frame due
+(:meth:`VideoRecorder.reads_decorations`); the renderer's planes get a
+coarse grid (:func:`coarse_planes`), the panel's lines are pasted from a
+cache and the encoder runs at preset veryfast (``ENCODER_OPTIONS``): the
+same picture for less CPU time on software GL.
 Communication links are drawn as capsules between robots; robot references
 (virtual points) as small spheres. :class:`FrameRenderer` draws one frame
 (scene, decorations, overlay band); the video recorder and the tuning page
@@ -28,6 +33,7 @@ height.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import pickle
 import queue
@@ -64,6 +70,11 @@ TOP_MARGIN = 1.05  # the computed top view shows the floor and 5 % around it
 
 MESH_SLICES = 8  # rendering: slices of a sphere / capsule (MuJoCo's default 28)
 MESH_STACKS = 4  # rendering: stacks of a sphere / capsule (MuJoCo's default 16)
+# Rendering: a plane is drawn as a grid of cells its third size apart (the office's floor: 0.05 m, 200 x 200
+# cells, two thirds of a frame's software-GL time). Under directional lights (the scenes', the headlight) a flat
+# plane is lit the same at any subdivision and its texture repeats by the material, so a coarser grid
+# draws the same picture; a spotlight's pool of light gets coarser vertex lighting.
+PLANE_GRID_CELLS = 16  # ... at most this many cells along a plane's longer side
 
 
 def link_color(weight: float) -> np.ndarray:
@@ -181,9 +192,10 @@ def side_panel(height: int, width: int, lines: Sequence[str], legend: Sequence[t
         draw = ImageDraw.Draw(canvas)
         parts = [part for text in lines for part in _wrap(draw, text, font, width - 2 * max(4, font.size // 2))]
         if len(parts) == len(slots):
+            image = base.copy()
             for xy, part in zip(slots, parts):
-                draw.text(xy, part, fill=PANEL_TEXT_RGB, font=font)
-            return np.asarray(canvas)
+                _paste_text(image, base, xy, part, font)
+            return image
     canvas = Image.new("RGB", (width, height), PANEL_RGB)
     draw = ImageDraw.Draw(canvas)
     layout = None
@@ -212,6 +224,32 @@ def side_panel(height: int, width: int, lines: Sequence[str], legend: Sequence[t
         if kind == "line":
             draw.text(xy, text, fill=PANEL_TEXT_RGB, font=font)
     return np.asarray(canvas)
+
+
+_TEXTS: dict = {}  # (text, font size, (x, y), panel shape) -> (y0, x0, block): one line drawn on the panel's colour
+TEXT_CACHE_SIZE = 2048
+
+
+def _paste_text(image: np.ndarray, base: np.ndarray, xy, text: str, font) -> None:
+    """Draw one line of ``text`` at ``xy`` into ``image`` (a copy of the panel ``base``): each
+    line is drawn once on the base's pixels and kept, so a frame pastes its few lines (only the
+    sim time's changes every frame) instead of rasterising them (a third of the panel's cost)."""
+    key = (text, font.size, xy, image.shape)
+    block = _TEXTS.get(key)
+    if block is None:
+        from PIL import Image, ImageDraw
+
+        left, top, right, bottom = ImageDraw.Draw(Image.new("RGB", (1, 1))).textbbox(xy, text, font=font)
+        x0, y0 = max(0, int(left)), max(0, int(top))
+        x1, y1 = min(image.shape[1], int(np.ceil(right)) + 1), min(image.shape[0], int(np.ceil(bottom)) + 1)
+        patch = Image.fromarray(np.ascontiguousarray(base[y0:y1, x0:x1]))
+        ImageDraw.Draw(patch).text((xy[0] - x0, xy[1] - y0), text, fill=PANEL_TEXT_RGB, font=font)
+        block = (y0, x0, np.asarray(patch))
+        if len(_TEXTS) >= TEXT_CACHE_SIZE:
+            _TEXTS.clear()
+        _TEXTS[key] = block
+    y0, x0, pixels = block
+    image[y0:y0 + pixels.shape[0], x0:x0 + pixels.shape[1]] = pixels
 
 
 def _panel_layout(draw, size, width, height, lines, legend, columns, clip=False):
@@ -272,6 +310,21 @@ def _lit(rgba) -> np.ndarray:
     out = np.array(rgba, dtype=np.float32)
     out[:3] /= LIT_GAIN
     return out
+
+
+@contextlib.contextmanager
+def coarse_planes(model: mujoco.MjModel):
+    """While a renderer's GL context is made (it builds each plane's grid then, from
+    ``geom_size``), planes have at most ``PLANE_GRID_CELLS`` grid cells a side; the model's sizes
+    are restored afterwards, so the simulation never sees the change."""
+    planes = np.flatnonzero(model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE)
+    spacing = model.geom_size[planes, 2].copy()
+    coarse = 2.0 * np.max(model.geom_size[planes, :2], axis=1) / PLANE_GRID_CELLS
+    model.geom_size[planes, 2] = np.maximum(spacing, coarse)
+    try:
+        yield
+    finally:
+        model.geom_size[planes, 2] = spacing
 
 
 def add_capsule(scene: mujoco.MjvScene, a: np.ndarray, b: np.ndarray, width: float, rgba: np.ndarray) -> None:
@@ -340,7 +393,8 @@ class FrameRenderer:
         # mission draws hundreds of path, link and marker geoms a frame (the coarser mesh shows no difference).
         model.vis.quality.numslices = min(model.vis.quality.numslices, MESH_SLICES)
         model.vis.quality.numstacks = min(model.vis.quality.numstacks, MESH_STACKS)
-        self.renderer = mujoco.Renderer(model, config.height, self.scene_width)
+        with coarse_planes(model):
+            self.renderer = mujoco.Renderer(model, config.height, self.scene_width)
         self.options = mujoco.MjvOption()
         # Show scene (0), robot visuals (2) and targets (3); hide collision shells (1).
         self.options.geomgroup[:] = (1, 0, 1, 1, 0, 0)
@@ -372,13 +426,13 @@ class FrameRenderer:
         vis = self.world.model.vis.global_
         if self._ortho_height_m is None:
             self.renderer.update_scene(data, self.camera, self.options)
-            return
-        # An orthographic free camera reads its view height (m) from the model's free-camera fovy.
-        fovy, vis.fovy = vis.fovy, self._ortho_height_m
-        try:
-            self.renderer.update_scene(data, self.camera, self.options)
-        finally:
-            vis.fovy = fovy
+        else:
+            # An orthographic free camera reads its view height (m) from the model's free-camera fovy.
+            fovy, vis.fovy = vis.fovy, self._ortho_height_m
+            try:
+                self.renderer.update_scene(data, self.camera, self.options)
+            finally:
+                vis.fovy = fovy
 
     def _data_of(self, frame: Frame) -> mujoco.MjData:
         """The MuJoCo state to draw: ``frame.state`` in the renderer's own MjData
@@ -507,6 +561,9 @@ def _radio_view(obs) -> _RadioView | None:
     return None if radio is None else _RadioView(radio.preset, np.array(radio.delivery))
 
 
+# H.264 at constant quality 15 (near lossless for flat-shaded frames), preset veryfast: two thirds of the
+# encoder's CPU time at preset medium, the file about as large and no difference to see.
+ENCODER_OPTIONS = ("-preset", "veryfast", "-crf", "15")
 VIDEO_QUEUE_FRAMES = 32  # states waiting for the renderer process before the simulation waits, -
 WORKER_POLL_S = 1.0  # how often a blocked simulation checks that the renderer is still alive, s
 INTERRUPTED_CLOSE_S = 0.0  # an interrupted run's renderer stops at its frame (the CPU is the painters'), then finishes the file
@@ -573,12 +630,20 @@ class VideoRecorder(Observer):
             supervise(self._process)
         child.close()
 
-    def on_tick(self, frame: Frame) -> None:
-        # This tick's state stands for [t, t + control period): the frames due in that interval.
-        until = frame.observation.time_s + self.control_period_s - 1e-9
+    def _frames_due(self, time_s: float) -> int:
+        """Frames due on the tick starting at ``time_s``: its state stands for [t, t + control period)."""
+        until = time_s + self.control_period_s - 1e-9
         repeats = 0
         while (self.frames_written + repeats) / self.config.fps < until:
             repeats += 1
+        return repeats
+
+    def reads_decorations(self, time_s: float) -> bool:
+        """Only a tick with a frame due is drawn (at 30 fps a third of a 100 Hz run's ticks)."""
+        return self._frames_due(time_s) > 0
+
+    def on_tick(self, frame: Frame) -> None:
+        repeats = self._frames_due(frame.observation.time_s)
         if repeats:
             if self._process.exitcode is not None:  # a cheap look (waitpid): it died since the last frame
                 raise self._fail()
@@ -722,8 +787,8 @@ def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, 
         world = pickle.loads(world_pickle)
         view = FrameRenderer(world, config)
         writer = imageio.get_writer(
-            path, fps=config.fps, codec="libx264", quality=7, macro_block_size=1,
-            ffmpeg_log_level="error", output_params=["-pix_fmt", "yuv420p"],
+            path, fps=config.fps, codec="libx264", quality=None, macro_block_size=1,
+            ffmpeg_log_level="error", output_params=["-pix_fmt", "yuv420p", *ENCODER_OPTIONS],
         )
         parent = multiprocessing.parent_process()
         try:

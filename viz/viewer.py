@@ -9,6 +9,7 @@ or delivery, references, robot halos in role / team colours, planned
 paths, meeting points, target estimates, markers), a band at the top-left
 with the video's overlay line, the state and the real-time factor reached,
 and the legend at the top-right. The default camera looks straight down,
+the walls drawn translucent (:func:`see_through_walls`) so none hides a room,
 the floor in the window's left part, so the legend sits beside it. The viewer only reads the simulation (as the video does), except
 that MuJoCo's mouse perturbation (double-click a body, Ctrl + drag) pushes
 bodies, as in any MuJoCo viewer.
@@ -145,6 +146,28 @@ def _camera_pose(cam) -> tuple:
     return (*np.round(cam.lookat, 6), round(float(cam.distance), 6), float(cam.elevation), float(cam.azimuth))
 
 
+WALL_ALPHA = 0.3  # the viewer draws tall static boxes (walls) this opaque: the rooms show through them
+WALL_MIN_HEIGHT_M = 1.0  # ... boxes of the scene's group 0 at least this tall
+
+
+def see_through_walls(model: mujoco.MjModel) -> int:
+    """Give the scene's walls (group-0 boxes at least ``WALL_MIN_HEIGHT_M`` tall) their own colour
+    at ``WALL_ALPHA`` in the viewer's model, so that a wall seen from above leaning over a room
+    hides none of it; returns how many. Colour only: physics never reads it, and a ray (the
+    sensing's line of sight) skips only geoms of alpha 0, which none becomes."""
+    walls = [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX
+             and model.geom_group[g] == 0 and 2 * model.geom_size[g, 2] >= WALL_MIN_HEIGHT_M]
+    for g in walls:
+        material = model.geom_matid[g]
+        rgba = np.array(model.mat_rgba[material] if material >= 0 else model.geom_rgba[g], dtype=float)
+        if rgba[3] <= 0:  # invisible (a ceiling): stays so
+            continue
+        rgba[3] = min(rgba[3], WALL_ALPHA)
+        model.geom_rgba[g] = rgba
+        model.geom_matid[g] = -1
+    return len(walls)
+
+
 def default_camera(cam, bounds, fovy_deg: float, aspect: float) -> None:
     """Look straight down on the floor (walls show their tops and hide no room), the whole floor
     in view at the window's left ``FLOOR_SHARE`` of its width, so the legend at the right sits
@@ -208,6 +231,7 @@ def view(scenario: Scenario, make_simulation: Callable[[Scenario], Simulation], 
     # A narrow field of view from farther away: full-height walls seen from above lean over the rooms
     # far less (the free camera's fovy is a picture setting; physics, sensing and radio never read it).
     sim.world.model.vis.global_.fovy = VIEW_FOVY_DEG
+    see_through_walls(sim.world.model)
     control = control or ViewerControl()
     launch = launch or mujoco.viewer.launch_passive
     handle = launch(sim.world.model, sim.world.data, key_callback=control.key,

@@ -35,7 +35,7 @@ from sim.compiled import kernel
 from sim import palette
 from sim.config import ConfigError
 from sim.geometry import Boxes, boxes_reaching, clearance_at, pairwise_min_distance
-from sim.types import Commands, Observation, WorldInfo
+from sim.types import PATH_STYLES, Commands, Observation, WorldInfo
 
 PATH_HEIGHT_M = 0.01  # drawn paths lie this high above the floor, m
 
@@ -45,6 +45,12 @@ TEAM_COLORS = palette.TEAMS
 
 def team_color(team: int) -> np.ndarray:
     return palette.team(team)
+
+
+def team_path_style(team: int) -> str:
+    """Team ``team``'s path line style (sim.types.PATH_STYLES, cycled): teams next in index, whose
+    colours can be near, differ in their line too."""
+    return PATH_STYLES[team % len(PATH_STYLES)]
 
 
 def as_config_error(err: ValueError, prefix: str = "strategy") -> ConfigError:

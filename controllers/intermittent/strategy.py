@@ -84,6 +84,7 @@ from controllers.intermittent.runtime import (
     separated_references,
     shifted,
     team_color,
+    team_path_style,
 )
 from controllers.intermittent.schedules import build_schedule
 from controllers.task import SEARCH_PLAN_VARIANCE_M2, neutral_prior, target_initialiser
@@ -634,7 +635,7 @@ class MeetingStrategy(Strategy):
 
     # ---------------------------------------------------------------- outputs
     def _refresh_visual(self) -> None:
-        colors, paths, points, point_colors = [], [], [], []
+        colors, paths, styles, points, point_colors = [], [], [], [], []
         for robot, queue in enumerate(self.queues):
             colors.append(team_color(queue[0].meeting.team) if queue else IDLE_COLOR)
             # Only the path to the next meeting: later ones of eight teams crossed the middle in a tangle.
@@ -642,6 +643,7 @@ class MeetingStrategy(Strategy):
                 rgba = team_color(queue[0].meeting.team).copy()
                 rgba[3] = 0.9
                 paths.append((lifted(queue[0].timed.path.positions), rgba))
+                styles.append(team_path_style(queue[0].meeting.team))
         pending = {id(s.meeting): s.meeting for q in self.queues for s in q}
         for meeting in pending.values():
             rgba = team_color(meeting.team).copy()
@@ -650,10 +652,11 @@ class MeetingStrategy(Strategy):
                 points.append(lifted(p))
                 point_colors.append(rgba)
         self._visual = Decorations(
-            legend=(*((f"team {k}", team_color(k)) for k in range(len(self.teams.members))),
+            legend=(*((f"team {k} ({team_path_style(k)} path)", team_color(k)) for k in range(len(self.teams.members))),
                     ("no meeting planned", IDLE_COLOR)),
             robot_colors=np.array(colors),
             paths=paths,
+            path_styles=tuple(styles),
             meeting_points=np.array(points).reshape(-1, 3),
             meeting_point_colors=np.array(point_colors).reshape(-1, 4),
         )
