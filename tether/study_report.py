@@ -302,7 +302,12 @@ def _figure(png: Path, drawn, rungs, names, series, cells, breaks, scenarios, sw
             ax.set_ylim(middle - 0.05 * abs(middle), middle + 0.05 * abs(middle))
     for ax in axes.flat[len(drawn):]:
         ax.set_visible(False)
-    handles, labels = axes.flat[0].get_legend_handles_labels()
+    handles, labels = [], []  # every panel's series: a series may be drawn in some panels only
+    for ax in axes.flat[:len(drawn)]:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            if label not in labels:
+                handles.append(handle)
+                labels.append(label)
     from matplotlib.lines import Line2D
 
     handles.append(Line2D([], [], marker="X", ms=11, color="white", mec="black", ls="none"))
