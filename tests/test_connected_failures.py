@@ -94,3 +94,18 @@ def test_position_noise_of_zero_is_the_fault_free_run_bit_for_bit_and_noise_move
     # the invariant the run checks is measured on the true virtual points
     reported, points = lambda2[-1]
     assert reported == connectivity_state(points, sim.strategy.boxes, sim.strategy.params).lambda2
+
+
+def test_in_estimator_mode_the_dropped_robot_leaves_the_estimators_graph():
+    """lambda2_source = "estimator" under ideal: after the drop the estimator is the nine robots' (its state
+    carried over, the dead robot's point frozen), its estimate of the live team's lambda2 stays usable and
+    the invariant, on the team still alive, holds."""
+    robot, at_s = EXPLORER, 1.0
+    sim, _, points = _failing(robot, at_s, radio=('strategy.lambda2_source="estimator"',), duration_s=3.0)
+    strategy = sim.strategy
+    (dropped,) = strategy.dropped
+    assert dropped.robot == robot and dropped.at_s == pytest.approx(at_s, abs=sim.dt)
+    assert strategy.estimator.num_robots == 9
+    assert np.isfinite(strategy.estimator.estimate.lambda2).all()
+    after = points[int(round(at_s / sim.dt)) + 1:]
+    assert np.ptp(after, axis=0).max() == 0.0  # its virtual point frozen where it was dropped

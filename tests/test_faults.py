@@ -311,3 +311,23 @@ def test_the_heartbeats_compiled_quiet_pairs_are_numpys(case, before_s):
     got = _quiet_pairs(last, silent, before_s)
     assert got.shape == (2, len(expected[0]))
     assert got[0].tolist() == expected[0].tolist() and got[1].tolist() == expected[1].tolist()
+
+
+@pytest.mark.slow
+def test_a_dead_member_on_its_meeting_point_is_judged_absent_by_its_silence(tmp_path):
+    """random_meeting, intermittent-8: robot 4 reaches team 3's point at 79 s and waits for robot 3 (there at
+    128 s, when the fault-free meeting is held). Robot 4 dies on its point at 100 s: it is where it should be,
+    but nobody hears it, so robot 3 waits the 60 s default and the meeting goes on without it."""
+    from tether.runner import run
+
+    scenario = load("intermittent-8", ['strategy.kind="random_meeting"',
+                                       'faults=[{kind="robot_failure", robot=4, at_s=100.0}]'], duration_s=200.0)
+    metrics = run(scenario, tmp_path / "out").metrics
+    assert metrics["status"] == "completed", metrics["message"]
+    given_up = {r: t for r, t in metrics["members_given_up"] if r in (3, 4) and t > 100.0}
+    # Neither hears the other: each goes on alone, one member_timeout_s after robot 3 arrived.
+    assert given_up == {3: pytest.approx(188.0), 4: pytest.approx(188.0)}
+    assert metrics["faults"][0]["detected_after_s"] == pytest.approx(88.0)
+    assert metrics["delay_bound_held"] is False
+    assert metrics["delay_bound_broken_s"] == min(t for _, t in metrics["members_given_up"])
+    assert "delay bound of" in metrics["message"] and "broken at t =" in metrics["message"]

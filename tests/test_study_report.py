@@ -109,3 +109,15 @@ def test_reaction_metrics_of_a_failure_are_tabled_when_present(tmp_path):
     assert "`fault_dropped_after_s`" in text and "| intermittent | 1.5 [1.5, 1.5] (n=3/3) |" in text
     assert "`dropped_robots`" in text and "| intermittent | 1 [1, 1] (n=3/3) |" in text
     assert "`meetings_missed`" in text and "| intermittent | 2 [2, 2] (n=3/3) |" in text
+
+
+def test_a_diverged_trial_is_a_guarantee_broken_not_a_trial_left_out():
+    rows = _rows()
+    rung = max(study_cells(rows)[0])
+    for r in rows:
+        if r["strategy"] == "connected_tracking" and study_cells([r])[0] == [rung]:
+            r["status"] = "diverged"
+    rungs, series, cells, _ = study_cells(rows)
+    breaks = first_breaks(rungs, series, cells)
+    assert breaks[("connected_tracking", "run diverged (an invariant broke)")] == rung
+    assert all(b is None for (s, g), b in breaks.items() if g.startswith("run diverged") and s != "connected_tracking")

@@ -22,7 +22,11 @@ from typing import Any
 import numpy as np
 
 from sim.palette import METHOD, SERIES, hex_code
+from sim.strategy import Status
 from tether.sweep import FINISHED
+
+DIVERGED = Status.DIVERGED.value
+STUDIED = (*FINISHED, DIVERGED)  # the trials the study reads (an error or a crash says nothing of a method)
 
 CHANNEL_KEYS = ("radio.preset", "radio.wall_loss_db", "radio.tx_power_dbm")
 PRESET_ORDER = ("ideal", "wifi", "nrf24", "ieee802154")
@@ -78,6 +82,8 @@ def _broken(row: dict) -> dict[str, bool]:
     timed_out = _number(row.get("meetings_timed_out"))
     if timed_out is not None:
         out["a meeting timed out"] = timed_out > 0
+    if out or row.get("status") == DIVERGED:  # the method's own invariant (lambda2 > lambda2_min, R_c, ...)
+        out = {"run diverged (an invariant broke)": row.get("status") == DIVERGED} | out
     return out
 
 
@@ -146,8 +152,9 @@ def _series_name(row: dict, keys: list[str]) -> str:
 
 
 def study_cells(rows: list[dict], manifest: dict | None = None):
-    """(rungs in channel order, series in table order, {(series, rung): [rows]}, series keys) of the finished rows."""
-    done = [_with_fault_fields(r) for r in rows if r.get("status") in FINISHED]
+    """(rungs in channel order, series in table order, {(series, rung): [rows]}, series keys) of the finished
+    and the diverged rows: a run that diverged is a guarantee broken, not a trial to leave out."""
+    done = [_with_fault_fields(r) for r in rows if r.get("status") in STUDIED]
     keys = _series_keys(done, manifest)
     rungs = sorted({_rung(r) for r in done})
     series: list[str] = []
@@ -204,7 +211,8 @@ def study_section(rows: list[dict], out: Path, manifest: dict | None = None) -> 
     lines = ["## The faults study: each method against channel quality", "",
              f"Scenario {', '.join(scenarios)}. Channel rungs from best to worst: {'; '.join(names)} "
              "(delivery: median over the rung's trials of the message bus's delivered / addressed). "
-             "Each cell: median [25 %, 75 %] over its finished trials (seeds) and n.", ""]
+             "Each cell: median [25 %, 75 %] over its finished and diverged trials (seeds; a diverged trial's "
+             "figures are those it reached before the invariant broke) and n.", ""]
     breaks = first_breaks(rungs, series, cells)
     if breaks:
         lines += ["**Where each guarantee first breaks** (the first rung at which any trial of the series broke it; "
@@ -294,7 +302,12 @@ def _figure(png: Path, drawn, rungs, names, series, cells, breaks, scenarios, sw
             ax.set_ylim(middle - 0.05 * abs(middle), middle + 0.05 * abs(middle))
     for ax in axes.flat[len(drawn):]:
         ax.set_visible(False)
-    handles, labels = axes.flat[0].get_legend_handles_labels()
+    handles, labels = [], []  # every panel's series: a series may be drawn in some panels only
+    for ax in axes.flat[:len(drawn)]:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            if label not in labels:
+                handles.append(handle)
+                labels.append(label)
     from matplotlib.lines import Line2D
 
     handles.append(Line2D([], [], marker="X", ms=11, color="white", mec="black", ls="none"))

@@ -76,6 +76,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import copy
+
 import numpy as np
 import scipy.linalg
 
@@ -185,6 +187,17 @@ class FiedlerEstimator:
         self.mean_integral = np.zeros(self.num_robots)
         self.square_mean = self.eigenvector**2
         self.square_mean_integral = np.zeros(self.num_robots)
+
+    def restricted(self, keep: np.ndarray) -> "FiedlerEstimator":
+        """The estimator of the robots ``keep`` (bool, N) selects, their states carried over; the PI
+        consensus integrals restart at 0, as their sum must (else the averages stay biased)."""
+        out = copy.copy(self)
+        out.num_robots = int(np.count_nonzero(keep))
+        out._flow = _ConsensusFlow(self.params)
+        out.eigenvector, out.mean, out.square_mean = (a[keep].copy() for a in (self.eigenvector, self.mean,
+                                                                               self.square_mean))
+        out.mean_integral, out.square_mean_integral = np.zeros(out.num_robots), np.zeros(out.num_robots)
+        return out
 
     @property
     def estimate(self) -> FiedlerEstimate:
@@ -363,6 +376,15 @@ class SubspaceEstimator:
         x = self.components
         self.consensus = self._inputs(x, np.zeros_like(x))
         self.consensus_integral = np.zeros_like(self.consensus)
+
+    def restricted(self, keep: np.ndarray) -> "SubspaceEstimator":
+        """The estimator of the robots ``keep`` (bool, N) selects (see FiedlerEstimator.restricted)."""
+        out = copy.copy(self)
+        out.num_robots = int(np.count_nonzero(keep))
+        out._flow = _ConsensusFlow(self.params)
+        out.components, out.consensus = self.components[keep].copy(), self.consensus[keep].copy()
+        out.consensus_integral = np.zeros_like(out.consensus)
+        return out
 
     def _inputs(self, x: np.ndarray, lx: np.ndarray) -> np.ndarray:
         """(N, D) robot i's consensus inputs from its X_i and (L X)_i."""

@@ -225,6 +225,7 @@ class MissionStatistics:
         tick = {"lambda2": state.lambda2, "edges": float(edges), "stretch_m": stretch, "prime_travelers": float(primes)}
         if lambda2_estimate is not None:
             error = np.abs(lambda2_estimate - state.lambda2)
+            error = error[np.isfinite(lambda2_estimate)]  # NaN: a robot dropped from the team has no estimate
             self.estimate_error_sum += float(error.sum())
             self.estimate_error_count += len(error)
             tick["lambda2_estimate_error"] = float(error.mean())

@@ -411,7 +411,8 @@ class ConnectedStrategy(Strategy):
                 self._events.append(f"t = {t:.2f} s: {self.names[receiver]} has heard nothing from "
                                     f"{self.names[sender]} for {p.heartbeat_timeout_s:g} s")
         self._drop_silent(t, observation.links)
-        team = None if not self.dropped or self.estimator is not None else self.in_team
+        # Over the radio the estimator keeps the whole team's size (its messages are indexed by robot).
+        team = None if not self.dropped or self.estimator_over_radio else self.in_team
         state = connectivity_state(q if team is None else q[team], self.boxes, p)
         measured = self._measured_state(observation.position_error, team)
         self._measured_noise = measured is not None
@@ -469,6 +470,10 @@ class ConnectedStrategy(Strategy):
         body_obstacle_distance = point_clearance(self.boxes, body)
         robot_distance = pairwise_min_distance(q if team is None else q[team])
         state = truth  # the invariants and the figures on the truth
+        if estimate is not None and team is not None:  # per robot again: NaN for the dropped ones
+            full = np.full(len(q), np.nan)
+            full[team] = estimate.lambda2
+            estimate = dataclasses.replace(estimate, lambda2=full)
         tick = self.stats.record(state, q, q_next, out.roles, obstacle_distance, body,
                                  body_obstacle_distance, robot_distance,
                                  None if estimate is None else estimate.lambda2)
@@ -513,6 +518,9 @@ class ConnectedStrategy(Strategy):
                 return  # a team of one has nobody to drop anybody
             machine = self.explorer.role_machine
             was_prime = bool(machine.roles[robot] == PRIME_CODE)
+            if self.estimator is not None and not self.estimator_over_radio:
+                # In process the estimator is the team's: sized and ordered as the robots still in it.
+                self.estimator = self.estimator.restricted(np.flatnonzero(self.in_team) != robot)
             self.in_team[robot] = False
             held, heir = drop_from_election(machine, robot, self.in_team)
             reassigned, lost = reassign_targets(self.explorer, robot, self.in_team, self.explorers, self.q)
@@ -560,7 +568,7 @@ class ConnectedStrategy(Strategy):
         nan = float("nan")
         scalars = {
             **tick,
-            "lambda2_estimate_mean": float(np.mean(estimate.lambda2)) if estimate is not None else nan,
+            "lambda2_estimate_mean": float(np.nanmean(estimate.lambda2)) if estimate is not None else nan,
             "prime_traveler": float(out.prime) if out.prime >= 0 else nan,  # undefined without a prime: a gap
             "secondary_travelers": float(secondary.sum()),
             "anchors": float(np.sum(roles == ANCHOR_CODE)),
