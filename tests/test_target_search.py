@@ -16,7 +16,7 @@ from estimation.target_init import ReadingsInitialiser
 from estimation.target_motion import CircularPath, LinearPath, TargetMotion
 from estimation.target_search import (HypothesisMotion, SearchSpace, StepLooks, collapse, grid_points,
                                       miss_log_likelihood, moments, normalised, reading_log_likelihood,
-                                      update_log_weights)
+                                      update_log_weights, visible, visible_mass)
 
 SENSOR_Z = 0.05
 
@@ -194,6 +194,25 @@ def test_forgetting_keeps_the_hypotheses():
     belief.forget_before(20)
     again = belief.hypotheses(29, 0)
     assert np.array_equal(reference[1], again[1])
+
+
+def test_visible_hypotheses_are_those_in_range_less_a_cell_and_in_sight_hand_computed():
+    """Range 5 m, cells 0.4 x 0.3 m (half diagonal 0.25 m: seen closer than 4.75 m); a wall at
+    x = 2 hides everything beyond it from a sensor at the origin."""
+    positions = np.array([[4.7, 0.0, 0.0], [0.0, 4.8, 0.0], [1.0, 1.0, 0.0], [3.0, 0.0, 0.0]])
+    weights = np.array([0.1, 0.2, 0.3, 0.4])
+    open_space = SearchSpace(positions, np.array([0.4, 0.3, 0.0]), 5.0)
+    assert visible(open_space, np.zeros(3), positions).tolist() == [True, False, True, True]
+    assert visible_mass(open_space, np.zeros((1, 3)), positions, weights) == pytest.approx([0.8])
+
+    def wall_at_x_2(a, b):
+        return ~((a[:, 0] - 2.0) * (b[:, 0] - 2.0) < 0)  # clear unless the segment crosses x = 2
+
+    walled = SearchSpace(positions, np.array([0.4, 0.3, 0.0]), 5.0, wall_at_x_2)
+    assert visible(walled, np.zeros(3), positions).tolist() == [False, False, True, False]
+    # From (4, 0, 0): (4.7, 0) and (3, 0) in sight and range, (1, 1) and (0, 4.8) behind the wall.
+    assert visible_mass(walled, np.array([[0.0, 0.0, 0.0], [4.0, 0.0, 0.0]]), positions, weights) == \
+        pytest.approx([0.3, 0.5])
 
 
 @pytest.mark.slow
