@@ -9,7 +9,9 @@ through :class:`controllers.connectivity.strategy.ConnectedStrategy` on the
 ground robots (planar virtual points at the sensors' height, the ``ground``
 preset). Only its target generator differs: the team's EKF
 (:class:`controllers.tracking.generator.EKFTargetGenerator`), whose
-explorers are sent to viewpoints of the most uncertain targets.
+explorers are sent to viewpoints of the most uncertain targets (without an
+informed prior, first to look for the targets not yet fixed, over the
+search's hypotheses of the planning belief).
 
 Estimation. The team is connected at every tick (lambda2 > lambda2_min is the
 controller's invariant), so every reading is fused the tick it is taken into
