@@ -166,7 +166,7 @@ def search_space(world: WorldInfo) -> SearchSpace:
     points = grid_points(bounds[0], bounds[1], spacing, free)
     if not len(points):
         points = grid_points(bounds[0], bounds[1], spacing)
-    return SearchSpace(points, spacing, world.target_range_m, line_of_sight)
+    return SearchSpace(points, spacing, world.target_range_m, line_of_sight, bounds=bounds)
 
 
 def check_time_base(world: WorldInfo) -> float:

@@ -59,7 +59,9 @@ class SearchSpace:
     to every covariance; half a cell diagonal widens every reading's noise);
     sensing_range_m: the sensors' maximum range; line_of_sight: clear
     segments, None: nothing ever blocks; miss_probability: see
-    :data:`MISS_PROBABILITY`.
+    :data:`MISS_PROBABILITY`; bounds: (2, 3) the scene's box (low, high), m, which the
+    targets never leave, so a hypothesis the model carries out of it is as unlikely as one a
+    look missed (None: unbounded).
     """
 
     points: np.ndarray
@@ -67,6 +69,7 @@ class SearchSpace:
     sensing_range_m: float
     line_of_sight: LineOfSight | None = None
     miss_probability: float = MISS_PROBABILITY
+    bounds: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         points = np.asarray(self.points, dtype=float)
@@ -79,6 +82,12 @@ class SearchSpace:
             raise ValueError(f"sensing_range_m: must be positive, got {self.sensing_range_m}")
         if not 0 < self.miss_probability < 1:
             raise ValueError(f"miss_probability: must be in (0, 1), got {self.miss_probability}")
+        if self.bounds is not None:
+            bounds = np.asarray(self.bounds, dtype=float)
+            if bounds.shape != (2, 3) or not np.all(bounds[1] >= bounds[0]):
+                raise ValueError(f"bounds: need (2, 3) low <= high, got {self.bounds}")
+            bounds.setflags(write=False)
+            object.__setattr__(self, "bounds", bounds)
         points.setflags(write=False)
         spacing.setflags(write=False)
         object.__setattr__(self, "points", points)
@@ -181,6 +190,16 @@ def miss_log_likelihood(positions: np.ndarray, sensor: np.ndarray, sensing_range
     return out
 
 
+def outside_log_likelihood(positions: np.ndarray, bounds: np.ndarray, miss_probability: float,
+                           margin_m: float = 0.0) -> np.ndarray:
+    """(N,) log(miss_probability) for the ``positions`` (N, 3) farther than ``margin_m`` outside the box
+    ``bounds`` (2, 3) (low, high) on some axis, 0 for the others."""
+    positions = np.asarray(positions, dtype=float)
+    low, high = np.asarray(bounds, dtype=float)
+    outside = np.any((positions < low - margin_m) | (positions > high + margin_m), axis=1)
+    return np.where(outside, np.log(miss_probability), 0.0)
+
+
 def normalised(log_weights: np.ndarray) -> np.ndarray:
     """(N,) weights summing to 1 from log-weights."""
     log_weights = np.asarray(log_weights, dtype=float)
@@ -222,11 +241,14 @@ class StepLooks:
 def update_log_weights(space: SearchSpace, positions: np.ndarray, log_weights: np.ndarray, target: int,
                        looks: list[StepLooks], drift_variance: float) -> np.ndarray:
     """``log_weights`` (N,) of ``target``'s hypotheses (at ``positions`` (N, 3), this step) after one
-    step's looks: a reading's likelihood where a robot read the target, a miss where it did not.
+    step's looks: a reading's likelihood where a robot read the target, a miss where it did not, and
+    (with the space's bounds) a miss where the model carried the hypothesis out of the scene.
     drift_variance: the model's process noise accumulated since the hypotheses' step, m^2 per axis."""
     out = np.array(log_weights, dtype=float)
     cell = space.cell_radius_m
     drift = float(np.sqrt(max(drift_variance, 0.0)))
+    if space.bounds is not None and looks:
+        out += outside_log_likelihood(positions, space.bounds, space.miss_probability, cell + 2.0 * drift)
     for look in looks:
         measured = look.ranges.get(target)
         if measured is not None:
@@ -238,3 +260,27 @@ def update_log_weights(space: SearchSpace, positions: np.ndarray, log_weights: n
                                        margin_m=cell + 2.0 * drift, line_of_sight=space.line_of_sight,
                                        consider=consider)
     return out - out.max()
+
+
+def visible(space: SearchSpace, viewpoint: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """(N,) bool: the hypotheses at ``positions`` (N, 3) that a sensor at ``viewpoint`` (3,) would
+    see: closer than the sensing range less a cell (the margin a non-reading leaves untouched,
+    :func:`update_log_weights`) and in line of sight."""
+    viewpoint = np.asarray(viewpoint, dtype=float).reshape(3)
+    positions = np.asarray(positions, dtype=float)
+    seen = np.linalg.norm(positions - viewpoint, axis=1) < space.sensing_range_m - space.cell_radius_m
+    near = np.flatnonzero(seen)
+    if len(near) and space.line_of_sight is not None:
+        clear = np.asarray(space.line_of_sight(np.broadcast_to(viewpoint, (len(near), 3)), positions[near]),
+                           dtype=bool)
+        seen[near[~clear]] = False
+    return seen
+
+
+def visible_mass(space: SearchSpace, viewpoints: np.ndarray, positions: np.ndarray,
+                 weights: np.ndarray) -> np.ndarray:
+    """(V,) the summed ``weights`` (N,) of the hypotheses at ``positions`` (N, 3) that a sensor at
+    each of ``viewpoints`` (V, 3) would see (:func:`visible`)."""
+    viewpoints = np.atleast_2d(np.asarray(viewpoints, dtype=float))
+    weights = np.asarray(weights, dtype=float)
+    return np.array([weights[visible(space, v, positions)].sum() for v in viewpoints])

@@ -16,7 +16,7 @@ from estimation.target_init import ReadingsInitialiser
 from estimation.target_motion import CircularPath, LinearPath, TargetMotion
 from estimation.target_search import (HypothesisMotion, SearchSpace, StepLooks, collapse, grid_points,
                                       miss_log_likelihood, moments, normalised, reading_log_likelihood,
-                                      update_log_weights)
+                                      outside_log_likelihood, update_log_weights, visible, visible_mass)
 
 SENSOR_Z = 0.05
 
@@ -196,6 +196,40 @@ def test_forgetting_keeps_the_hypotheses():
     assert np.array_equal(reference[1], again[1])
 
 
+def test_hypotheses_carried_out_of_the_scene_weigh_as_a_miss_hand_computed():
+    bounds = np.array([[0.0, 0.0, 0.0], [10.0, 10.0, 2.5]])
+    positions = np.array([[5.0, 5.0, 1.0], [10.2, 5.0, 1.0], [10.4, 5.0, 1.0], [5.0, -1.0, 1.0], [5.0, 5.0, 2.8]])
+    out = outside_log_likelihood(positions, bounds, 0.05, margin_m=0.3)
+    assert out == pytest.approx([0.0, 0.0, np.log(0.05), np.log(0.05), 0.0])
+    # In a step's update: the one look from far away (nothing in range) leaves only the box's factor;
+    # the margin there is a cell's half diagonal (0.25 m) plus twice the drift (0 here).
+    space = SearchSpace(positions, np.array([0.4, 0.3, 0.0]), 5.0, bounds=bounds)
+    looks = [StepLooks(np.array([100.0, 100.0, 0.0]))]
+    updated = update_log_weights(space, positions, np.zeros(5), 0, looks, drift_variance=0.0)
+    assert updated == pytest.approx([0.0, 0.0, np.log(0.05), np.log(0.05), np.log(0.05)])
+    unbounded = SearchSpace(positions, np.array([0.4, 0.3, 0.0]), 5.0)
+    assert update_log_weights(unbounded, positions, np.zeros(5), 0, looks, 0.0) == pytest.approx(np.zeros(5))
+
+
+def test_visible_hypotheses_are_those_in_range_less_a_cell_and_in_sight_hand_computed():
+    """Range 5 m, cells 0.4 x 0.3 m (half diagonal 0.25 m: seen closer than 4.75 m); a wall at
+    x = 2 hides everything beyond it from a sensor at the origin."""
+    positions = np.array([[4.7, 0.0, 0.0], [0.0, 4.8, 0.0], [1.0, 1.0, 0.0], [3.0, 0.0, 0.0]])
+    weights = np.array([0.1, 0.2, 0.3, 0.4])
+    open_space = SearchSpace(positions, np.array([0.4, 0.3, 0.0]), 5.0)
+    assert visible(open_space, np.zeros(3), positions).tolist() == [True, False, True, True]
+    assert visible_mass(open_space, np.zeros((1, 3)), positions, weights) == pytest.approx([0.8])
+
+    def wall_at_x_2(a, b):
+        return ~((a[:, 0] - 2.0) * (b[:, 0] - 2.0) < 0)  # clear unless the segment crosses x = 2
+
+    walled = SearchSpace(positions, np.array([0.4, 0.3, 0.0]), 5.0, wall_at_x_2)
+    assert visible(walled, np.zeros(3), positions).tolist() == [False, False, True, False]
+    # From (4, 0, 0): (4.7, 0) and (3, 0) in sight and range, (1, 1) and (0, 4.8) behind the wall.
+    assert visible_mass(walled, np.array([[0.0, 0.0, 0.0], [4.0, 0.0, 0.0]]), positions, weights) == \
+        pytest.approx([0.3, 0.5])
+
+
 @pytest.mark.slow
 def test_intermittent_in_a_held_out_room_without_a_prior_is_within_1_5_times_the_office():
     """The newcomer's case of issue 22: intermittent-8 moved into a room it was never tuned in
@@ -213,3 +247,27 @@ def test_intermittent_in_a_held_out_room_without_a_prior_is_within_1_5_times_the
     held_out = run(scenario).metrics["e_g_mean_m"]
     office = run(load("intermittent-8", seed=1, duration_s=300.0)).metrics["e_g_mean_m"]
     assert held_out <= 1.5 * office, (held_out, office)
+
+
+@pytest.mark.slow
+def test_connected_tracking_in_a_held_out_room_without_a_prior_is_within_1_5_times_the_office():
+    """Issue 22's bound for connected_tracking: moved into the held-out room with no prior, its
+    explorers look for the targets not yet fixed; over 300 s its e_g (mean over seeds 1-3; single
+    seeds spread 1.9 to 2.9 m) is within 1.5 times its own in the built-in office."""
+    from pathlib import Path
+
+    from sim.scenario import load
+    from tether.placement import load_in_scene
+    from tether.runner import run
+
+    room = Path(__file__).parent / "data" / "room_l_walls.xml"
+    kind = ["strategy.kind=connected_tracking"]
+    held_out, office = [], []
+    for seed in (1, 2, 3):
+        scenario, _ = load_in_scene("intermittent-8", str(room), kind, seed=seed, duration_s=300.0)
+        assert scenario.strategy.params.init_from_readings
+        metrics = run(scenario).metrics
+        assert metrics["search_viewpoints_issued"] > 0
+        held_out.append(metrics["e_g_mean_m"])
+        office.append(run(load("intermittent-8", kind, seed=seed, duration_s=300.0)).metrics["e_g_mean_m"])
+    assert np.mean(held_out) <= 1.5 * np.mean(office), (held_out, office)

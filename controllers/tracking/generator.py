@@ -23,6 +23,15 @@ Re-issuing (``update``, every tick; estimates change on reading ticks):
   its viewpoint was chosen: a new viewpoint for the same target (replanned).
 An anchor keeps its place: the readings from there are what it is for.
 
+Without an informed prior (``space`` given), while some target is not yet fixed
+an explorer is sent to *look* for it instead (``_search``): the free viewpoint,
+reachable from it, that would see (in range, in line of sight) the most weight
+of the search's hypotheses, summed over the targets not fixed and less what the
+other explorers' looks will see, per second of travel plus
+:data:`SEARCH_LOOK_HORIZON_S`; it dwells :data:`SEARCH_DWELL_S` there. A
+traveler's look is re-chosen once the weight it would see has halved (looks on
+the way saw it). Once every target is fixed, viewpoints are chosen as above.
+
 The generator talks to the continuous-connectivity paper's exploration layer only through its
 interfaces: ``TargetQueues.push`` (new targets) and
 ``ExplorationController.retarget`` (re-issued ones), reading the roles and
@@ -33,6 +42,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -42,18 +52,40 @@ from controllers.connectivity.roles import Role
 from controllers.connectivity.targets import TargetQueues
 from estimation.ekf import FilterState
 from estimation.target_motion import TargetMotion
+from estimation.target_search import SearchSpace, visible, visible_mass
 from estimation.viewpoints import block_lambda_max, predicted_lambda_max, readings_needed
 from sim.geometry import Boxes, segments_free
 
 
+# Searching for targets not yet fixed (docs/intermittent.md, "Targets without an informed prior"):
+SEARCH_VIEW_SPACING_M = 0.5  # candidate search viewpoints: a grid of this pitch over the free plane
+SEARCH_DWELL_S = 2.0  # a look: one non-reading divides a hypothesis' weight by 20, a second by 400
+# A viewpoint is scored by the weight it would see per (travel time + this), s: a horizon that keeps a
+# near viewpoint with little weight from beating a far one with much (at 0.1 m/s, 30 s is 3 m; in the
+# held-out room, seed 1, 2 s and 15 s did worse, 60 s as well; docs/intermittent.md).
+SEARCH_LOOK_HORIZON_S = 30.0
+# Hypotheses below this fraction of a target's heaviest are left out of the search's sums (a look
+# ruled them out already)
+SEARCH_LEAST_WEIGHT = 0.01
+# A search viewpoint is re-chosen once the weight it would see has fallen below this fraction of what it
+# had when chosen (others' looks on the way saw it)
+SEARCH_REISSUE_FRACTION = 0.5
+
+# {target not yet fixed: (hypotheses (N, 3) at the estimate's step, m, their weights (N,))}
+Hypotheses = dict[int, tuple[np.ndarray, np.ndarray]]
+
+
 @dataclass
 class Assignment:
-    """The target an explorer's current viewpoint serves."""
+    """The target an explorer's current viewpoint serves (``search``: a look for the targets
+    not yet fixed, ``target`` -1, ``mass`` the hypotheses' weight it would see)."""
 
     target: int  # index a of the tracked target
     estimate: np.ndarray  # (3,) its estimate when the viewpoint was chosen, m
     viewpoint: np.ndarray  # (3,) m
     dwell_s: float
+    search: bool = False
+    mass: float = 0.0
 
 
 def spread_robots(starts: np.ndarray, count: int) -> np.ndarray:
@@ -76,11 +108,18 @@ class EKFTargetGenerator:
     (planar); boxes: the obstacles of line of sight; plane_z: sensor height,
     m; motion: the targets' model (A, Q); explorers: robot indices;
     target_range: range sensors' limit, m; cruise_speed: m/s; step_s: one step of
-    the task (the readings' period), s.
+    the task (the readings' period), s. space, hypotheses: without an informed prior, the
+    beliefs' search space and the hypotheses of the targets not yet fixed at a step (None: the
+    informed prior; explorers then never search).
     """
 
     def __init__(self, params, planner: GridPlanner, boxes: Boxes, plane_z: float, motion: TargetMotion,
-                 explorers: np.ndarray, target_range: float, cruise_speed: float, step_s: float) -> None:
+                 explorers: np.ndarray, target_range: float, cruise_speed: float, step_s: float,
+                 space: SearchSpace | None = None, hypotheses: Callable[[int], Hypotheses] | None = None) -> None:
+        self.space = space
+        self.hypotheses = hypotheses
+        self._search_views: np.ndarray | None = None
+        self.searches = 0  # search viewpoints issued
         self.params = params
         self.planner = planner
         self.boxes = boxes
@@ -133,8 +172,68 @@ class EKFTargetGenerator:
         steps = readings_needed(series[best], self.params.delta_m2, self.params.dwell_stall)
         return Assignment(a, target.copy(), points[candidates[best]].copy(), steps * self.step_s)
 
+    def search_views(self) -> np.ndarray:
+        """(V, 3) candidate search viewpoints: a grid of :data:`SEARCH_VIEW_SPACING_M` over the
+        planner's free plane at the sensors' height, m."""
+        if self._search_views is None:
+            low, high = self.planner.lower, self.planner.upper
+            axes = [np.arange(low[a] + SEARCH_VIEW_SPACING_M / 2, high[a], SEARCH_VIEW_SPACING_M) for a in range(2)]
+            grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 2)
+            points = np.column_stack([grid, np.full(len(grid), self.plane_z)])
+            self._search_views = points[self.planner.is_free(points, self.planner.clearance)]
+        return self._search_views
+
+    def _unseen(self, robot: int, hypotheses: Hypotheses) -> Hypotheses:
+        """The hypotheses' weights, those the other explorers' search viewpoints will see set to 0
+        (their looks are under way), the negligible ones left out."""
+        out: Hypotheses = {}
+        others = [s.viewpoint for r, s in self.assigned.items() if s is not None and s.search and r != robot]
+        for target, (positions, weights) in hypotheses.items():
+            keep = weights > SEARCH_LEAST_WEIGHT * weights.max()
+            positions, weights = positions[keep], weights[keep].copy()
+            for viewpoint in others:
+                weights[visible(self.space, viewpoint, positions)] = 0.0
+            out[target] = (positions, weights)
+        return out
+
+    def _search(self, robot: int, step: int, position: np.ndarray) -> Assignment | None:
+        """A look for the targets not yet fixed: the free, reachable viewpoint that would see the most
+        hypothesis weight (summed over those targets, less what the other explorers' looks will see)
+        per second of travel and look; None when every target is fixed or nothing is left to see."""
+        if self.space is None or self.hypotheses is None:
+            return None
+        hypotheses = self.hypotheses(step)
+        if not hypotheses:
+            return None
+        unseen = self._unseen(robot, hypotheses)
+        views = self.search_views()
+        mass = np.zeros(len(views))
+        for positions, weights in unseen.values():
+            mass += visible_mass(self.space, views, positions, weights)
+        travel = np.linalg.norm(views[:, :2] - position[:2], axis=1) / self.cruise_speed
+        score = mass / (travel + SEARCH_LOOK_HORIZON_S)
+        for k in np.argsort(-score, kind="stable"):
+            if mass[k] <= 0.0:
+                return None
+            if self.planner.connected(position, views[k]):
+                self.searches += 1
+                self.issued += 1
+                self.history.append((step, robot, -1))
+                return Assignment(-1, views[k].copy(), views[k].copy(), SEARCH_DWELL_S, search=True,
+                                  mass=float(mass[k]))
+        return None
+
+    def _search_mass_left(self, served: Assignment, step: int) -> float:
+        """The hypothesis weight the search viewpoint of ``served`` would still see."""
+        hypotheses = self.hypotheses(step)
+        return float(sum(visible_mass(self.space, served.viewpoint, p, w)[0] for p, w in hypotheses.values()))
+
     def _next(self, robot: int, estimate: FilterState, position: np.ndarray, exclude: set[int]) -> Assignment | None:
-        """A viewpoint for the most uncertain target not in ``exclude`` that has one."""
+        """A look for the targets not yet fixed if any (:meth:`_search`), else a viewpoint for the most
+        uncertain target not in ``exclude`` that has one."""
+        search = self._search(robot, estimate.step, position)
+        if search is not None:
+            return search
         uncertainty = block_lambda_max(estimate.covariance, estimate.n_targets)
         for a in np.argsort(-uncertainty, kind="stable"):
             if int(a) in exclude:
@@ -147,7 +246,7 @@ class EKFTargetGenerator:
         return None
 
     def _taken(self, robot: int) -> set[int]:
-        return {s.target for r, s in self.assigned.items() if s is not None and r != robot}
+        return {s.target for r, s in self.assigned.items() if s is not None and not s.search and r != robot}
 
     # ------------------------------------------------------------ running
     def first_targets(self, n_robots: int, starts: np.ndarray, estimate: FilterState) -> TargetQueues:
@@ -190,6 +289,16 @@ class EKFTargetGenerator:
             if uncertainty is None or served is None:
                 continue
             role = roles[i]
+            if served.search:
+                if role == Role.ANCHOR:
+                    continue  # the look's short dwell ends by itself
+                if self._search_mass_left(served, estimate.step) < SEARCH_REISSUE_FRACTION * served.mass:
+                    choice = self._next(i, estimate, positions[i], self._taken(i))
+                    if choice is not None:
+                        self.assigned[i] = choice
+                        controller.retarget(i, choice.viewpoint, choice.dwell_s, positions[i])
+                        self.reissued += 1
+                continue
             if uncertainty[served.target] < self.params.delta_m2:
                 if role == Role.ANCHOR:
                     controller.retarget(i, current.position, 0.0)
@@ -213,5 +322,6 @@ class EKFTargetGenerator:
                     controller.retarget(i, choice.viewpoint, choice.dwell_s, positions[i])
 
     def summary(self) -> dict:
+        searched = {"search_viewpoints_issued": self.searches} if self.space is not None else {}
         return {"viewpoints_issued": self.issued, "viewpoints_reissued": self.reissued,
-                "dwells_ended_early": self.ended, "viewpoint_failures": self.failed}
+                "dwells_ended_early": self.ended, "viewpoint_failures": self.failed, **searched}

@@ -9,7 +9,9 @@ through :class:`controllers.connectivity.strategy.ConnectedStrategy` on the
 ground robots (planar virtual points at the sensors' height, the ``ground``
 preset). Only its target generator differs: the team's EKF
 (:class:`controllers.tracking.generator.EKFTargetGenerator`), whose
-explorers are sent to viewpoints of the most uncertain targets.
+explorers are sent to viewpoints of the most uncertain targets (without an
+informed prior, first to look for the targets not yet fixed, over the
+search's hypotheses of the planning belief).
 
 Estimation. The team is connected at every tick (lambda2 > lambda2_min is the
 controller's invariant), so every reading is fused the tick it is taken into
@@ -83,12 +85,14 @@ class ConnectedTrackingStrategy(WrappingStrategy):
         self.motion = world.target_motion
         self.prior = prior_state(params, world.n_targets)
         self.plane_z = float(np.mean(initial.sensor_position[:, 2]))
-        self.belief = Belief(self.motion, self.prior, self.plane_z if params.resolve_mirror else None,
-                             target_initialiser(params, world))
+        initialiser = target_initialiser(params, world)
+        self.search_space = initialiser.search if initialiser is not None else None
+        self.belief = Belief(self.motion, self.prior, self.plane_z if params.resolve_mirror else None, initialiser)
         self.series = EstimateSeries()
         self.last_step: int | None = None
         self.readings_fused = 0
         self.generator: EKFTargetGenerator | None = None
+        self.team_belief = self.belief  # the belief the explorers plan with (see below)
         self.core = self.inner = ConnectedStrategy(controller_params(params, world.comm_range_m),
                                                    targets=self._first_targets)
         self.core.reset(world, initial, rng)
@@ -96,7 +100,6 @@ class ConnectedTrackingStrategy(WrappingStrategy):
         # viewpoints come from the belief of a fusion robot (the connector nearest the start centroid), fed
         # over the bus, and self.belief stays the fictitious global one of e_g and lambda-bar.
         self.fusion: RadioFusion | None = None
-        self.team_belief = self.belief
         if over_radio(initial):
             starts = initial.position[:, :2]
             distance = np.linalg.norm(starts - starts.mean(axis=0), axis=1)
@@ -113,8 +116,15 @@ class ConnectedTrackingStrategy(WrappingStrategy):
         explorers = spread_robots(starts, self.params.explorers)
         self.generator = EKFTargetGenerator(self.params, planner, self.core.boxes, self.core.plane_z, self.motion,
                                             explorers, self.world.target_range_m, self.core.params.cruise_speed_mps,
-                                            self.step_s)
+                                            self.step_s, self.search_space,
+                                            self._hypotheses if self.search_space is not None else None)
         return self.generator.first_targets(len(starts), starts, self.prior)
+
+    def _hypotheses(self, step: int) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """The search's hypotheses at ``step`` of every target the planning belief has not fixed."""
+        belief = self.team_belief
+        found = {a: belief.hypotheses(step, a) for a in range(self.world.n_targets)} if step >= 0 else {}
+        return {a: h for a, h in found.items() if h is not None}
 
     @property
     def finished(self) -> bool:
