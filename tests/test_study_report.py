@@ -121,3 +121,26 @@ def test_a_diverged_trial_is_a_guarantee_broken_not_a_trial_left_out():
     breaks = first_breaks(rungs, series, cells)
     assert breaks[("connected_tracking", "run diverged (an invariant broke)")] == rung
     assert all(b is None for (s, g), b in breaks.items() if g.startswith("run diverged") and s != "connected_tracking")
+
+
+def test_a_count_panel_has_integer_ticks_from_zero():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from tether.study_report import _value_axis
+
+    fig, ax = plt.subplots()
+    ax.plot([0, 1, 2], [0.0, 0.0, 0.0])  # no robot dropped anywhere: matplotlib alone would span -0.055..0.055
+    _value_axis(ax, "dropped_robots")
+    fig.canvas.draw()
+    assert ax.get_ylim() == (0.0, 1.0)
+    ticks = [t for t in ax.get_yticks() if 0.0 <= t <= 1.0]
+    assert ticks and all(float(t).is_integer() for t in ticks)
+    ax.clear()
+    ax.plot([0, 1], [3.0, 7.0])
+    _value_axis(ax, "targets_visited")
+    fig.canvas.draw()
+    assert ax.get_ylim()[0] == 0.0 and all(float(t).is_integer() for t in ax.get_yticks())
+    plt.close(fig)

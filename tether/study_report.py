@@ -52,6 +52,9 @@ TASK_METRICS = (
     ("e_g_after_fault_m", "e_g after the fault (m)"),
 )
 FIGURE_PANELS = 4
+# Counts: drawn on an integer axis from 0 (no fractional or negative ticks).
+COUNT_METRICS = frozenset({"targets_visited", "fault_targets_reassigned", "fault_targets_lost",
+                           "fault_meetings_missed", "dropped_robots", "meetings_missed"})
 FAULT_FIELDS = ("targets_reassigned", "targets_lost", "meetings_missed", "e_g_before_fault_m",
                 "e_g_after_fault_m", "detected_after_s", "dropped_after_s")
 SERIES_KEY_NAMES = {"faults.0.sigma_m": "position noise sigma (m)", "faults.0.robot": "failed robot"}
@@ -255,6 +258,22 @@ def study_section(rows: list[dict], out: Path, manifest: dict | None = None) -> 
     return lines, files
 
 
+def _value_axis(ax, metric: str) -> None:
+    """The y axis of ``metric``'s panel: counts on integer ticks from 0; values equal to a few digits
+    (lambda-bar is set by the targets, not the radio) would get an unreadable offset axis
+    ("1e-7+2.58e-1"): plain ticks, a range of 10 % around them."""
+    ax.ticklabel_format(axis="y", useOffset=False)
+    low, high = ax.get_ylim()
+    middle = (low + high) / 2
+    if metric in COUNT_METRICS:
+        from matplotlib.ticker import MaxNLocator
+
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.set_ylim(0, max(1.0, high))
+    elif high - low < 1e-3 * abs(middle):
+        ax.set_ylim(middle - 0.05 * abs(middle), middle + 0.05 * abs(middle))
+
+
 def _figure(png: Path, drawn, rungs, names, series, cells, breaks, scenarios, sweep: str = "") -> Path:
     import matplotlib
 
@@ -293,13 +312,7 @@ def _figure(png: Path, drawn, rungs, names, series, cells, breaks, scenarios, sw
         ax.set_xlabel("radio channel, best to worst (measured delivery ratio)", fontsize=10)
         ax.set_ylabel(label, fontsize=10)
         ax.grid(alpha=0.3)
-        # Values equal to a few digits (lambda-bar is set by the targets, not the radio) would get
-        # an unreadable offset axis ("1e-7+2.58e-1"): plain ticks, a range of 10 % around them.
-        ax.ticklabel_format(axis="y", useOffset=False)
-        low, high = ax.get_ylim()
-        middle = (low + high) / 2
-        if high - low < 1e-3 * abs(middle):
-            ax.set_ylim(middle - 0.05 * abs(middle), middle + 0.05 * abs(middle))
+        _value_axis(ax, metric)
     for ax in axes.flat[len(drawn):]:
         ax.set_visible(False)
     handles, labels = [], []  # every panel's series: a series may be drawn in some panels only
