@@ -435,3 +435,18 @@ def test_missing_ray_is_refused(tiny, tmp_path, capsys, monkeypatch):
     assert main(["sweep", str(tiny), "--out", str(out), "--ray", "auto"]) == 2
     assert "--ray: Ray is not installed" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_fig9_is_left_out_of_a_sweep_that_varies_more_than_scene_and_team_size(tmp_path):
+    """A radio ladder of connected-office trials: Fig. 9's percentiles would pool the radios into one band."""
+    from tether.report import fig9_section
+
+    rows = [dict(trial_id=f"t{i}", scenario="connected-office", strategy="connected", status="completed",
+                 n_robots=10, seed=i % 2, completion_time_s=150.0 + i, mean_travel_m=40.0, max_stretch_m=8.0,
+                 lambda2_mean=0.2, **{"radio.preset": preset, "robots.0.count": 10})
+            for i, preset in enumerate(["ideal", "ideal", "nrf24", "nrf24"])]
+    assert fig9_section(rows, tmp_path) == ([], [])
+    assert not (tmp_path / "fig9.png").exists()
+    same_radio = [dict(row, **{"radio.preset": "ideal"}) for row in rows]
+    lines, files = fig9_section(same_radio, tmp_path)
+    assert files == [tmp_path / "fig9.png"] and lines[0].startswith("## Nestmeyer et al. 2017, Fig. 9")

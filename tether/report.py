@@ -156,10 +156,22 @@ def trials_section(rows: list[dict], manifest: dict | None) -> list[str]:
     return lines
 
 
+# Fig. 9 varies the scene and the team size only; a sweep's own grid keys (the scenario's and the team
+# size aside) vary what its percentiles would pool (a radio ladder, position noise, a parameter).
+FIG9_AXES = frozenset({"scenario", "robots.0.count"})
+
+
+def fig9_confounded(rows: list[dict]) -> bool:
+    """Whether ``rows`` vary a grid key (a dotted column) other than the scene and the team size: Fig. 9
+    would pool those conditions into one percentile band; the grid and study sections show them instead."""
+    keys = {key for row in rows for key in row if "." in key and key not in FIG9_AXES}
+    return any(len({json.dumps(row.get(key), default=str) for row in rows}) > 1 for key in keys)
+
+
 def fig9_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
     """The continuous-connectivity paper's Fig. 9 from connected trials: percentiles against robot count, one column per scenario."""
     mine = [r for r in rows if r.get("strategy") == "connected" and _number(r.get("n_robots")) is not None]
-    if not mine:
+    if not mine or fig9_confounded(mine):
         return [], []
     done = [r for r in mine if r.get("status") in FINISHED]
     scenes = sorted({_label(r["scenario"]) for r in mine})
@@ -204,9 +216,12 @@ def fig9_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
                 ax.set_title(scene, fontsize=9)
             if row_i == len(FIG9_ROWS) - 1:
                 ax.set_xlabel("robots")
+                ax.set_xticks(counts)  # team sizes: integer ticks
             if row_i == 0 and col == 0 and xs:
                 ax.legend(fontsize=6)
-    fig.suptitle("Nestmeyer et al. 2017 Fig. 9: percentiles over target configurations (numbers: n per point)", fontsize=9)
+    joint = ": " if len(scenes) > 1 else ":\n"  # one column is too narrow for the title on one line
+    fig.suptitle(f"Nestmeyer et al. 2017 Fig. 9{joint}percentiles over target configurations (numbers: n per point)",
+                 fontsize=9)
     fig.tight_layout()
     png = out / "fig9.png"
     fig.savefig(png, dpi=110)
