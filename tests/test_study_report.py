@@ -144,3 +144,19 @@ def test_a_count_panel_has_integer_ticks_from_zero():
     fig.canvas.draw()
     assert ax.get_ylim()[0] == 0.0 and all(float(t).is_integer() for t in ax.get_yticks())
     plt.close(fig)
+
+
+def test_a_count_that_is_zero_everywhere_is_tabled_not_drawn(tmp_path):
+    from tether.study_report import TASK_METRICS, figure_panels
+
+    rows = _rows()
+    for row in rows:
+        row["dropped_robots"] = 0
+        row["meetings_missed"] = row["seed"]
+    _rungs, _series, cells, _keys = study_cells(rows, None)
+    present = [(m, label) for m, label in TASK_METRICS if any(m in r for rs in cells.values() for r in rs)]
+    drawn = [m for m, _ in figure_panels(present, cells)]
+    assert "meetings_missed" in drawn and "dropped_robots" not in drawn and "radio_delivery_ratio" not in drawn
+    folder = _write(tmp_path, rows)
+    write_report(folder)
+    assert "**robots dropped from the team**" in (folder / "report.md").read_text()  # still tabled

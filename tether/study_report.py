@@ -197,6 +197,15 @@ def _color(name: str, index: int) -> str:
     return hex_code(SERIES[index % len(SERIES)])
 
 
+def figure_panels(present: list[tuple[str, str]], cells: dict) -> list[tuple[str, str]]:
+    """The (metric, label) panels study.png draws: the first FIGURE_PANELS of ``present`` but the delivery
+    ratio (in every rung's name) and a count that is 0 in every trial (no robot dropped in a sweep without
+    failures: tabled, not drawn)."""
+    drawn = [(m, label) for m, label in present if m != DELIVERY and not (
+        m in COUNT_METRICS and all(_number(r.get(m)) in (None, 0) for rs in cells.values() for r in rs))]
+    return drawn[:FIGURE_PANELS]
+
+
 def study_section(rows: list[dict], out: Path, manifest: dict | None = None) -> tuple[list[str], list[Path]]:
     """Report lines and files (``study.png``) of a faults-study table; nothing for other tables."""
     if not any("radio.preset" in r or r.get("faults") for r in rows):
@@ -249,7 +258,7 @@ def study_section(rows: list[dict], out: Path, manifest: dict | None = None) -> 
             lines.append(f"| {s} | " + " | ".join(row) + " |")
         lines.append("")
     files = []
-    drawn = [(m, label) for m, label in present if m != DELIVERY][:FIGURE_PANELS]
+    drawn = figure_panels(present, cells)
     if drawn:
         sweep = str((manifest or {}).get("sweep") or "")
         png = _figure(out / "study.png", drawn, rungs, names, series, cells, breaks, scenarios, sweep)
