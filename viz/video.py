@@ -786,9 +786,11 @@ def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, 
 
         world = pickle.loads(world_pickle)
         view = FrameRenderer(world, config)
+        # ffmpeg says only what is fatal: its failures reach the run as the writer's exception, which the run
+        # reports in its one line (a full disk: "Error writing trailer" would be two lines more).
         writer = imageio.get_writer(
             path, fps=config.fps, codec="libx264", quality=None, macro_block_size=1,
-            ffmpeg_log_level="error", output_params=["-pix_fmt", "yuv420p", *ENCODER_OPTIONS],
+            ffmpeg_log_level="fatal", output_params=["-pix_fmt", "yuv420p", *ENCODER_OPTIONS],
         )
         parent = multiprocessing.parent_process()
         try:
