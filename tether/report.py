@@ -394,8 +394,9 @@ def table1_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
     if reproduced:
         handles.append(Line2D([], [], color=PAPER_COLOR, marker="_", ls="", ms=14, mew=3,
                               label="Khodayi-mehr et al. 2019, Table I"))
-    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 2), fontsize=9, frameon=False)
-    fig.tight_layout(rect=(0, 0.06 * (1 + (len(handles) > 2)), 1, 1))
+    columns = 1 if len(targets) == 1 else min(len(handles), 2)  # one panel wide: the labels would be cut
+    fig.legend(handles=handles, loc="lower center", ncol=columns, fontsize=9, frameon=False)
+    fig.tight_layout(rect=(0, 0.045 * math.ceil(len(handles) / columns) + 0.015, 1, 1))
     return _with_figure(lines, fig, out / "table1.png", "Table I" if reproduced else "meeting methods")
 
 
