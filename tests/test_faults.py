@@ -331,3 +331,31 @@ def test_a_dead_member_on_its_meeting_point_is_judged_absent_by_its_silence(tmp_
     assert metrics["delay_bound_held"] is False
     assert metrics["delay_bound_broken_s"] == min(t for _, t in metrics["members_given_up"])
     assert "delay bound of" in metrics["message"] and "broken at t =" in metrics["message"]
+
+
+def test_a_late_member_given_up_finishes_its_planned_path_to_the_point_first():
+    """random_meeting, intermittent-8, seed 0: robot 7 is given up at 83 s while still on its way. Its next
+    path starts at this meeting's point, so it goes on along its own planned path to the point (not
+    straight to the next path across the walls) and only then on to its next meeting."""
+    scenario = load("intermittent-8", ['strategy.kind="random_meeting"'], seed=0, duration_s=120.0)
+    from tether.runner import build_simulation
+
+    simulation = build_simulation(scenario)
+    strategy = simulation.strategy
+    held = None
+    while simulation.time_s < 120.0:
+        frame, _ = simulation.tick(decorations_wanted=False)
+        segment = strategy.queues[7][0]
+        if held is None and segment.meeting.held_s is not None:
+            held = segment  # the meeting went on without robot 7; its head segment is still the one there
+            assert 7 in segment.meeting.absent and (7, segment.meeting.held_s) in strategy.members_given_up
+            assert not segment.at_end(simulation.time_s)
+        if held is not None and segment is not held:
+            # It left the held meeting's segment only at that segment's end, at the meeting's point.
+            assert held.at_end(simulation.time_s)
+            end = held.timed.path.positions[-1]
+            assert np.linalg.norm(frame.observation.position[7, :2] - end) < 0.2  # the body is there too
+            assert segment.timed.path.positions[0] == pytest.approx(end)
+            break
+    else:
+        raise AssertionError("robot 7 never left the meeting held without it")

@@ -543,6 +543,10 @@ class MeetingStrategy(Strategy):
         heads: dict[int, Meeting] = {}
         for robot, queue in enumerate(self.queues):
             segment = queue[0]
+            if segment.meeting.held_s is not None:  # held without this robot
+                if not self._pass_held(robot, t):
+                    continue  # still on its way to the point
+                segment = queue[0]
             meeting = segment.meeting
             heads[id(meeting)] = meeting
             if robot not in meeting.arrivals and segment.started and (  # Segment.at_end inline
@@ -641,19 +645,25 @@ class MeetingStrategy(Strategy):
         t = observation.time_s
         meeting.absent = absent
         self.members_given_up.extend((r, t) for r in absent)
-        for robot in absent:
-            queue = self.queues[robot]
-            for index, segment in enumerate(queue):
-                if segment.meeting is meeting:
-                    del queue[index]
-                    break
-            if queue and not queue[0].started:
-                queue[0].started = True
-                queue[0].timed.offset_s = max(0.0, t - queue[0].timed.path.start_time * self.step_s)
+        # An absent member keeps its segment: its next one was planned from this meeting's point, so it goes
+        # there first (a late one on its collision-free path, not across the walls) and then on (_pass_held).
         present = tuple(r for r in meeting.members if r not in absent)
         self.events.append(f"team {meeting.team} epoch {meeting.epoch}: robot(s) {list(absent)} not heard at the meeting "
                            f"{self.params.member_timeout_s:g} s after the others arrived; held without them")
         self._hold(meeting, observation, members=present)
+
+    def _pass_held(self, robot: int, t: float) -> bool:
+        """A member given up at its head segment's meeting, once at the end of that segment: on to its next
+        segment (True), as the members that met went on. False while it is still on its way (or has no
+        later segment yet: it waits at the point)."""
+        queue = self.queues[robot]
+        if not queue[0].at_end(t) or len(queue) < 2:
+            return False
+        queue.popleft()
+        following = queue[0]
+        following.started = True
+        following.timed.offset_s = max(0.0, t - following.timed.path.start_time * self.step_s)
+        return True
 
     def _ready(self, meeting: Meeting, t: float) -> bool:
         """Every member's current segment leads to ``meeting`` and has reached its end."""
