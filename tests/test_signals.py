@@ -30,7 +30,7 @@ WAIT_LIMIT_S = 20.0  # what a test waits before it calls the run hung (a loaded 
 class Run:
     """A ``tether run`` in its own process group, its output in files (a pipe could fill)."""
 
-    def __init__(self, tmp_path: Path, *args: str, module: str = "tether"):
+    def __init__(self, tmp_path: Path, *args: str, module: str = "tether.cli"):
         self.out = tmp_path / "out"
         self.log_out, self.log_err = tmp_path / "stdout.txt", tmp_path / "stderr.txt"
         with open(self.log_out, "w") as stdout, open(self.log_err, "w") as stderr:
