@@ -139,3 +139,27 @@ def test_frames_stream_to_the_encoder_so_memory_stays_flat(tmp_path):
     kept_frames = (frames - warm_up) * width * height * 3  # what a list of the frames would hold
     assert growth < 0.1 * kept_frames, (growth, kept_frames)
     assert count_frames(tmp_path / "video.mp4") == frames
+
+
+def test_a_run_stopped_while_its_renderer_starts_leaves_no_child_and_no_traceback(tmp_path, monkeypatch, capfd):
+    """An interrupt in the set-up after the renderer and painters were spawned: they are killed at once,
+    before this process drops the queue whose semaphores they open by name as they start (else each
+    prints its bootstrap's FileNotFoundError after the run reported its interrupt)."""
+    import gc
+    import multiprocessing
+    import time
+
+    import viz.recording
+
+    def interrupted(*_args, **_kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(viz.recording.RerunRecorder, "__init__", interrupted)
+    scenario = load("hover", ["video.width=64", "video.height=48"], duration_s=1.0)
+    with pytest.raises(KeyboardInterrupt):
+        run(scenario, tmp_path / "out", video=True, rrd=True)
+    assert [child.name for child in multiprocessing.active_children()] == []
+    gc.collect()
+    time.sleep(1.0)
+    assert "Traceback" not in capfd.readouterr().err
+    assert not (tmp_path / "out").exists()

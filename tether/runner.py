@@ -117,9 +117,12 @@ def run(
 
         resolve_camera(sim.world.model, scenario.video.camera)  # refuse before writing anything
     staging = Staging(out) if out is not None else None
+    from viz.painter import children_killed_on_error
+
     try:
-        observers, named, files = _observers(sim, staging.path if staging else None, video, rrd, live,
-                                             staging.final if staging else str)
+        with children_killed_on_error():
+            observers, named, files = _observers(sim, staging.path if staging else None, video, rrd, live,
+                                                 staging.final if staging else str)
     except BaseException:
         if staging is not None:
             staging.discard()

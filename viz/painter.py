@@ -100,6 +100,26 @@ def supervise(process) -> None:
     _supervised.append(process)
 
 
+@contextlib.contextmanager
+def children_killed_on_error():
+    """The children started inside are killed (SIGKILL) if it raises. A
+    spawned child may still be starting: it opens its queue's semaphores by
+    name, which this process unlinks once it drops them, and would print its
+    bootstrap's traceback (FileNotFoundError) after this process has reported
+    its interrupt or error."""
+    before = list(_supervised)
+    try:
+        yield
+    except BaseException:
+        started = [process for process in _supervised if all(process is not old for old in before)]
+        for process in started:
+            if process.exitcode is None:
+                process.kill()
+        for process in started:
+            process.join(STOP_WAIT_S)
+        raise
+
+
 def stop_process(process, wait_s: float = STOP_WAIT_S) -> None:
     """Wait up to ``wait_s`` for ``process`` to end, then kill it (SIGKILL: it
     ignores SIGTERM) and reap it."""
