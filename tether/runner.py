@@ -116,9 +116,9 @@ def run(
         from viz.video import resolve_camera
 
         resolve_camera(sim.world.model, scenario.video.camera)  # refuse before writing anything
-    staging = Staging(out) if out is not None else None
-    from viz.painter import children_killed_on_error
+    from viz.painter import children_killed_on_error  # here: a signal in its import leaves no staging folder
 
+    staging = Staging(out) if out is not None else None
     try:
         with children_killed_on_error():
             observers, named, files = _observers(sim, staging.path if staging else None, video, rrd, live,
