@@ -383,5 +383,6 @@ def test_a_signal_to_the_group_during_intermittent_8_planning_writes_nothing(sig
     if run.out.exists():  # a fast machine was ticking already
         assert run.metrics()["status"] == "interrupted"
     else:
-        lines = [line for line in run.log_err.read_text().splitlines() if line.strip()]
+        lines = [line for line in run.log_err.read_text().splitlines()
+                 if line.strip() and not line.startswith(("compiling kernels", "compiled kernels"))]  # a fresh cache
         assert lines == ["tether: interrupted before the run started; nothing written"], lines
