@@ -109,3 +109,45 @@ def test_in_estimator_mode_the_dropped_robot_leaves_the_estimators_graph():
     assert np.isfinite(strategy.estimator.estimate.lambda2).all()
     after = points[int(round(at_s / sim.dt)) + 1:]
     assert np.ptp(after, axis=0).max() == 0.0  # its virtual point frozen where it was dropped
+
+
+def test_over_the_radio_the_estimator_drops_the_silent_robot_and_estimates_the_survivors_graph():
+    """lambda2_source = "estimator" under ieee802154 (the estimator fed by the message bus): robot 7 (in the
+    middle of the start lattice) fails at 0.5 s; its team mates drop it one heartbeat timeout after its last
+    message, and from then on the estimator is the nine survivors': nobody uses a message from it, it sends
+    none, its row is NaN, the invariant's lambda2 is the survivors' graph's (0.74, the ten robots' 1.37), and
+    the survivors' estimates, 1.37 at the drop, reach the survivors' lambda2. A static team (robot 0 dwells at
+    its start, the others have no targets, the connectivity force off above lambda2 = 0.3) keeps the graph
+    fixed, so the estimate has one value to approach."""
+    from controllers.connectivity.graph import connectivity_state
+    from controllers.connectivity.estimator_messages import LAMBDA2_ESTIMATE_KIND
+
+    robot, at_s, duration_s = 7, 0.5, 3.5
+    scenario = load("connected-office", [*IEEE, 'strategy.lambda2_source="estimator"', 'strategy.targets="fixed"',
+                                         "strategy.target_lists=[[[4.15, 0.9, 1.0]]]", "strategy.dwell_time_s=20",
+                                         "strategy.lambda2_null=0.3",
+                                         f'faults=[{{kind="robot_failure", robot={robot}, at_s={at_s}}}]'],
+                    duration_s=duration_s)
+    sim = build_simulation(scenario)
+    strategy = sim.strategy
+    whole = connectivity_state(strategy.q, strategy.boxes, strategy.params).lambda2
+    survivors = np.arange(10) != robot
+    alive = connectivity_state(strategy.q[survivors], strategy.boxes, strategy.params).lambda2
+    assert alive < whole - 0.5 and alive < strategy.params.message_estimator.lambda2_ceiling
+    errors, reported, senders = [], [], set()
+    for _ in range(int(round(duration_s / sim.dt))):
+        frame, healthy = sim.tick()
+        assert healthy and strategy.violation(frame.commands) is None, strategy.violation(frame.commands)
+        if strategy.dropped:
+            estimate = strategy.estimator.estimate.lambda2
+            assert np.isnan(estimate[robot]) and np.isfinite(estimate[survivors]).all()
+            errors.append(np.abs(estimate[survivors] - alive).max())
+            reported.append(frame.commands.scalars["lambda2"])
+            senders |= {m.sender for m in frame.commands.outbox if m.kind == LAMBDA2_ESTIMATE_KIND}
+    (dropped,) = strategy.dropped
+    assert dropped.robot == robot and at_s + 0.5 - 0.02 <= dropped.at_s <= at_s + 0.6, dropped  # the timeout
+    assert not strategy.estimator.members[robot] and strategy.estimator.members[survivors].all()
+    assert not strategy.estimator.used[:, robot].any() and robot not in senders
+    assert np.allclose(reported, alive, atol=1e-6)  # the check is on the survivors' graph, not the ten robots'
+    assert errors[0] > 0.4  # at the drop the estimate is still the ten robots'
+    assert min(errors) < 0.05, min(errors)  # every survivor's estimate comes to the survivors' lambda2

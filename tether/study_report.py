@@ -4,10 +4,13 @@ per method, where each method's guarantee first breaks, and the tables.
 
 A table gets this section when its rows carry ``radio.preset`` or a fault
 (``faults`` column). Channel quality is a ladder of *rungs*: the ideal disk
-first, then each real preset with its wall loss rising; each rung's label also
-gives the measured delivery ratio (median over its trials of
-``radio_delivery_ratio``, the message bus's delivered / addressed) when the
-table holds it. A *series* is a method plus every other swept key (position
+first, then each real preset with its wall loss rising. What a rung delivers
+differs by method (the meeting methods send bursts at the meetings, the
+always-connected ones small messages over short hops), so the measured
+delivery ratio (``radio_delivery_ratio``, the message bus's delivered /
+addressed) is a metric per series and rung like the others, drawn in the
+figure's first panel and tabled first, never one figure per rung pooled over
+the methods. A *series* is a method plus every other swept key (position
 noise, the failed robot, the scenario). Metrics a table lacks are left out, so
 the section works on tables from before the faults' reactions existed.
 """
@@ -184,12 +187,6 @@ def first_breaks(rungs: list[tuple], series: list[str], cells: dict) -> dict[tup
     return out
 
 
-def _delivery(rung: tuple, cells: dict) -> float | None:
-    values = [v for (s, g), rs in cells.items() if g == rung for v in (_number(r.get(DELIVERY)) for r in rs)
-              if v is not None]
-    return float(np.median(values)) if values else None
-
-
 def _color(name: str, index: int) -> str:
     method = name.split(",")[0]
     if "," not in name and method in METHOD:
@@ -198,12 +195,13 @@ def _color(name: str, index: int) -> str:
 
 
 def figure_panels(present: list[tuple[str, str]], cells: dict) -> list[tuple[str, str]]:
-    """The (metric, label) panels study.png draws: the first FIGURE_PANELS of ``present`` but the delivery
-    ratio (in every rung's name) and a count that is 0 in every trial (no robot dropped in a sweep without
-    failures: tabled, not drawn)."""
+    """The (metric, label) panels study.png draws: each series' measured delivery ratio first (when
+    present), then the first FIGURE_PANELS task metrics of ``present`` but a count that is 0 in every trial
+    (no robot dropped in a sweep without failures: tabled, not drawn)."""
+    delivery = [(m, label) for m, label in present if m == DELIVERY]
     drawn = [(m, label) for m, label in present if m != DELIVERY and not (
         m in COUNT_METRICS and all(_number(r.get(m)) in (None, 0) for rs in cells.values() for r in rs))]
-    return drawn[:FIGURE_PANELS]
+    return delivery + drawn[:FIGURE_PANELS]
 
 
 def study_section(rows: list[dict], out: Path, manifest: dict | None = None) -> tuple[list[str], list[Path]]:
@@ -215,15 +213,15 @@ def study_section(rows: list[dict], out: Path, manifest: dict | None = None) -> 
         return [], []
     present = [(m, label) for m, label in TASK_METRICS
                if any(_number(r.get(m)) is not None for rs in cells.values() for r in rs)]
-    names = []
-    for rung in rungs:
-        d = _delivery(rung, cells)
-        names.append(_rung_name(rung) + (f" (delivery {d:.2f})" if d is not None else ""))
+    present.sort(key=lambda entry: entry[0] != DELIVERY)  # each method's delivery first: what its rungs mean
+    names = [_rung_name(rung) for rung in rungs]
     scenarios = sorted({str(r.get("scenario")) for rs in cells.values() for r in rs})
+    delivered = any(m == DELIVERY for m, _ in present)
     lines = ["## The faults study: each method against channel quality", "",
-             f"Scenario {', '.join(scenarios)}. Channel rungs from best to worst: {'; '.join(names)} "
-             "(delivery: median over the rung's trials of the message bus's delivered / addressed). "
-             "Each cell: median [25 %, 75 %] over its finished and diverged trials (seeds; a diverged trial's "
+             f"Scenario {', '.join(scenarios)}. Channel rungs from best to worst: {'; '.join(names)}. "
+             + ("What each method's messages got through at each rung is its own: the table **measured delivery "
+                "ratio** (the message bus's delivered / addressed, per series and rung). " if delivered else "")
+             + "Each cell: median [25 %, 75 %] over its finished and diverged trials (seeds; a diverged trial's "
              "figures are those it reached before the invariant broke) and n.", ""]
     breaks = first_breaks(rungs, series, cells)
     if breaks:
@@ -274,7 +272,9 @@ def _value_axis(ax, metric: str) -> None:
     ax.ticklabel_format(axis="y", useOffset=False)
     low, high = ax.get_ylim()
     middle = (low + high) / 2
-    if metric in COUNT_METRICS:
+    if metric == DELIVERY:  # a ratio: its whole range, so that rungs and methods compare at a glance
+        ax.set_ylim(0.0, 1.04)
+    elif metric in COUNT_METRICS:
         from matplotlib.ticker import MaxNLocator
 
         ax.yaxis.set_major_locator(MaxNLocator(integer=True))
@@ -318,7 +318,7 @@ def _figure(png: Path, drawn, rungs, names, series, cells, breaks, scenarios, sw
                         ax.plot([x + shift], [p50[pos.index(x)]], marker="X", ms=13, color=color, mec="black",
                                 mew=1.0, ls="none")
         ax.set_xticks(xs, [n.replace(", ", "\n").replace(" (", "\n(") for n in names], fontsize=9)
-        ax.set_xlabel("radio channel, best to worst (measured delivery ratio)", fontsize=10)
+        ax.set_xlabel("radio channel, best to worst", fontsize=10)
         ax.set_ylabel(label, fontsize=10)
         ax.grid(alpha=0.3)
         _value_axis(ax, metric)

@@ -22,6 +22,15 @@ estimator:
   the neighbours' last received values held over the tick. Lost messages
   therefore drop links from robot i's own row only: the rows of two robots
   need not agree, and the estimate is of a graph the robots do not share.
+- A robot the team drops as silent (the method's heartbeat timeout,
+  failures.py) leaves the estimator (:meth:`MessageFedEstimator.drop`): no
+  robot uses a link to it or a message from it again, it broadcasts no
+  more, and the averages, the Ritz values and the Fiedler vector's
+  normalisation are those of the robots still in the team. Every other
+  robot's state, its consensus integrals included, carries over: the
+  averages do not depend on the integrals' sum (1^T L_c z = 0 for a
+  symmetric L_c), and a restart would need every robot to restart in the
+  same tick while messages with the old integrals are still in the air.
 - The step is a discrete-time iteration, one exchange per tick: one forward
   Euler step over the control period, the neighbours' values held (more
   Euler substeps against frozen neighbours only let a robot's own state run
@@ -108,6 +117,7 @@ class MessageFedEstimator:
         self.degree = np.zeros(n)
         self.rounds = 0
         self.failure = ""  # why the estimate is no longer usable ("" while it is)
+        self.members = np.ones(n, dtype=bool)  # robots not dropped from the team (drop)
         self._estimate = self._core.estimate
 
     @property
@@ -137,7 +147,33 @@ class MessageFedEstimator:
         """Every robot's broadcast of its current state; each supersedes its own that is still queued."""
         size = estimator_message_bytes(self.modes)
         return tuple(Message(LAMBDA2_ESTIMATE_KIND, i, None, self.state_of(i), size, latest_only=True)
-                     for i in range(self.num_robots))
+                     for i in range(self.num_robots) if self.members[i])
+
+    def drop(self, robot: int) -> None:
+        """Take ``robot`` out for good (the team dropped it as silent): from now on nobody uses a link to it
+        or stores its messages, it is not stepped and sends nothing, and the estimate is of the robots still
+        in (its row: lambda2 NaN, Fiedler component 0)."""
+        self.members[robot] = False
+        self.heard_s[:, robot] = -np.inf
+        self.heard_s[robot, :] = -np.inf
+        self.used[:, robot] = self.used[robot, :] = False
+        self.degree[robot] = 0.0
+        self._estimate = self._members_estimate()
+
+    def _members_estimate(self) -> SubspaceEstimate:
+        """Every robot's estimate; with robots dropped, the Rayleigh-Ritz of the team without them."""
+        core = self._core
+        if self.members.all():
+            return core.estimate
+        keep = self.members
+        part = core.restricted(keep).estimate
+        n, k = self.num_robots, self.modes
+        out = SubspaceEstimate(lambda2=np.full(n, np.nan), values=np.full((n, k), np.nan),
+                               valid=np.zeros((n, k), dtype=bool), coefficients=np.full((n, k, k), np.nan),
+                               components=np.array(core.components, dtype=float), fiedler=np.zeros(n))
+        out.lambda2[keep], out.values[keep], out.valid[keep] = part.lambda2, part.values, part.valid
+        out.coefficients[keep], out.fiedler[keep] = part.coefficients, part.fiedler
+        return out
 
     def receive(self, receiver: int, sender: int, state: EstimatorState, time_s: float) -> None:
         """Robot ``receiver`` stores ``sender``'s state, received at ``time_s``."""
@@ -154,7 +190,7 @@ class MessageFedEstimator:
         for receiver, deliveries in enumerate(inbox):
             for delivery in deliveries:
                 message = delivery.message
-                if message.kind == LAMBDA2_ESTIMATE_KIND:
+                if message.kind == LAMBDA2_ESTIMATE_KIND and self.members[receiver] and self.members[message.sender]:
                     self.receive(receiver, message.sender, message.payload, delivery.arrival_s)
                     count += 1
         return count
@@ -162,7 +198,7 @@ class MessageFedEstimator:
     def used_links(self, weights: np.ndarray, time_s: float) -> np.ndarray:
         """(N, N) bool, row i: robot i's links this tick, W_ij > 0 and a message from j within the timeout."""
         fresh = self.heard_s >= time_s - self.timeout_s - 1e-9
-        used = fresh & (np.asarray(weights) > 0)
+        used = fresh & (np.asarray(weights) > 0) & self.members[:, None] & self.members[None, :]
         np.fill_diagonal(used, False)
         return used
 
@@ -206,13 +242,16 @@ class MessageFedEstimator:
             x, y, z = x + dt * rate_x, y + dt * rate_y, z + dt * rate_z
             if p.dither > 0:
                 x = x + p.dither * np.sqrt(dt) * self._rng.standard_normal(x.shape)
+        out = ~self.members
+        if out.any():  # a dropped robot's state stays as it was
+            x[out], y[out], z[out] = core.components[out], core.consensus[out], core.consensus_integral[out]
         self.degree = degree
         self.rounds += 1
         if not (np.isfinite(x).all() and np.isfinite(y).all() and np.isfinite(z).all()):
             self.failure = f"the lambda2 estimator over the radio diverged at t = {time_s:.2f} s"
             return self._estimate
         core.components, core.consensus, core.consensus_integral = x, y, z
-        self._estimate = core.estimate
+        self._estimate = self._members_estimate()
         return self._estimate
 
     def fiedler_views(self) -> np.ndarray:

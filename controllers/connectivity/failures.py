@@ -13,7 +13,7 @@ team has stopped hearing is dropped from the team for good:
   it has no link to it (detection is immediate, like a heartbeat timeout of
   one tick). Without a fault that never happens.
 - **Its graph.** The dropped robot leaves the weights, lambda2, the
-  gradient, the election and the consensus; its virtual point is frozen
+  gradient, the election, the consensus and the lambda2 estimator; its virtual point is frozen
   where it was (at rest), so it no longer drags the team nor is dragged by
   it, and the invariants (lambda2, R_c) are those of the team without it.
 - **The token.** Every robot knows the last announced token holder (the

@@ -92,9 +92,10 @@ election.py, targets.py). Here:
   ``estimator_message_speedup``); each robot's eq. (17) uses the Fiedler
   components it received. Under "ideal" it runs in process as before.
 - Robots never fail in the paper. A robot the team no longer hears is dropped for good (failures.py): out of
-  the graph, the election and the consensus, its virtual point frozen, a lost token re-issued, its targets
-  handed on. Under position noise (exact mode) the force comes from the virtual points as measured, each
-  displaced by its robot's fix error (``Observation.position_error``); the invariants from the true ones.
+  the graph, the election, the consensus and the estimator (over the radio MessageFedEstimator.drop), its
+  virtual point frozen, a lost token re-issued, its targets handed on. Under position noise (exact mode) the
+  force comes from the virtual points as measured, each displaced by its robot's fix error
+  (``Observation.position_error``); the invariants from the true ones.
 - Exact mode with ``spectrum_smoothing`` > 0: V acts on a smooth lower bound
   of lambda2 (smooth_spectrum.py) instead of lambda2 itself.
 - Estimator mode with ``estimator_modes`` K >= 2 (not in the paper): the
@@ -411,8 +412,7 @@ class ConnectedStrategy(Strategy):
                 self._events.append(f"t = {t:.2f} s: {self.names[receiver]} has heard nothing from "
                                     f"{self.names[sender]} for {p.heartbeat_timeout_s:g} s")
         self._drop_silent(t, observation.links)
-        # Over the radio the estimator keeps the whole team's size (its messages are indexed by robot).
-        team = None if not self.dropped or self.estimator_over_radio else self.in_team
+        team = None if not self.dropped else self.in_team
         state = connectivity_state(q if team is None else q[team], self.boxes, p)
         measured = self._measured_state(observation.position_error, team)
         self._measured_noise = measured is not None
@@ -421,13 +421,19 @@ class ConnectedStrategy(Strategy):
         if self.estimator is not None:
             links = self._estimator_links(state, observation.links.adjacency)
             if self.estimator_over_radio:
-                estimate = self.estimator.step(links.weights, self.dt, t, observation.inbox)
-                self._weights = links.weights
+                # Its messages are indexed by robot: the team's weights at their robots' places, the team's rows
+                # of what it estimates (the dropped robots left it, MessageFedEstimator.drop).
+                weights = links.weights if team is None else _scatter_square(links.weights, team)
+                estimate = self.estimator.step(weights, self.dt, t, observation.inbox)
+                views = self.estimator.fiedler_views()
+                if team is not None:
+                    estimate, views = _team_rows(estimate, team), views[np.ix_(team, team)]
+                self._weights = weights
             else:
                 estimate = self.estimator.step(links.weights, self.dt, self._consensus_weights(links.weights))
             # Each robot also knows its own degree d_i = sum_j W_ij, and lambda2 <= N / (N - 1) min_i d_i
             # (Fiedler 1973): it never uses an estimate above its own bound.
-            n = len(q)
+            n = len(links.weights)  # the team's size
             bound = n / (n - 1) * links.weights.sum(axis=1)
             floor = p.lambda2_min + p.estimator_floor
             if getattr(self.estimator, "modes", 1) >= 2:  # SubspaceEstimator, or K >= 2 over the radio
@@ -440,7 +446,7 @@ class ConnectedStrategy(Strategy):
                 if self.estimator_over_radio:
                     # Robot i's eq. (17) from the neighbours' components it received: its own row of the
                     # gradient for its own view of the vector.
-                    gradients = links.lambda2_gradients(self.estimator.fiedler_views())
+                    gradients = links.lambda2_gradients(views)
                     own = gradients[np.arange(n), np.arange(n)]
                     f_lambda = -guarded_potential_slope(lambda2_used, p)[:, None] * own
                 else:
@@ -518,7 +524,9 @@ class ConnectedStrategy(Strategy):
                 return  # a team of one has nobody to drop anybody
             machine = self.explorer.role_machine
             was_prime = bool(machine.roles[robot] == PRIME_CODE)
-            if self.estimator is not None and not self.estimator_over_radio:
+            if self.estimator_over_radio:
+                self.estimator.drop(robot)  # it keeps every robot's index for the messages
+            elif self.estimator is not None:
                 # In process the estimator is the team's: sized and ordered as the robots still in it.
                 self.estimator = self.estimator.restricted(np.flatnonzero(self.in_team) != robot)
             self.in_team[robot] = False
@@ -656,6 +664,12 @@ def _scatter_rows(rows: np.ndarray, team: np.ndarray) -> np.ndarray:
     out = np.zeros((len(team), rows.shape[1]))
     out[team] = rows
     return out
+
+
+def _team_rows(estimate, team: np.ndarray):
+    """The team's robots' rows of every robot's estimate (a SubspaceEstimate of N rows)."""
+    return dataclasses.replace(estimate, **{f.name: getattr(estimate, f.name)[team]
+                                            for f in dataclasses.fields(estimate)})
 
 
 def _scatter_square(weights: np.ndarray, team: np.ndarray) -> np.ndarray:
