@@ -133,14 +133,16 @@ def test_the_802154_curve_is_exactly_zero_from_the_buses_sure_snr():
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.tuples(st.integers(0, 6), st.sets(st.integers(0, 6), min_size=1),
+@given(st.lists(st.tuples(st.integers(0, 6),
+                          st.one_of(st.just(set(range(7))), st.sets(st.integers(0, 6), min_size=1)),
                           st.sampled_from([0.001, 0.002, 0.003])), min_size=1, max_size=12))
 def test_the_columns_are_the_rows_order(records):
-    """``_arrivals_of``'s compiled ordering is numpy's lexsort by (receiver, arrival, sequence)."""
+    """``_arrivals_of``'s compiled ordering is numpy's lexsort by (receiver, arrival, sequence), for broadcasts
+    that reached every other robot (passed as a count) and the others (their receivers listed)."""
     messages = [(replace(Message("consensus", sender, None, float(k), 8, as_arrays=True), sequence=k, sent_s=0.0),
                  sorted(reached - {sender}) or [(sender + 1) % 7], arrival) for k, (sender, reached, arrival)
                 in enumerate(records)]
-    columns = _arrivals_of(messages)
+    columns = _arrivals_of(messages, 7)
     entries = [(r, a, m.sequence, m.sender, m.payload) for m, reached, a in messages for r in reached]
     entries.sort(key=lambda e: (e[0], e[1], e[2]))
     assert list(zip(columns.receiver.tolist(), columns.arrival_s.tolist(), columns.sequence.tolist(),

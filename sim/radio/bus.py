@@ -182,65 +182,95 @@ class Arrivals:
         return Arrivals(*(column[keep] for column in vars(self).values()))
 
 
-def _arrivals_of(records: list[tuple[Message, Any, float]]) -> Arrivals:
-    """``Arrivals`` from (message, receivers reached, arrival s) records, in the rows' order."""
-    counts = np.array([len(reached) for _, reached, _ in records], dtype=np.int64)
-    receivers = np.array([r for _, reached, _ in records for r in reached], dtype=np.int64)
-    sender = np.array([m.sender for m, _, _ in records], dtype=np.int64)
-    arrival = np.array([a for _, _, a in records], dtype=float)
-    sent = np.array([m.sent_s for m, _, _ in records], dtype=float)
-    sequence = np.array([m.sequence for m, _, _ in records], dtype=np.int64)
-    payload = np.array([m.payload for m, _, _ in records], dtype=float)
-    total = len(receivers)
-    columns = (np.empty(total, dtype=np.int64), np.empty(total, dtype=np.int64), np.empty(total), np.empty(total),
-               np.empty(total, dtype=np.int64), np.empty(total))
-    _arrival_columns(counts, receivers, sender, arrival, sent, sequence, payload, *columns)
+def _arrivals_of(records: list[tuple[Message, Any, float]], n: int) -> Arrivals:
+    """``Arrivals`` from (message, receivers reached, arrival s) records of ``n`` robots, in the rows' order."""
+    # One table of the records' numbers (sender, arrival, sent, sequence, payload, receivers reached or -1
+    # for every other robot: all exact as float64) and the other records' receivers, flat.
+    everyone = n - 1
+    table = np.array([(m.sender, a, m.sent_s, m.sequence, m.payload,
+                       -1 if m.receivers is None and len(reached) == everyone else len(reached))
+                      for m, reached, a in records], dtype=float)
+    receivers = np.array([r for m, reached, _ in records if m.receivers is not None or len(reached) != everyone
+                          for r in reached], dtype=np.int64)
+    columns = _arrival_columns(n, table, receivers)
     for column in columns:
         column.flags.writeable = False
-    return Arrivals(*columns)
+    arrivals = _new_object(Arrivals)
+    arrivals.__dict__.update(zip(_ARRIVALS_FIELDS, columns))
+    return arrivals
+
+
+_ARRIVALS_FIELDS = ("receiver", "sender", "arrival_s", "sent_s", "sequence", "payload")
 
 
 @kernel
-def _arrival_columns(counts, receivers, sender, arrival, sent, sequence, payload, out_receiver, out_sender,
-                     out_arrival, out_sent, out_sequence, out_payload):
+def _arrival_columns(n, table, receivers):
     """One entry per (message, receiver reached), ordered by receiver, then (arrival, sequence): the messages
-    (their receivers ``receivers``, ``counts`` each) by (arrival, sequence), then a stable counting sort by
-    receiver, which is what ``numpy.lexsort((sequence, arrival, receiver))`` gives (no two entries tie)."""
-    m = counts.shape[0]
+    (rows of ``table``: sender, arrival, sent, sequence, payload, how many of ``receivers`` are theirs, in
+    order, or -1: every robot of ``n`` but the sender) by (arrival, sequence), then a stable counting sort
+    by receiver, which is what ``numpy.lexsort((sequence, arrival, receiver))`` gives (no two entries tie).
+    Returns the columns (receiver, sender, arrival, sent, sequence, payload)."""
+    m = table.shape[0]
     starts = np.empty(m, dtype=np.int64)
+    counts = np.empty(m, dtype=np.int64)
+    listed = 0
     total = 0
     for k in range(m):
-        starts[k] = total
-        total += counts[k]
+        starts[k] = listed
+        counts[k] = int(table[k, 5])
+        if counts[k] < 0:
+            total += n - 1
+        else:
+            listed += counts[k]
+            total += counts[k]
+    robots = n
+    for d in range(receivers.shape[0]):
+        robots = max(robots, receivers[d] + 1)
+    slot = np.zeros(robots + 1, dtype=np.int64)
+    for k in range(m):
+        if counts[k] < 0:
+            sender = int(table[k, 0])
+            for r in range(n):
+                if r != sender:
+                    slot[r + 1] += 1
+    for d in range(receivers.shape[0]):
+        slot[receivers[d] + 1] += 1
     order = np.arange(m)
     for a in range(1, m):  # insertion sort: the messages come nearly in order of arrival
         k = order[a]
         b = a - 1
-        while b >= 0 and (arrival[order[b]] > arrival[k] or (arrival[order[b]] == arrival[k]
-                                                            and sequence[order[b]] > sequence[k])):
+        while b >= 0 and (table[order[b], 1] > table[k, 1] or (table[order[b], 1] == table[k, 1]
+                                                              and table[order[b], 3] > table[k, 3])):
             order[b + 1] = order[b]
             b -= 1
         order[b + 1] = k
-    robots = 0
-    for d in range(total):
-        robots = max(robots, receivers[d] + 1)
-    slot = np.zeros(robots + 1, dtype=np.int64)
-    for d in range(total):
-        slot[receivers[d] + 1] += 1
     for r in range(robots):
         slot[r + 1] += slot[r]
+    out_receiver = np.empty(total, dtype=np.int64)
+    out_sender = np.empty(total, dtype=np.int64)
+    out_arrival = np.empty(total)
+    out_sent = np.empty(total)
+    out_sequence = np.empty(total, dtype=np.int64)
+    out_payload = np.empty(total)
     for a in range(m):
         k = order[a]
-        for d in range(starts[k], starts[k] + counts[k]):
-            receiver = receivers[d]
+        everyone = counts[k] < 0
+        for d in range(n if everyone else counts[k]):
+            if everyone:
+                receiver = d
+                if receiver == int(table[k, 0]):
+                    continue
+            else:
+                receiver = receivers[starts[k] + d]
             e = slot[receiver]
             slot[receiver] += 1
             out_receiver[e] = receiver
-            out_sender[e] = sender[k]
-            out_arrival[e] = arrival[k]
-            out_sent[e] = sent[k]
-            out_sequence[e] = sequence[k]
-            out_payload[e] = payload[k]
+            out_sender[e] = int(table[k, 0])
+            out_arrival[e] = table[k, 1]
+            out_sent[e] = table[k, 2]
+            out_sequence[e] = int(table[k, 3])
+            out_payload[e] = table[k, 4]
+    return out_receiver, out_sender, out_arrival, out_sent, out_sequence, out_payload
 
 
 class LinkState(Protocol):
@@ -828,7 +858,7 @@ class MessageBus:
         sent, addressed, delivered = (a - b for a, b in zip(after, before))
         latencies = [d.arrival_s - d.message.sent_s for row in deliveries for d in row]  # each one's latency_s
         if records:
-            self._arrivals = {kind: _arrivals_of(records[kind]) for kind in records}
+            self._arrivals = {kind: _arrivals_of(records[kind], n) for kind in records}
             if latencies or len(records) > 1:
                 latencies = _latencies_in_row_order(deliveries, self._arrivals.values())
             else:  # one kind's columns alone: already in the rows' order
