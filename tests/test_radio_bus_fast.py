@@ -198,3 +198,30 @@ def test_the_compiled_802154_per_lies_within_its_bound_of_numpys():
         per, bound = _per_802154(level, length)
         assert abs(per - reference) <= bound
         assert bound < 1e-5
+
+
+def test_a_kernel_draws_from_a_generator_by_its_pointers_as_from_the_generator():
+    """``sim.compiled.generator_at``: the Generator rebuilt in a kernel from ``generator_pointers`` draws what
+    the Generator passed to a kernel draws, and advances the same state."""
+    from sim.compiled import generator_at, generator_pointers, kernel
+
+    @kernel
+    def by_pointers(a, b, c, d, e, out):
+        rng = generator_at(a, b, c, d, e)
+        for k in range(out.shape[0]):
+            out[k] = rng.random() + rng.standard_exponential() + rng.integers(0, 5)
+
+    @kernel
+    def by_generator(rng, out):
+        for k in range(out.shape[0]):
+            out[k] = rng.random() + rng.standard_exponential() + rng.integers(0, 5)
+
+    rngs = np.random.default_rng(9), np.random.default_rng(9)
+    pointers = generator_pointers(rngs[0])
+    for _ in range(3):
+        drawn = np.empty(40), np.empty(40)
+        by_pointers(*pointers, drawn[0])
+        by_generator(rngs[1], drawn[1])
+        assert np.array_equal(*drawn)
+        assert rngs[0].bit_generator.state == rngs[1].bit_generator.state
+        assert rngs[0].random() == rngs[1].random()  # numpy's own draws go on from the same state

@@ -59,7 +59,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from sim.compiled import kernel
+from sim.compiled import generator_at, generator_pointers, kernel
 from sim.radio import channel
 from sim.radio.presets import IdealDisk, RadioPreset
 
@@ -586,25 +586,41 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airt
         sent_draws[sent] = draws
 
 
-# The kernel's compiled entry per (type of generator, whether snr and carrier sense are writeable): calling it
-# skips the dispatcher's typing of every argument each period (~10 us, most of it the Generator's).
+@kernel
+def _schedule_frames_at(state_address, state, next_uint64, next_uint32, next_double, start_s, end_s, eps, sense,
+                        snr, first, count, sent_s, airtime_s, error_bits, audience_start, audience_count, listed,
+                        fading_code, noncentrality, gain_scale, sure_snr_db, decide, popped, sent_frame,
+                        sent_finish, sent_draws, draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform,
+                        draw_unsure, draw_alive, tally):
+    """``_schedule_frames`` drawing from the Generator of these ``sim.compiled.generator_pointers``."""
+    rng = generator_at(state_address, state, next_uint64, next_uint32, next_double)
+    return _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airtime_s, error_bits,
+                            audience_start, audience_count, listed, fading_code, noncentrality, gain_scale,
+                            sure_snr_db, decide, rng, popped, sent_frame, sent_finish, sent_draws, draw_receiver,
+                            draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally)
+
+
+# The kernel's compiled entry per (whether snr and carrier sense are writeable): calling it skips the
+# dispatcher's typing of every argument each period.
 _SCHEDULE_ENTRIES: dict[tuple, Any] = {}
 
 
-def _schedule(arguments: tuple) -> int:
-    """``_schedule_frames(*arguments)`` through its compiled entry point once the dispatcher has compiled it.
-    ``_step_medium`` passes every array C-contiguous and every scalar as a Python float or int, so one
-    signature per key."""
-    key = (type(arguments[18]), arguments[3].flags.writeable, arguments[4].flags.writeable)
+def _schedule(arguments: tuple, pointers: tuple[int, ...] | None) -> int:
+    """``_schedule_frames(*arguments)``: with compiled kernels, through ``_schedule_frames_at`` with the
+    Generator's ``pointers`` (numba's unboxing of the Generator itself costs about 15 us a call) and its
+    compiled entry point once the dispatcher has compiled it. ``_step_medium`` passes every array
+    C-contiguous and every scalar as a Python float, int or bool, so one signature per key."""
+    if pointers is None or getattr(_schedule_frames_at, "overloads", None) is None:  # numba's JIT disabled
+        return _schedule_frames(*arguments)
+    unpacked = pointers + arguments[:18] + arguments[19:]
+    key = (arguments[3].flags.writeable, arguments[4].flags.writeable)
     entry = _SCHEDULE_ENTRIES.get(key)
     if entry is not None:
-        return entry(*arguments)
-    sent = _schedule_frames(*arguments)
-    overloads = getattr(_schedule_frames, "overloads", None)  # absent when numba's JIT is disabled
-    if overloads is not None:
-        signature = tuple(_schedule_frames.typeof_pyval(argument) for argument in arguments)
-        if signature in overloads:
-            _SCHEDULE_ENTRIES[key] = overloads[signature].entry_point
+        return entry(*unpacked)
+    sent = _schedule_frames_at(*unpacked)
+    signature = tuple(_schedule_frames_at.typeof_pyval(argument) for argument in unpacked)
+    if signature in _schedule_frames_at.overloads:
+        _SCHEDULE_ENTRIES[key] = _schedule_frames_at.overloads[signature].entry_point
     return sent
 
 
@@ -671,6 +687,7 @@ class MessageBus:
         self._frames_of_size: dict[int, tuple[tuple[int, float], ...]] = {}  # (payload, airtime) of each frame
         self._broadcast_audiences: dict[tuple[int, int], tuple[int, ...]] = {}  # (sender, robots): every other
         self._scratch_arrays: tuple[np.ndarray, ...] | None = None  # _schedule_frames' outputs, reused
+        self._rng_pointers: tuple[Any, tuple[int, ...] | None] | None = None  # (rng, its pointers)
         self._tally = np.zeros(2, dtype=np.int64)  # _schedule_frames' (unsure draws, draws lost in it)
         self._in_flight: dict[int, _InFlight] = {}
         # Set by a period whose frames all ended at distinct, increasing instants: each receiver's deliveries,
@@ -994,7 +1011,7 @@ class MessageBus:
                      np.array(audience_count, dtype=np.int64), np.array(listed, dtype=np.int64), int(fading_code),
                      float(2.0 * self.params.rician_k), float(gain_scale), sure_snr_db,
                      modulation == "oqpsk_dsss_802154", self.rng, popped, *out, tally)
-        sent = _schedule(arguments)
+        sent = _schedule(arguments, self._pointers())
         if sent == 0:
             return
         (sent_frame, sent_finish, sent_draws, _receivers, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure,
@@ -1075,6 +1092,15 @@ class MessageBus:
                 else:
                     for receiver in reached:
                         deliveries[receiver].append(_delivery(message, receiver, finish_s))
+
+    def _pointers(self) -> tuple[int, ...] | None:
+        """``sim.compiled.generator_pointers`` of ``self.rng`` (None for a generator that is not numpy's),
+        kept with the generator they belong to."""
+        held = self._rng_pointers
+        if held is None or held[0] is not self.rng:
+            pointers = generator_pointers(self.rng) if isinstance(self.rng, np.random.Generator) else None
+            held = self._rng_pointers = (self.rng, pointers)
+        return held[1]
 
     @property
     def _fading_draw(self) -> tuple[int, float]:
