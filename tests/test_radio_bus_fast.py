@@ -225,3 +225,34 @@ def test_a_kernel_draws_from_a_generator_by_its_pointers_as_from_the_generator()
         assert np.array_equal(*drawn)
         assert rngs[0].bit_generator.state == rngs[1].bit_generator.state
         assert rngs[0].random() == rngs[1].random()  # numpy's own draws go on from the same state
+
+
+def test_latest_only_broadcasts_over_a_saturated_medium_match_the_reference():
+    """Every robot's state broadcast each tick, latest_only and as columns (the consensus's way), more than
+    the air carries, sent as one outbox per tick: the leftovers superseded each tick as the reference's
+    plain filter does, draw for draw."""
+    n, period_s = 12, 0.01
+    params = BusParameters.from_preset(IEEE802154)
+    snr = np.full((n, n), 8.0)
+    np.fill_diagonal(snr, np.nan)
+    link = link_conditions(snr, True)
+    buses = [cls(params, np.random.default_rng(5), period_s, robot_count=n)
+             for cls in (MessageBus, ReferenceMessageBus)]
+    for tick in range(80):
+        outbox = broadcasts("state", np.arange(n) + tick, 8, latest_only=True, as_arrays=True)
+        if tick % 7 == 0:
+            outbox += (Message("records", tick % n, ((tick + 3) % n,), None, 200, latest_only=True),)
+        buses[0].send_all(outbox, tick * period_s)
+        for message in outbox:
+            buses[1].send(message, tick * period_s)
+        rows = [bus.step(tick * period_s, link) for bus in buses]
+        assert [[(d.message.sequence, d.arrival_s) for d in row] for row in rows[0]] == \
+               [[(d.message.sequence, d.arrival_s) for d in row] for row in rows[1]]
+        for kind, columns in buses[0].arrivals.items():
+            expected = buses[1].arrivals[kind]
+            assert all(np.array_equal(a, b) for a, b in zip(vars(columns).values(), vars(expected).values()))
+        assert buses[0].rng.bit_generator.state == buses[1].rng.bit_generator.state
+        assert [buses[0].queued(s) for s in range(n)] == [buses[1].queued(s) for s in range(n)]
+    summaries = [bus.summary() for bus in buses]
+    assert summaries[0]["radio_state_packets_superseded"] > 100
+    assert all(_same(summaries[0][key], summaries[1][key]) for key in summaries[0])
