@@ -81,3 +81,45 @@ class CompileWatch:
 
     def __exit__(self, *_exc) -> None:
         self.close()
+
+
+def generator_pointers(rng) -> tuple[int, int, int, int, int]:
+    """What a kernel needs to draw from ``rng`` (a ``numpy.random.Generator``) without being passed it: its
+    bit generator's state address and state, and its next_uint64, next_uint32 and next_double function
+    addresses, as numba reads them each time a Generator is an argument (three ``ctypes.cast`` calls, about
+    15 us a call). They stay valid while ``rng`` lives: keep it."""
+    import ctypes
+
+    face = rng.bit_generator.ctypes
+    address = [ctypes.cast(function, ctypes.c_void_p).value
+               for function in (face.next_uint64, face.next_uint32, face.next_double)]
+    return (int(face.state_address), int(face.state.value), *address)
+
+
+def _generator_at_intrinsic():
+    from numba import types
+    from numba.core import cgutils
+    from numba.extending import intrinsic
+
+    bit_generator_type = types.NumPyRandomBitGeneratorType("bit_generator")
+
+    @intrinsic
+    def generator_at(typingctx, state_address, state, next_uint64, next_uint32, next_double):
+        """Inside a kernel: the Generator whose ``generator_pointers`` these are, as numba's unboxing of it
+        builds it (the same bit generator state, advanced in place; no Python object behind it)."""
+        signature = types.npy_rng(state_address, state, next_uint64, next_uint32, next_double)
+
+        def codegen(context, builder, signature, arguments):
+            bits = cgutils.create_struct_proxy(bit_generator_type)(context, builder)
+            bits.state_address, bits.state = arguments[0], arguments[1]
+            bits.fnptr_next_uint64, bits.fnptr_next_uint32, bits.fnptr_next_double = arguments[2:]
+            generator = cgutils.create_struct_proxy(signature.return_type)(context, builder)
+            generator.bit_generator = bits._getvalue()
+            return generator._getvalue()  # no meminfo, no parent: nothing for the runtime to release
+
+        return signature, codegen
+
+    return generator_at
+
+
+generator_at = _generator_at_intrinsic()

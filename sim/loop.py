@@ -368,8 +368,8 @@ class Simulation:
         [t, t + control period) with this tick's link state, its deliveries the next observation's inbox."""
         bus = self.bus
         time_s = observation.time_s
-        for message in commands.outbox:
-            bus.send(message, time_s)
+        if commands.outbox:
+            bus.send_all(commands.outbox, time_s)
         if bus.idle:  # no message anywhere: no link state read, nothing drawn
             bus.step(time_s, None)
             self._inbox = self._no_inbox

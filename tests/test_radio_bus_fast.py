@@ -3,6 +3,7 @@ frames at the same instants, the same random draws in the same order, the same d
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import replace
 
@@ -59,17 +60,22 @@ def test_the_compiled_bus_is_the_reference_loop(case):
     extra_ticks = 4  # then a few ticks with nothing new, so that queued frames go out
     for tick in range(len(ticks) + extra_ticks):
         time_s = tick * period_s
+        sends = []
         for sender, receivers, size, offset in (ticks[tick] if tick < len(ticks) else []):
             targets = None if receivers is None else tuple(sorted(receivers - {sender}))
             if not _frame_fits(params, size, period_s):
                 continue
-            for bus in buses:
-                # even sizes are periodic state (latest_only): the queue's superseding against the reference's
-                # sizes divisible by 5 arrive as columns (as_arrays), the consensus's way
-                columns = size % 5 == 0
-                bus.send(Message("kind%d" % (size % 3), sender, targets, float(size) if columns else None, size,
-                                 latest_only=size % 2 == 0, as_arrays=columns),
-                         time_s + offset * period_s)
+            # even sizes are periodic state (latest_only): the queue's superseding against the reference's
+            # sizes divisible by 5 arrive as columns (as_arrays), the consensus's way
+            columns = size % 5 == 0
+            sends.append((Message("kind%d" % (size % 3), sender, targets, float(size) if columns else None, size,
+                                  latest_only=size % 2 == 0, as_arrays=columns), time_s + offset * period_s))
+        # the fast bus takes each run of messages sent at one instant at once (a tick's outbox), the
+        # reference one by one
+        for sent_at, run in itertools.groupby(sends, key=lambda sent: sent[1]):
+            buses[0].send_all([message for message, _ in run], sent_at)
+        for message, sent_at in sends:
+            buses[1].send(message, sent_at)
         fast, reference = (bus.step(time_s, link) for bus in buses)
         assert [[(d.receiver, d.message.sequence, d.arrival_s) for d in row] for row in fast] == \
                [[(d.receiver, d.message.sequence, d.arrival_s) for d in row] for row in reference]
@@ -127,14 +133,16 @@ def test_the_802154_curve_is_exactly_zero_from_the_buses_sure_snr():
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.tuples(st.integers(0, 6), st.sets(st.integers(0, 6), min_size=1),
+@given(st.lists(st.tuples(st.integers(0, 6),
+                          st.one_of(st.just(set(range(7))), st.sets(st.integers(0, 6), min_size=1)),
                           st.sampled_from([0.001, 0.002, 0.003])), min_size=1, max_size=12))
 def test_the_columns_are_the_rows_order(records):
-    """``_arrivals_of``'s compiled ordering is numpy's lexsort by (receiver, arrival, sequence)."""
+    """``_arrivals_of``'s compiled ordering is numpy's lexsort by (receiver, arrival, sequence), for broadcasts
+    that reached every other robot (passed as a count) and the others (their receivers listed)."""
     messages = [(replace(Message("consensus", sender, None, float(k), 8, as_arrays=True), sequence=k, sent_s=0.0),
                  sorted(reached - {sender}) or [(sender + 1) % 7], arrival) for k, (sender, reached, arrival)
                 in enumerate(records)]
-    columns = _arrivals_of(messages)
+    columns = _arrivals_of(messages, 7)
     entries = [(r, a, m.sequence, m.sender, m.payload) for m, reached, a in messages for r in reached]
     entries.sort(key=lambda e: (e[0], e[1], e[2]))
     assert list(zip(columns.receiver.tolist(), columns.arrival_s.tolist(), columns.sequence.tolist(),
@@ -174,3 +182,77 @@ def test_the_link_from_pairs_is_the_radio_states_matrices(case):
     assert np.array_equal(link.snr_db, expected_snr, equal_nan=True)
     assert link.snr_db.dtype == expected_snr.dtype and not link.snr_db.flags.writeable
     assert np.array_equal(link.carrier_sense, expected_sense) and link.carrier_sense.dtype == bool
+
+
+def test_the_compiled_802154_per_lies_within_its_bound_of_numpys():
+    """``_per_802154``'s PER is numpy's within the bound it gives, so a uniform it decides, numpy's decides
+    the same way; the bound is small enough that it decides nearly every draw."""
+    from sim.radio.bus import _per_802154
+    from sim.radio.channel import packet_error_rate_at_snr
+
+    rng = np.random.default_rng(3)
+    snr = np.concatenate([np.linspace(-30.0, 20.0, 2001), rng.uniform(-10.0, 20.0, 2000), [-np.inf, -1e308]])
+    bits = rng.integers(1, 1100, len(snr)).astype(float)
+    exact = packet_error_rate_at_snr("oqpsk_dsss_802154", snr, math.inf, 250e3, bits)
+    for level, length, reference in zip(snr, bits, exact):
+        per, bound = _per_802154(level, length)
+        assert abs(per - reference) <= bound
+        assert bound < 1e-5
+
+
+def test_a_kernel_draws_from_a_generator_by_its_pointers_as_from_the_generator():
+    """``sim.compiled.generator_at``: the Generator rebuilt in a kernel from ``generator_pointers`` draws what
+    the Generator passed to a kernel draws, and advances the same state."""
+    from sim.compiled import generator_at, generator_pointers, kernel
+
+    @kernel
+    def by_pointers(a, b, c, d, e, out):
+        rng = generator_at(a, b, c, d, e)
+        for k in range(out.shape[0]):
+            out[k] = rng.random() + rng.standard_exponential() + rng.integers(0, 5)
+
+    @kernel
+    def by_generator(rng, out):
+        for k in range(out.shape[0]):
+            out[k] = rng.random() + rng.standard_exponential() + rng.integers(0, 5)
+
+    rngs = np.random.default_rng(9), np.random.default_rng(9)
+    pointers = generator_pointers(rngs[0])
+    for _ in range(3):
+        drawn = np.empty(40), np.empty(40)
+        by_pointers(*pointers, drawn[0])
+        by_generator(rngs[1], drawn[1])
+        assert np.array_equal(*drawn)
+        assert rngs[0].bit_generator.state == rngs[1].bit_generator.state
+        assert rngs[0].random() == rngs[1].random()  # numpy's own draws go on from the same state
+
+
+def test_latest_only_broadcasts_over_a_saturated_medium_match_the_reference():
+    """Every robot's state broadcast each tick, latest_only and as columns (the consensus's way), more than
+    the air carries, sent as one outbox per tick: the leftovers superseded each tick as the reference's
+    plain filter does, draw for draw."""
+    n, period_s = 12, 0.01
+    params = BusParameters.from_preset(IEEE802154)
+    snr = np.full((n, n), 8.0)
+    np.fill_diagonal(snr, np.nan)
+    link = link_conditions(snr, True)
+    buses = [cls(params, np.random.default_rng(5), period_s, robot_count=n)
+             for cls in (MessageBus, ReferenceMessageBus)]
+    for tick in range(80):
+        outbox = broadcasts("state", np.arange(n) + tick, 8, latest_only=True, as_arrays=True)
+        if tick % 7 == 0:
+            outbox += (Message("records", tick % n, ((tick + 3) % n,), None, 200, latest_only=True),)
+        buses[0].send_all(outbox, tick * period_s)
+        for message in outbox:
+            buses[1].send(message, tick * period_s)
+        rows = [bus.step(tick * period_s, link) for bus in buses]
+        assert [[(d.message.sequence, d.arrival_s) for d in row] for row in rows[0]] == \
+               [[(d.message.sequence, d.arrival_s) for d in row] for row in rows[1]]
+        for kind, columns in buses[0].arrivals.items():
+            expected = buses[1].arrivals[kind]
+            assert all(np.array_equal(a, b) for a, b in zip(vars(columns).values(), vars(expected).values()))
+        assert buses[0].rng.bit_generator.state == buses[1].rng.bit_generator.state
+        assert [buses[0].queued(s) for s in range(n)] == [buses[1].queued(s) for s in range(n)]
+    summaries = [bus.summary() for bus in buses]
+    assert summaries[0]["radio_state_packets_superseded"] > 100
+    assert all(_same(summaries[0][key], summaries[1][key]) for key in summaries[0])

@@ -263,7 +263,11 @@ class RoleMachine:
     def _receive_token(self, inbox) -> None:
         """Over the bus: each robot's reliable link and token side read its deliveries of the tick."""
         time_s = self._time_s
+        holds = self.holds_token.tolist()
         for robot, token in enumerate(self.tokens):
+            if (not (inbox and inbox[robot]) and not token.link.pending and not token.token_maybe_lost
+                    and (holds[robot] or token.state != "holder")):
+                continue  # nothing to read, resend or take up: the poll would return no events, and nothing acts
             handing_over = token.state == "handing_over"
             token.handle(token.link.poll(time_s, inbox[robot] if inbox else ()), time_s)
             if token.token_maybe_lost:

@@ -59,7 +59,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from sim.compiled import kernel
+from sim.compiled import generator_at, generator_pointers, kernel
 from sim.radio import channel
 from sim.radio.presets import IdealDisk, RadioPreset
 
@@ -182,65 +182,95 @@ class Arrivals:
         return Arrivals(*(column[keep] for column in vars(self).values()))
 
 
-def _arrivals_of(records: list[tuple[Message, Any, float]]) -> Arrivals:
-    """``Arrivals`` from (message, receivers reached, arrival s) records, in the rows' order."""
-    counts = np.array([len(reached) for _, reached, _ in records], dtype=np.int64)
-    receivers = np.array([r for _, reached, _ in records for r in reached], dtype=np.int64)
-    sender = np.array([m.sender for m, _, _ in records], dtype=np.int64)
-    arrival = np.array([a for _, _, a in records], dtype=float)
-    sent = np.array([m.sent_s for m, _, _ in records], dtype=float)
-    sequence = np.array([m.sequence for m, _, _ in records], dtype=np.int64)
-    payload = np.array([m.payload for m, _, _ in records], dtype=float)
-    total = len(receivers)
-    columns = (np.empty(total, dtype=np.int64), np.empty(total, dtype=np.int64), np.empty(total), np.empty(total),
-               np.empty(total, dtype=np.int64), np.empty(total))
-    _arrival_columns(counts, receivers, sender, arrival, sent, sequence, payload, *columns)
+def _arrivals_of(records: list[tuple[Message, Any, float]], n: int) -> Arrivals:
+    """``Arrivals`` from (message, receivers reached, arrival s) records of ``n`` robots, in the rows' order."""
+    # One table of the records' numbers (sender, arrival, sent, sequence, payload, receivers reached or -1
+    # for every other robot: all exact as float64) and the other records' receivers, flat.
+    everyone = n - 1
+    table = np.array([(m.sender, a, m.sent_s, m.sequence, m.payload,
+                       -1 if m.receivers is None and len(reached) == everyone else len(reached))
+                      for m, reached, a in records], dtype=float)
+    receivers = np.array([r for m, reached, _ in records if m.receivers is not None or len(reached) != everyone
+                          for r in reached], dtype=np.int64)
+    columns = _arrival_columns(n, table, receivers)
     for column in columns:
         column.flags.writeable = False
-    return Arrivals(*columns)
+    arrivals = _new_object(Arrivals)
+    arrivals.__dict__.update(zip(_ARRIVALS_FIELDS, columns))
+    return arrivals
+
+
+_ARRIVALS_FIELDS = ("receiver", "sender", "arrival_s", "sent_s", "sequence", "payload")
 
 
 @kernel
-def _arrival_columns(counts, receivers, sender, arrival, sent, sequence, payload, out_receiver, out_sender,
-                     out_arrival, out_sent, out_sequence, out_payload):
+def _arrival_columns(n, table, receivers):
     """One entry per (message, receiver reached), ordered by receiver, then (arrival, sequence): the messages
-    (their receivers ``receivers``, ``counts`` each) by (arrival, sequence), then a stable counting sort by
-    receiver, which is what ``numpy.lexsort((sequence, arrival, receiver))`` gives (no two entries tie)."""
-    m = counts.shape[0]
+    (rows of ``table``: sender, arrival, sent, sequence, payload, how many of ``receivers`` are theirs, in
+    order, or -1: every robot of ``n`` but the sender) by (arrival, sequence), then a stable counting sort
+    by receiver, which is what ``numpy.lexsort((sequence, arrival, receiver))`` gives (no two entries tie).
+    Returns the columns (receiver, sender, arrival, sent, sequence, payload)."""
+    m = table.shape[0]
     starts = np.empty(m, dtype=np.int64)
+    counts = np.empty(m, dtype=np.int64)
+    listed = 0
     total = 0
     for k in range(m):
-        starts[k] = total
-        total += counts[k]
+        starts[k] = listed
+        counts[k] = int(table[k, 5])
+        if counts[k] < 0:
+            total += n - 1
+        else:
+            listed += counts[k]
+            total += counts[k]
+    robots = n
+    for d in range(receivers.shape[0]):
+        robots = max(robots, receivers[d] + 1)
+    slot = np.zeros(robots + 1, dtype=np.int64)
+    for k in range(m):
+        if counts[k] < 0:
+            sender = int(table[k, 0])
+            for r in range(n):
+                if r != sender:
+                    slot[r + 1] += 1
+    for d in range(receivers.shape[0]):
+        slot[receivers[d] + 1] += 1
     order = np.arange(m)
     for a in range(1, m):  # insertion sort: the messages come nearly in order of arrival
         k = order[a]
         b = a - 1
-        while b >= 0 and (arrival[order[b]] > arrival[k] or (arrival[order[b]] == arrival[k]
-                                                            and sequence[order[b]] > sequence[k])):
+        while b >= 0 and (table[order[b], 1] > table[k, 1] or (table[order[b], 1] == table[k, 1]
+                                                              and table[order[b], 3] > table[k, 3])):
             order[b + 1] = order[b]
             b -= 1
         order[b + 1] = k
-    robots = 0
-    for d in range(total):
-        robots = max(robots, receivers[d] + 1)
-    slot = np.zeros(robots + 1, dtype=np.int64)
-    for d in range(total):
-        slot[receivers[d] + 1] += 1
     for r in range(robots):
         slot[r + 1] += slot[r]
+    out_receiver = np.empty(total, dtype=np.int64)
+    out_sender = np.empty(total, dtype=np.int64)
+    out_arrival = np.empty(total)
+    out_sent = np.empty(total)
+    out_sequence = np.empty(total, dtype=np.int64)
+    out_payload = np.empty(total)
     for a in range(m):
         k = order[a]
-        for d in range(starts[k], starts[k] + counts[k]):
-            receiver = receivers[d]
+        everyone = counts[k] < 0
+        for d in range(n if everyone else counts[k]):
+            if everyone:
+                receiver = d
+                if receiver == int(table[k, 0]):
+                    continue
+            else:
+                receiver = receivers[starts[k] + d]
             e = slot[receiver]
             slot[receiver] += 1
             out_receiver[e] = receiver
-            out_sender[e] = sender[k]
-            out_arrival[e] = arrival[k]
-            out_sent[e] = sent[k]
-            out_sequence[e] = sequence[k]
-            out_payload[e] = payload[k]
+            out_sender[e] = int(table[k, 0])
+            out_arrival[e] = table[k, 1]
+            out_sent[e] = table[k, 2]
+            out_sequence[e] = int(table[k, 3])
+            out_payload[e] = table[k, 4]
+    return out_receiver, out_sender, out_arrival, out_sent, out_sequence, out_payload
 
 
 class LinkState(Protocol):
@@ -403,11 +433,40 @@ _NO_DRAW, _EXPONENTIAL, _NONCENTRAL_CHISQUARE = 0, 1, 2
 _ZERO_BER_SNR_DB = {"oqpsk_dsss_802154": 19.5}
 
 
+# The 802.15.4 curve's terms (channel.ber_oqpsk_dsss_802154): exponent factors 1/k - 1 and signed
+# binomials (-1)^k C(16, k), k = 2..16, and the scale 8/15 * 1/16.
+_OQPSK_FACTORS = channel._OQPSK_EXPONENT_FACTORS.copy()
+_OQPSK_BINOMIALS = channel._SIGNED_BINOMIALS_802154.copy()
+_OQPSK_SCALE = float(channel._OQPSK_SCALE)
+
+
+@kernel
+def _per_802154(snr_db, bits):
+    """PER of a ``bits``-bit frame at ``snr_db`` on the 802.15.4 curve, and a bound on its distance from
+    ``channel.packet_error_rate_at_snr``'s (numpy's exp, log1p and expm1 may round differently from these):
+    each term's error within (|exponent| + 10) 1e-13 of it (exp's argument carries the power's relative
+    error times the exponent; the sum's rounding over 15 terms is below 1e-14 of the terms' magnitude),
+    the BER's then at most the terms' magnitudes' sum times that, and dPER/dBER = L (1 - PER) / (1 - BER)
+    <= 2 L for BER <= 0.5; 1e-12 more for the PER's own operations."""
+    sinr = 10.0 ** (snr_db / 10.0)
+    total = 0.0
+    error = 0.0
+    for k in range(_OQPSK_FACTORS.shape[0]):
+        exponent = 20.0 * sinr * _OQPSK_FACTORS[k]
+        term = np.exp(exponent) * _OQPSK_BINOMIALS[k]
+        total += term
+        error += abs(term) * (abs(exponent) + 10.0) * 1e-13
+    ber = min(max(total * _OQPSK_SCALE, 0.0), 0.5)
+    error *= _OQPSK_SCALE
+    per = min(max(-np.expm1(bits * np.log1p(-ber)), 0.0), 1.0)
+    return per, 2.0 * bits * error + 1e-12
+
+
 @kernel
 def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airtime_s, error_bits, audience_start,
-                     audience_count, listed, fading_code, noncentrality, gain_scale, sure_snr_db, rng,
+                     audience_count, listed, fading_code, noncentrality, gain_scale, sure_snr_db, decide, rng,
                      popped, sent_frame, sent_finish, sent_draws, draw_receiver, draw_snr, draw_bits, draw_gain,
-                     draw_uniform, draw_unsure):
+                     draw_uniform, draw_unsure, draw_alive, tally):
     """One period of the shared medium (``ReferenceMessageBus._step_medium``'s loop, step for step).
 
     Sender s offers frames first[s] .. first[s] + count[s] - 1 in order. Each round, every sender whose next
@@ -420,6 +479,12 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airt
     it, frame bits, fading gain and uniform), and returns how many went. ``sense`` counts as True on the
     diagonal. ``draw_unsure`` marks the draws whose SNR with fading may lie below ``sure_snr_db``, where
     the PER may differ from 0 (judged here with 0.5 dB to spare, the exact PER is numpy's).
+
+    With ``decide`` (the 802.15.4 curve), each such draw's PER is computed here too, with a bound on how far
+    it can lie from numpy's (``_per_802154``): a uniform outside PER +- bound decides the frame
+    (``draw_alive``) and the draw is no longer unsure; only a uniform within the bound, which numpy's exact
+    PER must decide, stays unsure. Without it every draw is alive here and numpy decides the unsure ones.
+    ``tally`` gets (unsure draws, draws lost here).
     """
     n = sense.shape[0]
     largest = 1.7976931348623157e308  # numpy.finfo(float).max, what nan_to_num puts for +inf
@@ -434,6 +499,8 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airt
             ready[s] = max(start_s, sent_s[first[s]])
     sent = 0
     draws = 0
+    unsure = 0
+    lost = 0
     sent_draws[0] = 0
     while True:
         earliest = np.inf
@@ -442,6 +509,8 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airt
             if start[s] < earliest:
                 earliest = start[s]
         if earliest == np.inf:
+            tally[0] = unsure
+            tally[1] = lost
             return sent
         ties = 0
         for s in range(n):
@@ -498,29 +567,60 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airt
             draw_unsure[d] = not level + 10.0 * np.log10(max(gain, 1e-300)) >= sure_snr_db + 0.5
         for d in range(first_draw, draws):
             draw_uniform[d] = rng.random()
+        for d in range(first_draw, draws):
+            draw_alive[d] = True
+            if draw_unsure[d] and decide:
+                level = draw_snr[d]
+                if fading_code != 0:
+                    level = level + 10.0 * np.log10(max(draw_gain[d], 2.2250738585072014e-308))
+                per, bound = _per_802154(level, draw_bits[d])
+                if draw_uniform[d] >= per + bound:
+                    draw_unsure[d] = False
+                elif draw_uniform[d] < per - bound:
+                    draw_unsure[d] = False
+                    draw_alive[d] = False
+                    lost += 1
+            if draw_unsure[d]:
+                unsure += 1
         sent += 1
         sent_draws[sent] = draws
 
 
-# The kernel's compiled entry per (type of generator, whether snr and carrier sense are writeable): calling it
-# skips the dispatcher's typing of every argument each period (~10 us, most of it the Generator's).
+@kernel
+def _schedule_frames_at(state_address, state, next_uint64, next_uint32, next_double, start_s, end_s, eps, sense,
+                        snr, first, count, sent_s, airtime_s, error_bits, audience_start, audience_count, listed,
+                        fading_code, noncentrality, gain_scale, sure_snr_db, decide, popped, sent_frame,
+                        sent_finish, sent_draws, draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform,
+                        draw_unsure, draw_alive, tally):
+    """``_schedule_frames`` drawing from the Generator of these ``sim.compiled.generator_pointers``."""
+    rng = generator_at(state_address, state, next_uint64, next_uint32, next_double)
+    return _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airtime_s, error_bits,
+                            audience_start, audience_count, listed, fading_code, noncentrality, gain_scale,
+                            sure_snr_db, decide, rng, popped, sent_frame, sent_finish, sent_draws, draw_receiver,
+                            draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally)
+
+
+# The kernel's compiled entry per (whether snr and carrier sense are writeable): calling it skips the
+# dispatcher's typing of every argument each period.
 _SCHEDULE_ENTRIES: dict[tuple, Any] = {}
 
 
-def _schedule(arguments: tuple) -> int:
-    """``_schedule_frames(*arguments)`` through its compiled entry point once the dispatcher has compiled it.
-    ``_step_medium`` passes every array C-contiguous and every scalar as a Python float or int, so one
-    signature per key."""
-    key = (type(arguments[17]), arguments[3].flags.writeable, arguments[4].flags.writeable)
+def _schedule(arguments: tuple, pointers: tuple[int, ...] | None) -> int:
+    """``_schedule_frames(*arguments)``: with compiled kernels, through ``_schedule_frames_at`` with the
+    Generator's ``pointers`` (numba's unboxing of the Generator itself costs about 15 us a call) and its
+    compiled entry point once the dispatcher has compiled it. ``_step_medium`` passes every array
+    C-contiguous and every scalar as a Python float, int or bool, so one signature per key."""
+    if pointers is None or getattr(_schedule_frames_at, "overloads", None) is None:  # numba's JIT disabled
+        return _schedule_frames(*arguments)
+    unpacked = pointers + arguments[:18] + arguments[19:]
+    key = (arguments[3].flags.writeable, arguments[4].flags.writeable)
     entry = _SCHEDULE_ENTRIES.get(key)
     if entry is not None:
-        return entry(*arguments)
-    sent = _schedule_frames(*arguments)
-    overloads = getattr(_schedule_frames, "overloads", None)  # absent when numba's JIT is disabled
-    if overloads is not None:
-        signature = tuple(_schedule_frames.typeof_pyval(argument) for argument in arguments)
-        if signature in overloads:
-            _SCHEDULE_ENTRIES[key] = overloads[signature].entry_point
+        return entry(*unpacked)
+    sent = _schedule_frames_at(*unpacked)
+    signature = tuple(_schedule_frames_at.typeof_pyval(argument) for argument in unpacked)
+    if signature in _schedule_frames_at.overloads:
+        _SCHEDULE_ENTRIES[key] = _schedule_frames_at.overloads[signature].entry_point
     return sent
 
 
@@ -587,6 +687,8 @@ class MessageBus:
         self._frames_of_size: dict[int, tuple[tuple[int, float], ...]] = {}  # (payload, airtime) of each frame
         self._broadcast_audiences: dict[tuple[int, int], tuple[int, ...]] = {}  # (sender, robots): every other
         self._scratch_arrays: tuple[np.ndarray, ...] | None = None  # _schedule_frames' outputs, reused
+        self._rng_pointers: tuple[Any, tuple[int, ...] | None] | None = None  # (rng, its pointers)
+        self._tally = np.zeros(2, dtype=np.int64)  # _schedule_frames' (unsure draws, draws lost in it)
         self._in_flight: dict[int, _InFlight] = {}
         # Set by a period whose frames all ended at distinct, increasing instants: each receiver's deliveries,
         # made in that order, are already by (arrival, sequence)
@@ -636,6 +738,61 @@ class MessageBus:
         if stamped.as_arrays:
             self._arrays_sent = True
         return stamped
+
+    def send_all(self, messages: Any, time_s: float) -> None:
+        """``send`` each of ``messages`` at ``time_s``, in order (a tick's outbox): the same stamps, queues and
+        superseding, with the per-message lookups and calls done once."""
+        robots = self._n
+        ideal = self.params.is_ideal
+        time_s = float(time_s)
+        queues, waiting, sizes, kinds = self._queues, self._waiting, self._frames_of_size, self._kinds
+        for message in messages:
+            sender = message.sender
+            receivers = message.receivers
+            if robots is not None and (not 0 <= sender < robots or (
+                    receivers and any(not 0 <= r < robots for r in receivers))):
+                raise ValueError(f"message {message.kind!r} names a robot outside 0..{robots - 1}")
+            if ideal:
+                frames = None
+            else:
+                frames = sizes.get(message.size_bytes)
+                if frames is None:
+                    frames = self._frames(message.size_bytes)
+            stamped = _new_object(type(message))
+            fields = stamped.__dict__
+            fields.update(message.__dict__)
+            fields["sequence"] = self._sequence
+            fields["sent_s"] = time_s
+            self._sequence += 1
+            queue = queues.get(sender)
+            if queue is None:
+                queue = queues[sender] = deque()
+            elif queue and fields["latest_only"]:
+                if len(queue) == 1:  # a state update left over from the last period, usually: _supersede inline
+                    head = queue[0].message
+                    if head.latest_only and head.kind == stamped.kind and head.sequence not in self._in_flight:
+                        queue.clear()
+                        waiting[sender] -= 1
+                        self._waiting_total -= 1
+                        counters = kinds.get(stamped.kind)
+                        if counters is None or len(counters.airtime_s) < (robots or sender + 1):
+                            counters = self._counters(stamped.kind, robots or sender + 1)
+                        counters.superseded += 1
+                else:
+                    self._supersede(queue, stamped)
+            if frames is None:
+                queue.append(_Frame(stamped, stamped.size_bytes, True, 0.0))
+            elif len(frames) == 1:
+                payload, airtime, bits = frames[0]
+                queue.append(_Frame(stamped, payload, True, airtime, bits))
+            else:
+                last = len(frames) - 1
+                for k, (payload, airtime, bits) in enumerate(frames):
+                    queue.append(_Frame(stamped, payload, k == last, airtime, bits))
+            waiting[sender] = waiting.get(sender, 0) + 1
+            self._waiting_total += 1
+            if fields["as_arrays"]:
+                self._arrays_sent = True
 
     def _frames(self, size_bytes: int) -> tuple[tuple[int, float, float], ...]:
         """(payload bytes, airtime s, error bits) of each frame of a ``size_bytes`` message, computed once per
@@ -729,7 +886,7 @@ class MessageBus:
         sent, addressed, delivered = (a - b for a, b in zip(after, before))
         latencies = [d.arrival_s - d.message.sent_s for row in deliveries for d in row]  # each one's latency_s
         if records:
-            self._arrivals = {kind: _arrivals_of(records[kind]) for kind in records}
+            self._arrivals = {kind: _arrivals_of(records[kind], n) for kind in records}
             if latencies or len(records) > 1:
                 latencies = _latencies_in_row_order(deliveries, self._arrivals.values())
             else:  # one kind's columns alone: already in the rows' order
@@ -857,21 +1014,27 @@ class MessageBus:
         fading_code, gain_scale = self._fading_draw
         out = self._scratch(total, total * max(n - 1, 0))
         popped = np.zeros(n, dtype=np.int64)
-        sure_snr_db = float(_ZERO_BER_SNR_DB.get(self.params.modulation, np.inf))
+        modulation = self.params.modulation
+        sure_snr_db = float(_ZERO_BER_SNR_DB.get(modulation, np.inf))
+        tally = self._tally
         arguments = (start_s, end_s, self._EPS_S, sense, snr, first, count, np.array(sent_at), np.array(airtimes),
                      np.array(bits), np.array(audience_start, dtype=np.int64),
                      np.array(audience_count, dtype=np.int64), np.array(listed, dtype=np.int64), int(fading_code),
-                     float(2.0 * self.params.rician_k), float(gain_scale), sure_snr_db, self.rng, popped, *out)
-        sent = _schedule(arguments)
+                     float(2.0 * self.params.rician_k), float(gain_scale), sure_snr_db,
+                     modulation == "oqpsk_dsss_802154", self.rng, popped, *out, tally)
+        sent = _schedule(arguments, self._pointers())
         if sent == 0:
             return
-        sent_frame, sent_finish, sent_draws, _receivers, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure = out
+        (sent_frame, sent_finish, sent_draws, _receivers, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure,
+         draw_alive) = out
         draws = int(sent_draws[sent])
         # Per-packet fading and loss of every (frame, receiver) tried, with the reference formulas: a frame
-        # whose SNR with fading is above the modulation's zero-BER SNR has PER exactly 0 and always arrives.
-        unsure = np.flatnonzero(draw_unsure[:draws])
-        if len(unsure):
-            survived = np.ones(draws, dtype=bool)
+        # whose SNR with fading is above the modulation's zero-BER SNR has PER exactly 0 and always arrives;
+        # the kernel decided the others whose uniform lies clear of the PER, numpy decides the rest.
+        unsure_count, lost_count = int(tally[0]), int(tally[1])
+        if unsure_count:
+            unsure = np.flatnonzero(draw_unsure[:draws])
+            survived = draw_alive[:draws].copy()
             level = draw_snr[unsure]
             if fading_code != _NO_DRAW or self.params.fading_model != "none":
                 fading_db = np.maximum(draw_gain[unsure], np.finfo(float).tiny)
@@ -882,6 +1045,8 @@ class MessageBus:
                                                    self.params.bitrate_bps, draw_bits[unsure])
             survived[unsure] = draw_uniform[unsure] >= per
             survived_list = survived.tolist()
+        elif lost_count:
+            survived_list = draw_alive[:draws].tolist()
         else:
             survived_list = None  # every draw survived
         for sender, gone in enumerate(popped.tolist()):
@@ -939,6 +1104,15 @@ class MessageBus:
                     for receiver in reached:
                         deliveries[receiver].append(_delivery(message, receiver, finish_s))
 
+    def _pointers(self) -> tuple[int, ...] | None:
+        """``sim.compiled.generator_pointers`` of ``self.rng`` (None for a generator that is not numpy's),
+        kept with the generator they belong to."""
+        held = self._rng_pointers
+        if held is None or held[0] is not self.rng:
+            pointers = generator_pointers(self.rng) if isinstance(self.rng, np.random.Generator) else None
+            held = self._rng_pointers = (self.rng, pointers)
+        return held[1]
+
     @property
     def _fading_draw(self) -> tuple[int, float]:
         """How ``_schedule_frames`` draws the fading gain of this bus's model, and the gain's divisor."""
@@ -962,7 +1136,7 @@ class MessageBus:
             held = self._scratch_arrays = (
                 np.empty(frames, dtype=np.int64), np.empty(frames), np.empty(frames + 1, dtype=np.int64),
                 np.empty(draws, dtype=np.int64), np.empty(draws), np.empty(draws), np.empty(draws), np.empty(draws),
-                np.empty(draws, dtype=np.bool_))
+                np.empty(draws, dtype=np.bool_), np.empty(draws, dtype=np.bool_))
         return held
 
     # --- metrics ---------------------------------------------------------------------------------
@@ -1042,6 +1216,10 @@ class ReferenceMessageBus(MessageBus):
     (tests/test_radio_bus_fast.py), frame by frame and draw by draw."""
 
     _medium_makes_columns = False  # its rows hold every delivery; ``step`` moves the as_arrays ones out
+
+    def send_all(self, messages: Any, time_s: float) -> None:
+        for message in messages:
+            self.send(message, time_s)
 
     def _supersede(self, queue: deque[_Frame], newer: Message) -> None:
         stale = {frame.message.sequence for frame in queue
