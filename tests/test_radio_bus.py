@@ -507,3 +507,12 @@ def test_calling_off_a_transfer_to_a_dead_robot_gives_the_token_back_to_its_send
     assert tokens[0].acts_as_holder and sum(token.acts_as_holder for token in tokens) == 1
     tokens[1].call_off(2)  # no transfer with robot 2: nothing changes
     assert tokens[1].state == "idle"
+
+
+def test_a_late_copy_of_a_given_up_offer_does_not_strand_the_token():
+    # Robot 0's first offer (transfer 0) is lost, then delayed past its sender's give-up; its second
+    # offer to the same robot arrives first, the late copy of the first after it: the confirm that comes
+    # is the second offer's, and robot 1 must act on it (it once kept only the latest offer it heard).
+    channel_ = ScriptedChannel([(True, 0), (False, 4), (False, 0), (False, 3)], 4)
+    tokens = run_token(channel_, channel_.step, 4, 80, lambda k: [None, 0, 1][k % 3] if k < 60 else None)
+    assert sum(token.acts_as_holder for token in tokens) == 1

@@ -19,8 +19,15 @@ act as holder at once, whatever is lost:
 1. the holder sends an *offer* reliably and stops acting (``handing_over``);
 2. the receiver takes it as ``pending`` (it does not act) and acks it;
 3. on the ack, the old holder becomes ``idle`` and sends a *confirm*
-   reliably; the receiver acts as holder once the confirm for its pending
-   offer arrives.
+   reliably; the receiver acts as holder once the confirm for one of the
+   offers it is pending on arrives.
+
+A receiver keeps every offer it is pending on, not only the latest: a late
+copy of an offer its sender gave up on can arrive after a newer offer, and
+the confirm that comes is the newer one's. Acting on a confirm for any of
+them is safe: a confirm is sent only for an acknowledged offer, by a sender
+that stopped acting when the ack came, and nobody else can hold the token
+before this robot passes it on.
 
 If the offer is given up (no ack after every attempt) the old holder takes
 the token back: it never sent, and never will send, that offer's confirm, so
@@ -234,8 +241,7 @@ class TokenHandover:
     token_data: Any = None  # the data of the offer this robot acts on, once it holds the token
     _offer: tuple[int, int] | None = field(default=None, repr=False)  # (transfer, receiver) while handing over
     _confirm: int | None = field(default=None, repr=False)  # transfer of the confirm in flight
-    _pending: tuple[int, int] | None = field(default=None, repr=False)  # (sender, offer transfer)
-    _pending_data: Any = field(default=None, repr=False)
+    _pending: dict[tuple[int, int], Any] = field(default_factory=dict, repr=False)  # (sender, offer) -> data
     _confirmed: tuple[int, int] | None = field(default=None, repr=False)  # (offer, receiver) of the last confirm
 
     OFFER_KIND = "handover"
@@ -276,13 +282,12 @@ class TokenHandover:
                 self.token_maybe_lost = True
         for got in events.received:
             if got.kind == self.OFFER_KIND and isinstance(got.data, TokenOffer) and self.state in ("idle", "pending"):
-                self._pending = (got.sender, got.transfer)
-                self._pending_data = got.data.data
+                self._pending[(got.sender, got.transfer)] = got.data.data
                 self.state = "pending"
             elif (got.kind == self.CONFIRM_KIND and isinstance(got.data, TokenConfirm) and self.state == "pending"
-                  and self._pending == (got.sender, got.data.offer)):
-                self._pending = None
-                self.token_data = self._pending_data
+                  and (got.sender, got.data.offer) in self._pending):
+                self.token_data = self._pending[(got.sender, got.data.offer)]
+                self._pending = {}
                 self.state = "holder"
 
     def call_off(self, peer: int) -> None:
@@ -293,8 +298,10 @@ class TokenHandover:
             self._offer, self.state = None, "holder"
         if self._confirmed is not None and self._confirmed[1] == peer:
             self._confirmed, self._confirm, self.token_maybe_lost = None, None, False
-        if self.state == "pending" and self._pending is not None and self._pending[0] == peer:
-            self._pending, self._pending_data, self.state = None, None, "idle"
+        if self.state == "pending":
+            self._pending = {offer: data for offer, data in self._pending.items() if offer[0] != peer}
+            if not self._pending:
+                self.state = "idle"
 
     def resend_confirm(self, time_s: float) -> None:
         """After ``token_maybe_lost``: send the last confirm again, as a new reliable transfer.
