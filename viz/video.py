@@ -623,7 +623,7 @@ class VideoRecorder(Observer):
         self._result, child = context.Pipe(duplex=False)
         self._process = context.Process(
             target=_render_worker, args=(pickle.dumps(world), config, path, self._queue, child, self._stop),
-            daemon=True, name="video-renderer",
+            daemon=False, name="video-renderer",  # not daemonic: it starts its helpers; supervise kills it at exit
         )
         with group_signals_deferred():
             self._process.start()
@@ -770,17 +770,205 @@ def _next_state(states, parent, stop, first: bool = False):
     return None
 
 
-def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, result, stop) -> None:
-    """The renderer process: draw and encode every state from ``states`` until
-    None (or ``stop``); send the number of frames written (or the error's
-    text) on ``result``. The group's SIGINT and SIGTERM are the run's."""
+MAX_RENDERERS = 3  # processes drawing a video's frames (the renderer and its helpers), at most the CPUs usable
+HELPERS_AFTER_FRAMES = 30  # the renderer starts its helpers once a video has this many frames (a short one never pays)
+HELPER_OUTSTANDING = 2  # frames a helper may have in hand before the renderer waits for its first
+
+
+def renderer_count() -> int:
+    """Processes drawing a long video: the renderer and its helpers, one per CPU this process may use,
+    at most ``MAX_RENDERERS`` (frames are independent given their state: each process draws its share)."""
+    import os
+
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(MAX_RENDERERS, cpus))
+
+
+class _Helpers:
+    """The renderer's helper processes: each draws the frames it is handed (in turn) and sends
+    their pixels back in order; the renderer writes every frame to the encoder in the video's
+    order. Supervised as the renderer is: they ignore the group's signals, every wait on one is
+    bounded and checks that it lives (one that died is the renderer's error, naming it), and each
+    ends when the renderer closes its pipes or is gone (killed: its pipes close with it)."""
+
+    def __init__(self, world_pickle: bytes, config: VideoConfig, count: int, write):
+        import multiprocessing
+
+        context = multiprocessing.get_context("spawn")
+        self.shape = (config.height, config.width, 3)
+        self.processes, self.inboxes, self.outboxes = [], [], []
+        for k in range(count):
+            inbox_read, inbox_write = context.Pipe(duplex=False)
+            outbox_read, outbox_write = context.Pipe(duplex=False)
+            process = context.Process(target=_helper_worker, args=(world_pickle, config, inbox_read, outbox_write),
+                                      daemon=True, name=f"video-renderer-helper-{k + 1}")
+            process.start()
+            inbox_read.close()  # the helper's ends are the helper's: its death closes them
+            outbox_write.close()
+            self.processes.append(process)
+            self.inboxes.append(inbox_write)
+            self.outboxes.append(outbox_read)
+        self.pending: list = []  # the frames not yet written, in order: (helper index or None, image, repeats)
+        self.outstanding = [0] * count
+        self._turn = 0
+        self.write = write  # (image, repeats): to the encoder
+
+    def __len__(self) -> int:
+        return len(self.processes)
+
+    def hand(self, item: bytes, repeats: int) -> bool:
+        """Give the frame ``item`` to the helper whose turn it is (False: the renderer draws it, its share)."""
+        k = self._turn
+        self._turn = (self._turn + 1) % (len(self) + 1)
+        if k == len(self):
+            return False
+        while self.outstanding[k] >= HELPER_OUTSTANDING:
+            self._write_next(block=True)
+        self._alive(k)
+        self.inboxes[k].send_bytes(item)
+        self.outstanding[k] += 1
+        self.pending.append((k, None, repeats))
+        return True
+
+    def _alive(self, k: int) -> None:
+        if self.processes[k].exitcode is not None:
+            from viz.painter import exit_reason
+
+            raise RuntimeError(f"video renderer helper {k + 1} died ({exit_reason(self.processes[k].exitcode)})")
+
+    def _image(self, k: int) -> np.ndarray:
+        """Helper ``k``'s next frame (bounded waits, each checking that it lives)."""
+        while not self.outboxes[k].poll(WORKER_POLL_S):
+            self._alive(k)
+        try:
+            data = self.outboxes[k].recv_bytes()
+        except EOFError:
+            self.processes[k].join(WORKER_POLL_S)
+            self._alive(k)
+            raise RuntimeError(f"video renderer helper {k + 1} closed its pipe") from None
+        if len(data) != int(np.prod(self.shape)):
+            raise RuntimeError(f"video renderer helper {k + 1} failed: {data.decode(errors='replace')}")
+        self.outstanding[k] -= 1
+        return np.frombuffer(data, dtype=np.uint8).reshape(self.shape)
+
+    def _write_next(self, block: bool) -> bool:
+        if not self.pending:
+            return False
+        k, image, repeats = self.pending[0]
+        if image is None:
+            if not block and not self.outboxes[k].poll(0):
+                return False
+            image = self._image(k)
+        self.pending.pop(0)
+        self.write(image, repeats)
+        return True
+
+    def drawn(self, image: np.ndarray, repeats: int) -> None:
+        """The renderer's own frame, written in its place in the order."""
+        self.pending.append((None, image, repeats))
+        while self._write_next(block=False):
+            pass
+
+    def flush(self) -> None:
+        """Every frame handed out, written (waits for the helpers)."""
+        while self._write_next(block=True):
+            pass
+
+    def close(self) -> None:
+        from viz.painter import stop_process
+
+        for connection in (*self.inboxes, *self.outboxes):
+            connection.close()  # a helper's end of file: it ends
+        for process in self.processes:
+            stop_process(process)
+
+
+def _helper_worker(world_pickle: bytes, config: VideoConfig, inbox, outbox) -> None:
+    """A helper process: draw each frame handed to it, send its pixels back (or an error's text,
+    then end); end at the renderer's end of file or once the renderer is gone."""
     import multiprocessing
     import traceback
 
     from viz.painter import ignore_group_signals
 
     ignore_group_signals()
-    written = 0
+    parent = multiprocessing.parent_process()
+    try:
+        view = FrameRenderer(pickle.loads(world_pickle), config)
+        while True:
+            if not inbox.poll(WORKER_POLL_S):
+                if parent is not None and not parent.is_alive():
+                    return
+                continue
+            try:
+                item = inbox.recv_bytes()
+            except EOFError:
+                return
+            frame, _ = pickle.loads(item)
+            outbox.send_bytes(memoryview(np.ascontiguousarray(view.render(frame))).cast("B"))  # flat: its length in bytes
+    except (BrokenPipeError, EOFError):  # the renderer is gone
+        return
+    except BaseException:  # noqa: BLE001 - the renderer reports it with this text
+        text = traceback.format_exc().strip().splitlines()[-1][:400].encode()  # never a frame's length (768 B and up)
+        with contextlib.suppress(OSError):
+            outbox.send_bytes(text)
+
+
+class _Writer:
+    """Frames to the encoder in the video's order: the renderer's own, and its helpers' once started."""
+
+    def __init__(self, writer, world_pickle: bytes, config: VideoConfig):
+        self.writer = writer
+        self.world_pickle = world_pickle
+        self.config = config
+        self.helpers: _Helpers | None = None
+        self.written = 0
+        self.received = 0
+
+    def take(self, item: bytes, repeats: int) -> bool:
+        """True when a helper draws ``item``; False: the renderer draws it (then :meth:`drawn`)."""
+        self.received += 1
+        if self.helpers is None and self.received > HELPERS_AFTER_FRAMES and renderer_count() > 1:
+            self.helpers = _Helpers(self.world_pickle, self.config, renderer_count() - 1, self._write)
+        return self.helpers is not None and self.helpers.hand(item, repeats)
+
+    def _write(self, image: np.ndarray, repeats: int) -> None:
+        for _ in range(repeats):
+            self.writer.append_data(image)
+            self.written += 1
+
+    def drawn(self, image: np.ndarray, repeats: int) -> None:
+        if self.helpers is None:
+            self._write(image, repeats)
+        else:
+            self.helpers.drawn(image, repeats)
+
+    def finish(self) -> None:
+        """Every frame handed to the helpers, written; the helpers ended."""
+        if self.helpers is not None:
+            try:
+                self.helpers.flush()
+            finally:
+                self.helpers.close()
+
+
+def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, result, stop) -> None:
+    """The renderer process: draw and encode every state from ``states`` until
+    None (or ``stop``); send the number of frames written (or the error's
+    text) on ``result``. The group's SIGINT and SIGTERM are the run's. Past
+    ``HELPERS_AFTER_FRAMES`` frames it shares the drawing with helper
+    processes (:func:`renderer_count`), each frame drawn by one of them in
+    turn and written in order."""
+    import multiprocessing
+    import traceback
+
+    from viz.painter import ignore_group_signals
+
+    ignore_group_signals()
+    frames = None
     try:
         import imageio.v2 as imageio
 
@@ -792,18 +980,20 @@ def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, 
             path, fps=config.fps, codec="libx264", quality=None, macro_block_size=1,
             ffmpeg_log_level="fatal", output_params=["-pix_fmt", "yuv420p", *ENCODER_OPTIONS],
         )
+        frames = _Writer(writer, world_pickle, config)
         parent = multiprocessing.parent_process()
         try:
-            while (item := _next_state(states, parent, stop, first=written == 0)) is not None:
+            while (item := _next_state(states, parent, stop, first=frames.received == 0)) is not None:
                 frame, repeats = pickle.loads(item)
-                image = view.render(frame)  # its own state (frame.state)
-                for _ in range(repeats):
-                    writer.append_data(image)
-                    written += 1
+                if not frames.take(item, repeats):
+                    frames.drawn(view.render(frame), repeats)  # its own state (frame.state)
+            frames.finish()
         finally:
+            if frames.helpers is not None:
+                frames.helpers.close()
             writer.close()
             view.close()
-        _send(result, written)
+        _send(result, frames.written)
     except BaseException:  # noqa: BLE001 - the parent reports it with this text
         _send(result, traceback.format_exc())
 
