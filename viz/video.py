@@ -3,7 +3,8 @@
 An observer: it draws the tick's frame (its MuJoCo state ``frame.state``
 and its decorations), never writes to the simulation. Frames are taken at
 the video fps in sim time; a renderer process draws them and writes them
-one by one to the encoder (an ffmpeg process fed through a pipe), so the
+one by one to the encoder (an ffmpeg process fed through a pipe; in a long
+video helper processes draw a share of the frames), so the
 simulation does not wait for rendering or encoding (beyond a bounded
 queue's back-pressure) and memory does not grow with the video's length.
 The simulation builds its decorations only on ticks with a frame due
@@ -580,7 +581,11 @@ class VideoRecorder(Observer):
 
     Rendering (slow on software EGL) and encoding run in a
     renderer process of their own (start method 'spawn': a fresh process
-    owns its GL context). The simulation only copies the state of a tick
+    owns its GL context); past ``HELPERS_AFTER_FRAMES`` frames it shares the
+    drawing with helper processes of its own (``renderers`` in all, by
+    default one per usable CPU up to ``MAX_RENDERERS``: frames are
+    independent given their state), each drawing every n-th frame, and
+    writes all of them to the encoder in order. The simulation only copies the state of a tick
     whose frame is due (``frame.state``: qpos, qvel, act, mocap poses, the
     state the frame's observation was read from) and what its decorations
     read (:class:`FrameView`) into a bounded queue of
@@ -602,7 +607,8 @@ class VideoRecorder(Observer):
     ends "failed" with its files written.
     """
 
-    def __init__(self, world: World, config: VideoConfig, path: str, control_period_s: float):
+    def __init__(self, world: World, config: VideoConfig, path: str, control_period_s: float,
+                 renderers: int | None = None):
         import multiprocessing
 
         from viz.painter import group_signals_deferred, supervise
@@ -622,7 +628,9 @@ class VideoRecorder(Observer):
         self._stop = context.Event()
         self._result, child = context.Pipe(duplex=False)
         self._process = context.Process(
-            target=_render_worker, args=(pickle.dumps(world), config, path, self._queue, child, self._stop),
+            target=_render_worker,
+            args=(pickle.dumps(world), config, path, self._queue, child, self._stop,
+                  renderer_count() if renderers is None else max(1, int(renderers))),
             daemon=False, name="video-renderer",  # not daemonic: it starts its helpers; supervise kills it at exit
         )
         with group_signals_deferred():
@@ -800,10 +808,21 @@ class _Helpers:
         context = multiprocessing.get_context("spawn")
         self.shape = (config.height, config.width, 3)
         self.processes, self.inboxes, self.outboxes = [], [], []
+        try:
+            self._start(context, world_pickle, config, count)
+        except BaseException:
+            self.close()  # those started end at their end of file
+            raise
+        self.pending: list = []  # the frames not yet written, in order: (helper index or None, image, repeats)
+        self.outstanding = [0] * count
+        self._turn = 0
+        self.write = write  # (image, repeats): to the encoder
+
+    def _start(self, context, world_pickle: bytes, config: VideoConfig, count: int) -> None:
         for k in range(count):
             inbox_read, inbox_write = context.Pipe(duplex=False)
             outbox_read, outbox_write = context.Pipe(duplex=False)
-            process = context.Process(target=_helper_worker, args=(world_pickle, config, inbox_read, outbox_write),
+            process = context.Process(target=_helper_worker, args=(config, inbox_read, outbox_write),
                                       daemon=True, name=f"video-renderer-helper-{k + 1}")
             process.start()
             inbox_read.close()  # the helper's ends are the helper's: its death closes them
@@ -811,10 +830,9 @@ class _Helpers:
             self.processes.append(process)
             self.inboxes.append(inbox_write)
             self.outboxes.append(outbox_read)
-        self.pending: list = []  # the frames not yet written, in order: (helper index or None, image, repeats)
-        self.outstanding = [0] * count
-        self._turn = 0
-        self.write = write  # (image, repeats): to the encoder
+            # The world through the pipe, not the start's arguments: a start writes those to a pipe whose
+            # reading end it holds itself until done, so a child killed while starting would block it for good.
+            self._send(k, world_pickle)
 
     def __len__(self) -> int:
         return len(self.processes)
@@ -827,11 +845,19 @@ class _Helpers:
             return False
         while self.outstanding[k] >= HELPER_OUTSTANDING:
             self._write_next(block=True)
-        self._alive(k)
-        self.inboxes[k].send_bytes(item)
+        self._send(k, item)
         self.outstanding[k] += 1
         self.pending.append((k, None, repeats))
         return True
+
+    def _send(self, k: int, data: bytes) -> None:
+        self._alive(k)
+        try:
+            self.inboxes[k].send_bytes(data)
+        except OSError:  # its end closed: it died meanwhile
+            self.processes[k].join(WORKER_POLL_S)
+            self._alive(k)
+            raise
 
     def _alive(self, k: int) -> None:
         if self.processes[k].exitcode is not None:
@@ -886,9 +912,10 @@ class _Helpers:
             stop_process(process)
 
 
-def _helper_worker(world_pickle: bytes, config: VideoConfig, inbox, outbox) -> None:
-    """A helper process: draw each frame handed to it, send its pixels back (or an error's text,
-    then end); end at the renderer's end of file or once the renderer is gone."""
+def _helper_worker(config: VideoConfig, inbox, outbox) -> None:
+    """A helper process: the world (pickled) first, then draw each frame handed to it and send its
+    pixels back (or an error's text, then end); end at the renderer's end of file or once the
+    renderer is gone."""
     import multiprocessing
     import traceback
 
@@ -897,7 +924,7 @@ def _helper_worker(world_pickle: bytes, config: VideoConfig, inbox, outbox) -> N
     ignore_group_signals()
     parent = multiprocessing.parent_process()
     try:
-        view = FrameRenderer(pickle.loads(world_pickle), config)
+        view = None
         while True:
             if not inbox.poll(WORKER_POLL_S):
                 if parent is not None and not parent.is_alive():
@@ -907,6 +934,9 @@ def _helper_worker(world_pickle: bytes, config: VideoConfig, inbox, outbox) -> N
                 item = inbox.recv_bytes()
             except EOFError:
                 return
+            if view is None:
+                view = FrameRenderer(pickle.loads(item), config)
+                continue
             frame, _ = pickle.loads(item)
             outbox.send_bytes(memoryview(np.ascontiguousarray(view.render(frame))).cast("B"))  # flat: its length in bytes
     except (BrokenPipeError, EOFError):  # the renderer is gone
@@ -920,8 +950,9 @@ def _helper_worker(world_pickle: bytes, config: VideoConfig, inbox, outbox) -> N
 class _Writer:
     """Frames to the encoder in the video's order: the renderer's own, and its helpers' once started."""
 
-    def __init__(self, writer, world_pickle: bytes, config: VideoConfig):
+    def __init__(self, writer, world_pickle: bytes, config: VideoConfig, renderers: int):
         self.writer = writer
+        self.renderers = renderers
         self.world_pickle = world_pickle
         self.config = config
         self.helpers: _Helpers | None = None
@@ -931,8 +962,8 @@ class _Writer:
     def take(self, item: bytes, repeats: int) -> bool:
         """True when a helper draws ``item``; False: the renderer draws it (then :meth:`drawn`)."""
         self.received += 1
-        if self.helpers is None and self.received > HELPERS_AFTER_FRAMES and renderer_count() > 1:
-            self.helpers = _Helpers(self.world_pickle, self.config, renderer_count() - 1, self._write)
+        if self.helpers is None and self.received > HELPERS_AFTER_FRAMES and self.renderers > 1:
+            self.helpers = _Helpers(self.world_pickle, self.config, self.renderers - 1, self._write)
         return self.helpers is not None and self.helpers.hand(item, repeats)
 
     def _write(self, image: np.ndarray, repeats: int) -> None:
@@ -955,13 +986,14 @@ class _Writer:
                 self.helpers.close()
 
 
-def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, result, stop) -> None:
+def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, result, stop,
+                   renderers: int = 1) -> None:
     """The renderer process: draw and encode every state from ``states`` until
     None (or ``stop``); send the number of frames written (or the error's
     text) on ``result``. The group's SIGINT and SIGTERM are the run's. Past
     ``HELPERS_AFTER_FRAMES`` frames it shares the drawing with helper
-    processes (:func:`renderer_count`), each frame drawn by one of them in
-    turn and written in order."""
+    processes (``renderers`` processes in all), each frame drawn by one of
+    them in turn and written in order."""
     import multiprocessing
     import traceback
 
@@ -980,7 +1012,7 @@ def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, 
             path, fps=config.fps, codec="libx264", quality=None, macro_block_size=1,
             ffmpeg_log_level="fatal", output_params=["-pix_fmt", "yuv420p", *ENCODER_OPTIONS],
         )
-        frames = _Writer(writer, world_pickle, config)
+        frames = _Writer(writer, world_pickle, config, renderers)
         parent = multiprocessing.parent_process()
         try:
             while (item := _next_state(states, parent, stop, first=frames.received == 0)) is not None:
