@@ -987,6 +987,26 @@ class _Writer:
                 self.helpers.close()
 
 
+ORPHAN_EXIT_S = 10.0  # a renderer whose run is gone (killed) and that has not ended by then exits
+
+
+def _orphan_watch(parent) -> None:
+    """Once the run's process is gone the renderer ends: it renders what is queued and closes the file
+    (:func:`_next_state`); a run killed while queuing a frame leaves half a message in the queue, whose
+    read would wait for good, so past ``ORPHAN_EXIT_S`` this thread ends the process (its helpers and
+    the encoder see their pipes close: ffmpeg finishes the file up to the last frame it got)."""
+    import os
+    import threading
+
+    def watch() -> None:
+        parent.join()  # its sentinel: returns once the run's process is gone
+        time.sleep(ORPHAN_EXIT_S)
+        os._exit(1)
+
+    if parent is not None:
+        threading.Thread(target=watch, name="orphan-watch", daemon=True).start()
+
+
 def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, result, stop,
                    renderers: int = 1) -> None:
     """The renderer process: draw and encode every state from ``states`` until
@@ -1015,6 +1035,7 @@ def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, 
         )
         frames = _Writer(writer, world_pickle, config, renderers)
         parent = multiprocessing.parent_process()
+        _orphan_watch(parent)
         try:
             while (item := _next_state(states, parent, stop, first=frames.received == 0)) is not None:
                 frame, repeats = pickle.loads(item)
