@@ -939,7 +939,8 @@ def _helper_worker(config: VideoConfig, inbox, outbox) -> None:
                 view = FrameRenderer(pickle.loads(item), config)
                 continue
             frame, _ = pickle.loads(item)
-            outbox.send_bytes(memoryview(np.ascontiguousarray(view.render(frame))).cast("B"))  # flat: its length in bytes
+            image = np.ascontiguousarray(view.render(frame))
+            outbox.send_bytes(memoryview(image).cast("B"))  # flat: its length is in bytes
     except (BrokenPipeError, EOFError):  # the renderer is gone
         return
     except BaseException:  # noqa: BLE001 - the renderer reports it with this text
