@@ -146,6 +146,15 @@ def renderer_pid(run_pid: int) -> int | None:
     return None
 
 
+def helper_pid(run_pid: int) -> int | None:
+    """A helper of the video renderer: the renderer's child that is not ffmpeg (nor a zombie)."""
+    renderer = renderer_pid(run_pid)
+    for child in children(renderer) if renderer is not None else ():
+        if "ffmpeg" not in command(child) and command(child):
+            return child
+    return None
+
+
 def long_tiny(tmp_path: Path, duration_s: float = 600.0) -> Path:
     return tiny(tmp_path, ("duration_s = 0.1", f"duration_s = {duration_s}"))
 
@@ -289,6 +298,27 @@ def test_a_killed_video_renderer_ends_the_run_failed(tmp_path):
     assert "video renderer died" in run.output()
     for name in ("run.rrd", "plots/timeseries.png", "progress.json"):
         assert (run.out / name).is_file(), name
+    assert not run.staging.exists()
+
+
+def test_a_killed_renderer_helper_ends_the_run_failed_naming_it(tmp_path):
+    # 160 x 120 at 10 fps: the renderer starts its helpers after 3 s of sim time (HELPERS_AFTER_FRAMES).
+    run = Run(tmp_path, str(long_tiny(tmp_path)), *VIDEO)
+    run.wait_for(lambda: run.ticking() and helper_pid(run.proc.pid) is not None, timeout_s=120)
+    killed = time.monotonic()
+    os.kill(helper_pid(run.proc.pid), signal.SIGKILL)
+    try:
+        run.proc.wait(timeout=WAIT_LIMIT_S)
+    except subprocess.TimeoutExpired:
+        run.kill()
+        raise AssertionError(f"the run went on after a renderer helper died: {run.output()}")
+    assert time.monotonic() - killed < 10.0
+    assert run.proc.returncode == 1, run.output()
+    run.assert_clean()
+    metrics = run.metrics()
+    assert metrics["status"] == "failed"
+    assert "video renderer helper 1 died (exit -9" in metrics["message"], metrics["message"]
+    assert (run.out / "video.mp4").is_file()
     assert not run.staging.exists()
 
 

@@ -14,7 +14,7 @@ import pytest
 from helpers import write_scenario, write_scene
 from tether.runner import build_simulation, run
 from sim.scenario import load
-from viz.video import FrameRenderer, VideoRecorder
+from viz.video import HELPERS_AFTER_FRAMES, FrameRenderer, VideoRecorder
 
 OPEN_FLOOR = """
 <mujoco model="open_floor">
@@ -139,6 +139,26 @@ def test_frames_stream_to_the_encoder_so_memory_stays_flat(tmp_path):
     kept_frames = (frames - warm_up) * width * height * 3  # what a list of the frames would hold
     assert growth < 0.1 * kept_frames, (growth, kept_frames)
     assert count_frames(tmp_path / "video.mp4") == frames
+
+
+def test_helper_renderers_draw_the_frames_a_lone_renderer_draws(tmp_path):
+    """Past HELPERS_AFTER_FRAMES frames the renderer hands every third frame to each of two helper
+    processes: the frames in the file, in order, are those one renderer alone writes."""
+    scenario = load("hover", ["video.width=320", "video.height=180"], duration_s=2.5)
+    frames = {}
+    for renderers in (1, 3):
+        sim = build_simulation(scenario)
+        path = tmp_path / f"{renderers}.mp4"
+        recorder = VideoRecorder(sim.world, sim.scenario.video, str(path), sim.dt, renderers=renderers)
+        for _ in range(round(scenario.duration_s / sim.dt)):
+            frame, healthy = sim.tick()
+            assert healthy
+            recorder.on_tick(frame)
+        recorder.close("completed")
+        frames[renderers] = np.array([image for image in imageio.get_reader(path)])
+    assert len(frames[1]) == math.ceil(2.5 * scenario.video.fps) > HELPERS_AFTER_FRAMES + 3
+    assert frames[1].std() > 10  # not blank
+    np.testing.assert_array_equal(frames[1], frames[3])
 
 
 def test_a_run_stopped_while_its_renderer_starts_leaves_no_child_and_no_traceback(tmp_path, monkeypatch, capfd):

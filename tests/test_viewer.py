@@ -96,6 +96,11 @@ def test_tether_view_draws_the_running_simulation_with_its_links(display, tmp_pa
     assert green.sum() > 30
     # ... and the scene itself: the office's walls and floor fill much of the window.
     assert (image.sum(axis=2) > 60).mean() > 0.15
+    # With no window manager the window is the screen's size (GLFW opened it at two thirds, top-left):
+    # the floor reaches below two thirds of its height, and the legend its right third.
+    bottom = image[int(0.8 * SCREEN[1]):int(0.85 * SCREEN[1]), : SCREEN[0] // 2].sum(axis=2)
+    assert (bottom > 60).mean() > 0.5
+    assert (image[:, int(0.7 * SCREEN[0]):].sum(axis=2) > 300).sum() > 200  # the legend's white text
 
 
 def test_bad_input_and_no_display_exit_2_with_one_line(monkeypatch, capsys):

@@ -3,13 +3,14 @@
 An observer: it draws the tick's frame (its MuJoCo state ``frame.state``
 and its decorations), never writes to the simulation. Frames are taken at
 the video fps in sim time; a renderer process draws them and writes them
-one by one to the encoder (an ffmpeg process fed through a pipe), so the
+one by one to the encoder (an ffmpeg process fed through a pipe; in a long
+video helper processes draw a share of the frames), so the
 simulation does not wait for rendering or encoding (beyond a bounded
 queue's back-pressure) and memory does not grow with the video's length.
 The simulation builds its decorations only on ticks with a frame due
 (:meth:`VideoRecorder.reads_decorations`); the renderer's planes get a
 coarse grid (:func:`coarse_planes`), the panel's lines are pasted from a
-cache and the encoder runs at preset veryfast (``ENCODER_OPTIONS``): the
+cache and the encoder runs at preset superfast (``ENCODER_OPTIONS``): the
 same picture for less CPU time on software GL.
 Communication links are drawn as capsules between robots; robot references
 (virtual points) as small spheres. :class:`FrameRenderer` draws one frame
@@ -561,9 +562,10 @@ def _radio_view(obs) -> _RadioView | None:
     return None if radio is None else _RadioView(radio.preset, np.array(radio.delivery))
 
 
-# H.264 at constant quality 15 (near lossless for flat-shaded frames), preset veryfast: two thirds of the
-# encoder's CPU time at preset medium, the file about as large and no difference to see.
-ENCODER_OPTIONS = ("-preset", "veryfast", "-crf", "15")
+# H.264 at constant quality 15 (near lossless for flat-shaded frames), preset superfast: about 0.7 of the
+# encoder's CPU time at preset veryfast for a file about twice as large (a 20 s video of 1-5 MB) and no
+# difference to see (the error against the rendered frames is the 4:2:0 chroma's, the same at any preset).
+ENCODER_OPTIONS = ("-preset", "superfast", "-crf", "15")
 VIDEO_QUEUE_FRAMES = 32  # states waiting for the renderer process before the simulation waits, -
 WORKER_POLL_S = 1.0  # how often a blocked simulation checks that the renderer is still alive, s
 INTERRUPTED_CLOSE_S = 0.0  # an interrupted run's renderer stops at its frame (the CPU is the painters'), then finishes the file
@@ -580,7 +582,11 @@ class VideoRecorder(Observer):
 
     Rendering (slow on software EGL) and encoding run in a
     renderer process of their own (start method 'spawn': a fresh process
-    owns its GL context). The simulation only copies the state of a tick
+    owns its GL context); past ``HELPERS_AFTER_FRAMES`` frames it shares the
+    drawing with helper processes of its own (``renderers`` in all, by
+    default one per usable CPU up to ``MAX_RENDERERS``: frames are
+    independent given their state), each drawing every n-th frame, and
+    writes all of them to the encoder in order. The simulation only copies the state of a tick
     whose frame is due (``frame.state``: qpos, qvel, act, mocap poses, the
     state the frame's observation was read from) and what its decorations
     read (:class:`FrameView`) into a bounded queue of
@@ -602,7 +608,8 @@ class VideoRecorder(Observer):
     ends "failed" with its files written.
     """
 
-    def __init__(self, world: World, config: VideoConfig, path: str, control_period_s: float):
+    def __init__(self, world: World, config: VideoConfig, path: str, control_period_s: float,
+                 renderers: int | None = None):
         import multiprocessing
 
         from viz.painter import group_signals_deferred, supervise
@@ -622,8 +629,10 @@ class VideoRecorder(Observer):
         self._stop = context.Event()
         self._result, child = context.Pipe(duplex=False)
         self._process = context.Process(
-            target=_render_worker, args=(pickle.dumps(world), config, path, self._queue, child, self._stop),
-            daemon=True, name="video-renderer",
+            target=_render_worker,
+            args=(pickle.dumps(world), config, path, self._queue, child, self._stop,
+                  renderer_count() if renderers is None else max(1, int(renderers))),
+            daemon=False, name="video-renderer",  # not daemonic: it starts its helpers; supervise kills it at exit
         )
         with group_signals_deferred():
             self._process.start()
@@ -770,17 +779,250 @@ def _next_state(states, parent, stop, first: bool = False):
     return None
 
 
-def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, result, stop) -> None:
-    """The renderer process: draw and encode every state from ``states`` until
-    None (or ``stop``); send the number of frames written (or the error's
-    text) on ``result``. The group's SIGINT and SIGTERM are the run's."""
+MAX_RENDERERS = 3  # processes drawing a video's frames (the renderer and its helpers), at most the CPUs usable
+HELPERS_AFTER_FRAMES = 30  # the renderer starts its helpers once a video has this many frames (a short one never pays)
+HELPER_OUTSTANDING = 2  # frames a helper may have in hand before the renderer waits for its first
+
+
+def renderer_count() -> int:
+    """Processes drawing a long video: the renderer and its helpers, one per CPU this process may use,
+    at most ``MAX_RENDERERS`` (frames are independent given their state: each process draws its share)."""
+    import os
+
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(MAX_RENDERERS, cpus))
+
+
+class _Helpers:
+    """The renderer's helper processes: each draws the frames it is handed (in turn) and sends
+    their pixels back in order; the renderer writes every frame to the encoder in the video's
+    order. Supervised as the renderer is: they ignore the group's signals, every wait on one is
+    bounded and checks that it lives (one that died is the renderer's error, naming it), and each
+    ends when the renderer closes its pipes or is gone (killed: its pipes close with it)."""
+
+    def __init__(self, world_pickle: bytes, config: VideoConfig, count: int, write):
+        import multiprocessing
+
+        context = multiprocessing.get_context("spawn")
+        self.shape = (config.height, config.width, 3)
+        self.processes, self.inboxes, self.outboxes = [], [], []
+        try:
+            self._start(context, world_pickle, config, count)
+        except BaseException:
+            self.close()  # those started end at their end of file
+            raise
+        self.pending: list = []  # the frames not yet written, in order: (helper index or None, image, repeats)
+        self.outstanding = [0] * count
+        self._turn = 0
+        self.write = write  # (image, repeats): to the encoder
+
+    def _start(self, context, world_pickle: bytes, config: VideoConfig, count: int) -> None:
+        for k in range(count):
+            inbox_read, inbox_write = context.Pipe(duplex=False)
+            outbox_read, outbox_write = context.Pipe(duplex=False)
+            process = context.Process(target=_helper_worker, args=(config, inbox_read, outbox_write),
+                                      daemon=True, name=f"video-renderer-helper-{k + 1}")
+            process.start()
+            inbox_read.close()  # the helper's ends are the helper's: its death closes them
+            outbox_write.close()
+            self.processes.append(process)
+            self.inboxes.append(inbox_write)
+            self.outboxes.append(outbox_read)
+            # The world through the pipe, not the start's arguments: a start writes those to a pipe whose
+            # reading end it holds itself until done, so a child killed while starting would block it for good.
+            self._send(k, world_pickle)
+
+    def __len__(self) -> int:
+        return len(self.processes)
+
+    def hand(self, item: bytes, repeats: int) -> bool:
+        """Give the frame ``item`` to the helper whose turn it is (False: the renderer draws it, its share)."""
+        k = self._turn
+        self._turn = (self._turn + 1) % (len(self) + 1)
+        if k == len(self):
+            return False
+        while self.outstanding[k] >= HELPER_OUTSTANDING:
+            self._write_next(block=True)
+        self._send(k, item)
+        self.outstanding[k] += 1
+        self.pending.append((k, None, repeats))
+        return True
+
+    def _send(self, k: int, data: bytes) -> None:
+        self._alive(k)
+        try:
+            self.inboxes[k].send_bytes(data)
+        except OSError:  # its end closed: it died meanwhile
+            self.processes[k].join(WORKER_POLL_S)
+            self._alive(k)
+            raise
+
+    def _alive(self, k: int) -> None:
+        if self.processes[k].exitcode is not None:
+            from viz.painter import exit_reason
+
+            raise RuntimeError(f"video renderer helper {k + 1} died ({exit_reason(self.processes[k].exitcode)})")
+
+    def _image(self, k: int) -> np.ndarray:
+        """Helper ``k``'s next frame (bounded waits, each checking that it lives)."""
+        while not self.outboxes[k].poll(WORKER_POLL_S):
+            self._alive(k)
+        try:
+            data = self.outboxes[k].recv_bytes()
+        except EOFError:
+            self.processes[k].join(WORKER_POLL_S)
+            self._alive(k)
+            raise RuntimeError(f"video renderer helper {k + 1} closed its pipe") from None
+        if len(data) != int(np.prod(self.shape)):
+            raise RuntimeError(f"video renderer helper {k + 1} failed: {data.decode(errors='replace')}")
+        self.outstanding[k] -= 1
+        return np.frombuffer(data, dtype=np.uint8).reshape(self.shape)
+
+    def _write_next(self, block: bool) -> bool:
+        if not self.pending:
+            return False
+        k, image, repeats = self.pending[0]
+        if image is None:
+            if not block and not self.outboxes[k].poll(0):
+                return False
+            image = self._image(k)
+        self.pending.pop(0)
+        self.write(image, repeats)
+        return True
+
+    def drawn(self, image: np.ndarray, repeats: int) -> None:
+        """The renderer's own frame, written in its place in the order."""
+        self.pending.append((None, image, repeats))
+        while self._write_next(block=False):
+            pass
+
+    def flush(self) -> None:
+        """Every frame handed out, written (waits for the helpers)."""
+        while self._write_next(block=True):
+            pass
+
+    def close(self) -> None:
+        from viz.painter import stop_process
+
+        for connection in (*self.inboxes, *self.outboxes):
+            connection.close()  # a helper's end of file: it ends
+        for process in self.processes:
+            stop_process(process)
+
+
+def _helper_worker(config: VideoConfig, inbox, outbox) -> None:
+    """A helper process: the world (pickled) first, then draw each frame handed to it and send its
+    pixels back (or an error's text, then end); end at the renderer's end of file or once the
+    renderer is gone."""
     import multiprocessing
     import traceback
 
     from viz.painter import ignore_group_signals
 
     ignore_group_signals()
-    written = 0
+    parent = multiprocessing.parent_process()
+    try:
+        view = None
+        while True:
+            if not inbox.poll(WORKER_POLL_S):
+                if parent is not None and not parent.is_alive():
+                    return
+                continue
+            try:
+                item = inbox.recv_bytes()
+            except EOFError:
+                return
+            if view is None:
+                view = FrameRenderer(pickle.loads(item), config)
+                continue
+            frame, _ = pickle.loads(item)
+            image = np.ascontiguousarray(view.render(frame))
+            outbox.send_bytes(memoryview(image).cast("B"))  # flat: its length is in bytes
+    except (BrokenPipeError, EOFError):  # the renderer is gone
+        return
+    except BaseException:  # noqa: BLE001 - the renderer reports it with this text
+        text = traceback.format_exc().strip().splitlines()[-1][:400].encode()  # never a frame's length (768 B and up)
+        with contextlib.suppress(OSError):
+            outbox.send_bytes(text)
+
+
+class _Writer:
+    """Frames to the encoder in the video's order: the renderer's own, and its helpers' once started."""
+
+    def __init__(self, writer, world_pickle: bytes, config: VideoConfig, renderers: int):
+        self.writer = writer
+        self.renderers = renderers
+        self.world_pickle = world_pickle
+        self.config = config
+        self.helpers: _Helpers | None = None
+        self.written = 0
+        self.received = 0
+
+    def take(self, item: bytes, repeats: int) -> bool:
+        """True when a helper draws ``item``; False: the renderer draws it (then :meth:`drawn`)."""
+        self.received += 1
+        if self.helpers is None and self.received > HELPERS_AFTER_FRAMES and self.renderers > 1:
+            self.helpers = _Helpers(self.world_pickle, self.config, self.renderers - 1, self._write)
+        return self.helpers is not None and self.helpers.hand(item, repeats)
+
+    def _write(self, image: np.ndarray, repeats: int) -> None:
+        for _ in range(repeats):
+            self.writer.append_data(image)
+            self.written += 1
+
+    def drawn(self, image: np.ndarray, repeats: int) -> None:
+        if self.helpers is None:
+            self._write(image, repeats)
+        else:
+            self.helpers.drawn(image, repeats)
+
+    def finish(self) -> None:
+        """Every frame handed to the helpers, written; the helpers ended."""
+        if self.helpers is not None:
+            try:
+                self.helpers.flush()
+            finally:
+                self.helpers.close()
+
+
+ORPHAN_EXIT_S = 10.0  # a renderer whose run is gone (killed) and that has not ended by then exits
+
+
+def _orphan_watch(parent) -> None:
+    """Once the run's process is gone the renderer ends: it renders what is queued and closes the file
+    (:func:`_next_state`); a run killed while queuing a frame leaves half a message in the queue, whose
+    read would wait for good, so past ``ORPHAN_EXIT_S`` this thread ends the process (its helpers and
+    the encoder see their pipes close: ffmpeg finishes the file up to the last frame it got)."""
+    import os
+    import threading
+
+    def watch() -> None:
+        parent.join()  # its sentinel: returns once the run's process is gone
+        time.sleep(ORPHAN_EXIT_S)
+        os._exit(1)
+
+    if parent is not None:
+        threading.Thread(target=watch, name="orphan-watch", daemon=True).start()
+
+
+def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, result, stop,
+                   renderers: int = 1) -> None:
+    """The renderer process: draw and encode every state from ``states`` until
+    None (or ``stop``); send the number of frames written (or the error's
+    text) on ``result``. The group's SIGINT and SIGTERM are the run's. Past
+    ``HELPERS_AFTER_FRAMES`` frames it shares the drawing with helper
+    processes (``renderers`` processes in all), each frame drawn by one of
+    them in turn and written in order."""
+    import multiprocessing
+    import traceback
+
+    from viz.painter import ignore_group_signals
+
+    ignore_group_signals()
+    frames = None
     try:
         import imageio.v2 as imageio
 
@@ -792,18 +1034,21 @@ def _render_worker(world_pickle: bytes, config: VideoConfig, path: str, states, 
             path, fps=config.fps, codec="libx264", quality=None, macro_block_size=1,
             ffmpeg_log_level="fatal", output_params=["-pix_fmt", "yuv420p", *ENCODER_OPTIONS],
         )
+        frames = _Writer(writer, world_pickle, config, renderers)
         parent = multiprocessing.parent_process()
+        _orphan_watch(parent)
         try:
-            while (item := _next_state(states, parent, stop, first=written == 0)) is not None:
+            while (item := _next_state(states, parent, stop, first=frames.received == 0)) is not None:
                 frame, repeats = pickle.loads(item)
-                image = view.render(frame)  # its own state (frame.state)
-                for _ in range(repeats):
-                    writer.append_data(image)
-                    written += 1
+                if not frames.take(item, repeats):
+                    frames.drawn(view.render(frame), repeats)  # its own state (frame.state)
+            frames.finish()
         finally:
+            if frames.helpers is not None:
+                frames.helpers.close()
             writer.close()
             view.close()
-        _send(result, written)
+        _send(result, frames.written)
     except BaseException:  # noqa: BLE001 - the parent reports it with this text
         _send(result, traceback.format_exc())
 

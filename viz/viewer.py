@@ -8,9 +8,11 @@ times it; 0: as fast as the machine goes). Each tick the viewer's user scene
 or delivery, references, robot halos in role / team colours, planned
 paths, meeting points, target estimates, markers), a band at the top-left
 with the video's overlay line, the state and the real-time factor reached,
-and the legend at the top-right. The default camera looks straight down,
+and the legend at the bottom-right. The default camera looks straight down,
 the walls drawn translucent (:func:`see_through_walls`) so none hides a room,
-the floor in the window's left part, so the legend sits beside it. The viewer only reads the simulation (as the video does), except
+the floor in the window's left part, so the legend sits beside it. With no
+window manager (Xvfb) the window is made the screen's size
+(:func:`fill_screen_without_window_manager`). The viewer only reads the simulation (as the video does), except
 that MuJoCo's mouse perturbation (double-click a body, Ctrl + drag) pushes
 bodies, as in any MuJoCo viewer.
 
@@ -184,6 +186,80 @@ def default_camera(cam, bounds, fovy_deg: float, aspect: float) -> None:
     cam.elevation, cam.azimuth = -90.0, 90.0
 
 
+def fill_screen_without_window_manager(timeout_s: float = 3.0) -> bool:
+    """With no window manager (Xvfb, a bare X server) nobody sizes or places windows, and GLFW
+    opens the viewer's at two thirds of the screen in its top-left corner: make this process's
+    window (its ``_NET_WM_PID``) the screen's size. Under a window manager the window is the
+    user's to size and nothing changes. Returns whether it resized one (X11 through libX11)."""
+    import ctypes
+    import ctypes.util
+
+    if not os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        return False
+    name = ctypes.util.find_library("X11")
+    if name is None:
+        return False
+    x = ctypes.CDLL(name)
+    ulong, voidp = ctypes.c_ulong, ctypes.c_void_p
+    x.XOpenDisplay.restype, x.XOpenDisplay.argtypes = voidp, [ctypes.c_char_p]
+    x.XDefaultRootWindow.restype, x.XDefaultRootWindow.argtypes = ulong, [voidp]
+    x.XDefaultScreen.argtypes = [voidp]
+    x.XDisplayWidth.argtypes = x.XDisplayHeight.argtypes = [voidp, ctypes.c_int]
+    x.XInternAtom.restype, x.XInternAtom.argtypes = ulong, [voidp, ctypes.c_char_p, ctypes.c_int]
+    x.XGetWindowProperty.argtypes = [voidp, ulong, ulong, ctypes.c_long, ctypes.c_long, ctypes.c_int, ulong,
+                                     ctypes.POINTER(ulong), ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ulong),
+                                     ctypes.POINTER(ulong), ctypes.POINTER(voidp)]
+    x.XQueryTree.argtypes = [voidp, ulong, ctypes.POINTER(ulong), ctypes.POINTER(ulong),
+                             ctypes.POINTER(ctypes.POINTER(ulong)), ctypes.POINTER(ctypes.c_uint)]
+    x.XMoveResizeWindow.argtypes = [voidp, ulong, ctypes.c_int, ctypes.c_int, ctypes.c_uint, ctypes.c_uint]
+    x.XFree.argtypes, x.XFlush.argtypes, x.XCloseDisplay.argtypes = [voidp], [voidp], [voidp]
+
+    def first_long(display, window, atom, kind) -> int | None:
+        """The first 32-bit item of ``window``'s property ``atom`` (of type ``kind``), or None."""
+        actual, fmt, count, after, data = ulong(), ctypes.c_int(), ulong(), ulong(), voidp()
+        if atom == 0 or x.XGetWindowProperty(display, window, atom, 0, 1, 0, kind, ctypes.byref(actual),
+                                             ctypes.byref(fmt), ctypes.byref(count), ctypes.byref(after),
+                                             ctypes.byref(data)) != 0:
+            return None
+        try:
+            return int(ctypes.cast(data, ctypes.POINTER(ctypes.c_long))[0]) if count.value and data else None
+        finally:
+            if data:
+                x.XFree(data)
+
+    display = x.XOpenDisplay(None)
+    if not display:
+        return False
+    try:
+        root = x.XDefaultRootWindow(display)
+        xa_window, xa_cardinal = 33, 6  # the predefined atoms WINDOW and CARDINAL
+        if first_long(display, root, x.XInternAtom(display, b"_NET_SUPPORTING_WM_CHECK", 1), xa_window) is not None:
+            return False  # a window manager: the window is the user's to size
+        pid_atom = x.XInternAtom(display, b"_NET_WM_PID", 1)
+        screen = x.XDefaultScreen(display)
+        width, height = x.XDisplayWidth(display, screen), x.XDisplayHeight(display, screen)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            root_return, parent, kids, count = ulong(), ulong(), ctypes.POINTER(ulong)(), ctypes.c_uint()
+            mine = []
+            if x.XQueryTree(display, root, ctypes.byref(root_return), ctypes.byref(parent), ctypes.byref(kids),
+                            ctypes.byref(count)):
+                mine = [kids[i] for i in range(count.value)
+                        if first_long(display, kids[i], pid_atom, xa_cardinal) == os.getpid()]
+                if kids:
+                    x.XFree(kids)
+            if mine or time.monotonic() > deadline:
+                break
+            time.sleep(0.05)
+            pid_atom = pid_atom or x.XInternAtom(display, b"_NET_WM_PID", 1)
+        for window in mine:
+            x.XMoveResizeWindow(display, window, 0, 0, width, height)
+        x.XFlush(display)
+        return bool(mine)
+    finally:
+        x.XCloseDisplay(display)
+
+
 def needs_display() -> str | None:
     """Why the viewer cannot open here (no display), or None."""
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
@@ -233,9 +309,12 @@ def view(scenario: Scenario, make_simulation: Callable[[Scenario], Simulation], 
     sim.world.model.vis.global_.fovy = VIEW_FOVY_DEG
     see_through_walls(sim.world.model)
     control = control or ViewerControl()
+    own_window = launch is None
     launch = launch or mujoco.viewer.launch_passive
     handle = launch(sim.world.model, sim.world.data, key_callback=control.key,
                     show_left_ui=False, show_right_ui=False)
+    if own_window:
+        fill_screen_without_window_manager()
     n_ticks = int(round(scenario.duration_s / sim.dt))
     status = ""
     try:
