@@ -26,7 +26,11 @@ def _exit_at_once(line: str):
 
     def handler(_signum, _frame) -> None:
         try:
-            os.write(2, encoded)  # async-signal-safe, unlike print
+            fd = sys.stderr.fileno()  # 2, or its duplicate while a sweep keeps fd 2 from Ray (tether.sweep)
+        except (AttributeError, OSError, ValueError):
+            fd = 2
+        try:
+            os.write(fd, encoded)  # no buffer to finish, unlike print
         except OSError:
             pass
         os._exit(EXIT_INTERRUPTED)
