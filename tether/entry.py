@@ -39,9 +39,11 @@ def _exit_at_once(line: str):
 
 
 def _take_signals(line: str) -> None:
+    """SIGINT (unless ignored), then SIGTERM: once SIGTERM is caught (``SigCgt`` in
+    ``/proc/PID/status``, which Python's own start-up never sets) both are this module's."""
     signals = [signal.SIGTERM]
     if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
-        signals.append(signal.SIGINT)
+        signals.insert(0, signal.SIGINT)
     for sig in signals:
         signal.signal(sig, _exit_at_once(line))
 
