@@ -406,3 +406,39 @@ def test_a_full_disk_under_a_recording_ends_the_run_failed(full_disk, tmp_path):
     assert not (full_disk / "r" / "run.rrd").exists() and not (full_disk / "r" / "run.rrd.segments").exists()
     assert "open the recording" not in proc.stdout and proc.stdout.startswith("failed: hover"), proc.stdout
     assert sorted(p.name for p in full_disk.iterdir()) == ["filler", "r"]
+
+
+API_FULL_DISK = r'''
+import gc, sys, time
+import rerun as rr
+import tether.catalog  # noqa: F401  (the built-in scenarios)
+from sim.scenario import load
+from tether.runner import run
+
+if __name__ == "__main__":  # (the plot painters are spawned: they import this file)
+    result = run(load("hover", duration_s=20.0), sys.argv[1], rrd=True)
+    print(result.status.value, result.metrics["message"], flush=True)
+    del result
+    gc.collect()
+    streams = [o for o in gc.get_objects() if isinstance(o, rr.RecordingStream)]
+    print("streams", len(streams), flush=True)
+'''
+
+
+def test_a_full_disk_under_a_recording_from_the_runner_api_leaves_no_stream(full_disk, tmp_path):
+    """tether.runner.run from Python (no CLI, no os._exit at the end): the recording given up on a full
+    disk releases its stream; the interpreter then exits as any script does, its finalization included
+    (a Rerun stream whose own file writer had failed would wait for ever there)."""
+    (full_disk / "filler").write_bytes(b"\0" * 44 * 1024)
+    script = tmp_path / "api.py"
+    script.write_text(API_FULL_DISK)
+    proc = subprocess.run([sys.executable, str(script), str(full_disk / "r")], cwd=tmp_path, env=ENV,
+                          capture_output=True, text=True, timeout=150)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    lines = proc.stdout.splitlines()
+    assert len(lines) == 2 and lines[0].startswith("failed "), lines
+    assert "recording failed, run.rrd not written: No space left on device" in lines[0], lines  # a segment or
+    assert "(ENOSPC)" in lines[0], lines  # the merge that did not fit
+    assert lines[1] == "streams 0", lines
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert not (full_disk / "r" / "run.rrd").exists() and not (full_disk / "r" / "run.rrd.segments").exists()

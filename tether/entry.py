@@ -71,7 +71,7 @@ def main() -> None:
 def end_process(code: int) -> None:
     """Run the atexit work under the closing handler, then end with ``code`` (``os._exit``: the
     interpreter's finalization collects nothing, so no object's ``__del__`` can wait there either,
-    e.g. a Rerun stream whose file writer failed). ``python -m tether.cli`` ends here too."""
+    e.g. a library's stream that waits on a failed writer). ``python -m tether.cli`` ends here too."""
     _flush()
     _take_signals("tether: interrupted while closing; the files above are written")
     atexit._run_exitfuncs()
