@@ -105,6 +105,29 @@ def test_a_signal_early_in_a_sweep_is_an_interrupt(tmp_path):
     assert group_gone(driver.proc.pid), group_members(driver.proc.pid)
 
 
+def _forkserver_started(pid: int) -> bool:
+    """Whether ``pid`` has started its pool's forkserver (the workers are being started from then on)."""
+    from tests.test_signals import children, command
+
+    return any("forkserver" in command(child) for child in children(pid))
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_a_signal_while_the_pool_starts_its_workers_is_clean(sig, tmp_path):
+    """The group's signal as the pool's forkserver appears: the workers are being started and open the
+    pool's queues by name. It is held until each is started and known to the pool, which kills them:
+    exit 130, no worker's bootstrap traceback, no process of the group left."""
+    driver = Driver(tmp_path, str(sweep_file(tmp_path, "seeds = 4\n", 2.0)), "--out", "out", "--workers", "2",
+                    "--no-report")
+    wait_until(lambda: _forkserver_started(driver.proc.pid), driver, timeout=120)
+    os.killpg(driver.proc.pid, sig)
+    code = driver.wait(timeout=60)
+    text = driver.output()
+    assert code == 130, text
+    assert "Traceback" not in text and "leaked" not in text and "Error" not in text, text
+    assert group_gone(driver.proc.pid), group_members(driver.proc.pid)
+
+
 def test_a_second_driver_in_the_folder_is_refused(tmp_path):
     from tether.sweep import ResultsFolder
 

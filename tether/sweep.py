@@ -641,7 +641,13 @@ class ProcessPool(Engine):
         self.pool = ProcessPoolExecutor(max_workers=max(1, min(self.workers, len(trials))),
                                         mp_context=get_context("forkserver"), initializer=_end_with_driver,
                                         initargs=(os.getpid(),))
-        futures = [self.pool.submit(run_trial, trial, recordings) for trial in trials]
+        from viz.painter import group_signals_deferred
+
+        # The workers start in these submits: a signal is held until each is started and in the pool's
+        # table (close() kills those), not raised inside a start, which would leave a worker the pool
+        # does not know opening the pool's queues by name after this process dropped them.
+        with group_signals_deferred():
+            futures = [self.pool.submit(run_trial, trial, recordings) for trial in trials]
         try:
             for future in as_completed(futures):
                 yield future.result()
@@ -677,6 +683,7 @@ def _end_with_driver(driver_pid: int) -> None:
     # install their own handlers (sim.loop): a signal then ends that trial "interrupted".
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, (signal.SIGINT, signal.SIGTERM))  # started with them held
 
     def watch() -> None:
         while True:
