@@ -105,6 +105,29 @@ def test_a_signal_early_in_a_sweep_is_an_interrupt(tmp_path):
     assert group_gone(driver.proc.pid), group_members(driver.proc.pid)
 
 
+def _forkserver_started(pid: int) -> bool:
+    """Whether ``pid`` has started its pool's forkserver (the workers are being started from then on)."""
+    from tests.test_signals import children, command
+
+    return any("forkserver" in command(child) for child in children(pid))
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_a_signal_while_the_pool_starts_its_workers_is_clean(sig, tmp_path):
+    """The group's signal as the pool's forkserver appears: the workers are being started and open the
+    pool's queues by name. It is held until each is started and known to the pool, which kills them:
+    exit 130, no worker's bootstrap traceback, no process of the group left."""
+    driver = Driver(tmp_path, str(sweep_file(tmp_path, "seeds = 4\n", 2.0)), "--out", "out", "--workers", "2",
+                    "--no-report")
+    wait_until(lambda: _forkserver_started(driver.proc.pid), driver, timeout=120)
+    os.killpg(driver.proc.pid, sig)
+    code = driver.wait(timeout=60)
+    text = driver.output()
+    assert code == 130, text
+    assert "Traceback" not in text and "leaked" not in text and "Error" not in text, text
+    assert group_gone(driver.proc.pid), group_members(driver.proc.pid)
+
+
 def test_a_second_driver_in_the_folder_is_refused(tmp_path):
     from tether.sweep import ResultsFolder
 
@@ -266,28 +289,73 @@ def _ray_head_group(address: str) -> int:
     raise AssertionError(f"no ray start --head on port {port}")
 
 
+def test_ray_core_logs_are_kept_off_the_sweeps_stderr(tmp_path):
+    """What RayCluster does while Ray's core worker lives in the driver (its C++ writes ERROR records to
+    file descriptor 2 at any moment, e.g. when a raylet dies): fd 2 goes aside, Python's stderr and the
+    entry point's signal line still reach the terminal, and fd 2 is back once the engine closes. Made
+    with the real file descriptors in a process of its own (a raylet's death writes the record only
+    sometimes: the test above kills one for real)."""
+    script = tmp_path / "aside.py"
+    script.write_text(
+        "import os, sys\n"
+        "from tether.sweep import _CoreLogsAside\n"
+        "aside = _CoreLogsAside()\n"
+        "os.write(2, b'[2026-01-01 00:00:00,000 E 1 2] task_manager.cc:1545: Failed to push error\\n')\n"
+        "print('python line', file=sys.stderr)\n"
+        "aside.restore()\n"
+        "os.write(2, b'fd 2 again\\n')\n"
+        "aside = _CoreLogsAside()\n"
+        "from tether.entry import _take_signals\n"
+        "_take_signals('tether: interrupted while closing')\n"
+        "import signal; signal.raise_signal(signal.SIGTERM)\n")
+    proc = subprocess.run([sys.executable, str(script)], env=ENV, cwd=tmp_path, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.split() == "python line fd 2 again tether: interrupted while closing".split(), proc.stderr
+
+
+def _raylet(temp_dir: Path) -> int:
+    """The raylet of the local cluster whose temporary folder is ``temp_dir``."""
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            words = cmdline.read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if words[0].endswith(b"/raylet") and any(str(temp_dir).encode() in word for word in words):
+            return int(cmdline.parent.name)
+    raise AssertionError(f"no raylet under {temp_dir}")
+
+
 @pytest.mark.slow
-def test_a_killed_ray_head_stops_the_sweep_in_seconds_with_one_line(tmp_path, tmp_path_factory):
-    """Every process of the head killed mid-sweep (SIGKILL to its group): Ray itself would notice after a
-    minute and end the process with its own lines (or, for a raylet, ~47 lines of its state); the driver
-    notices within seconds, prints its summary and one line, keeps its rows, and the sweep resumes."""
+@pytest.mark.parametrize("killed", ["head", "raylet"])
+def test_a_killed_ray_head_stops_the_sweep_in_seconds_with_one_line(killed, tmp_path, tmp_path_factory):
+    """Every process of the head killed mid-sweep (SIGKILL to its group), or its raylet alone: Ray itself
+    would notice after a minute and end the process with its own lines (or, for a raylet, ~47 lines of its
+    state), and its core worker in the driver writes its ERROR records to file descriptor 2 (``Failed to
+    push error to driver``); the driver notices within seconds, prints its summary and one line, keeps its
+    rows, and the sweep resumes."""
     pytest.importorskip("ray")
     from tether.sweep import local_ray_cluster
 
     sweep = sweep_file(tmp_path, "seeds = 6\n", 2.0)
     out = tmp_path / "out"
-    with local_ray_cluster(num_cpus=1, temp_dir=tmp_path_factory.mktemp("ray")) as address:
+    temp_dir = tmp_path_factory.mktemp("ray")
+    with local_ray_cluster(num_cpus=1, temp_dir=temp_dir) as address:
         driver = Driver(tmp_path, str(sweep), "--out", "out", "--ray", address, "--no-report")
         wait_until(lambda: driver.stored(out) >= 2, driver)
-        killed = time.monotonic()
-        os.killpg(_ray_head_group(address), signal.SIGKILL)
+        killed_at = time.monotonic()
+        if killed == "head":
+            os.killpg(_ray_head_group(address), signal.SIGKILL)
+        else:
+            os.kill(_raylet(temp_dir), signal.SIGKILL)
         code = driver.wait(timeout=60)
-        took = time.monotonic() - killed
+        took = time.monotonic() - killed_at
     text = driver.output()
-    print(f"exit {code} {took:.1f} s after the head was killed")
+    print(f"exit {code} {took:.1f} s after the {killed} was killed")
     assert code == 1, text
     assert took < 20.0, f"{took:.1f} s to stop"  # ~2 s to notice, ray.shutdown bounded at 10 s
     assert "Traceback" not in text and "state-dump" not in text and "raylet" not in text, text
+    assert ".cc:" not in text, text  # no record of Ray's C++ logging (they are in the session's logs/)
     progress = re.compile(r"  s: \d+/6 trials, ")
     lines = [line for line in driver.err_path.read_text().splitlines() if not progress.match(line)]
     assert lines == [f"stopped: the Ray cluster at {address} is gone; run the same command again to resume"], text
@@ -361,3 +429,39 @@ def test_a_full_disk_under_a_recording_ends_the_run_failed(full_disk, tmp_path):
     assert not (full_disk / "r" / "run.rrd").exists() and not (full_disk / "r" / "run.rrd.segments").exists()
     assert "open the recording" not in proc.stdout and proc.stdout.startswith("failed: hover"), proc.stdout
     assert sorted(p.name for p in full_disk.iterdir()) == ["filler", "r"]
+
+
+API_FULL_DISK = r'''
+import gc, sys, time
+import rerun as rr
+import tether.catalog  # noqa: F401  (the built-in scenarios)
+from sim.scenario import load
+from tether.runner import run
+
+if __name__ == "__main__":  # (the plot painters are spawned: they import this file)
+    result = run(load("hover", duration_s=20.0), sys.argv[1], rrd=True)
+    print(result.status.value, result.metrics["message"], flush=True)
+    del result
+    gc.collect()
+    streams = [o for o in gc.get_objects() if isinstance(o, rr.RecordingStream)]
+    print("streams", len(streams), flush=True)
+'''
+
+
+def test_a_full_disk_under_a_recording_from_the_runner_api_leaves_no_stream(full_disk, tmp_path):
+    """tether.runner.run from Python (no CLI, no os._exit at the end): the recording given up on a full
+    disk releases its stream; the interpreter then exits as any script does, its finalization included
+    (a Rerun stream whose own file writer had failed would wait for ever there)."""
+    (full_disk / "filler").write_bytes(b"\0" * 44 * 1024)
+    script = tmp_path / "api.py"
+    script.write_text(API_FULL_DISK)
+    proc = subprocess.run([sys.executable, str(script), str(full_disk / "r")], cwd=tmp_path, env=ENV,
+                          capture_output=True, text=True, timeout=150)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    lines = proc.stdout.splitlines()
+    assert len(lines) == 2 and lines[0].startswith("failed "), lines
+    assert "recording failed, run.rrd not written: No space left on device" in lines[0], lines  # a segment or
+    assert "(ENOSPC)" in lines[0], lines  # the merge that did not fit
+    assert lines[1] == "streams 0", lines
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert not (full_disk / "r" / "run.rrd").exists() and not (full_disk / "r" / "run.rrd.segments").exists()

@@ -571,6 +571,21 @@ def _raise_interrupt(signum, _frame) -> None:
     raise KeyboardInterrupt
 
 
+def _signals_unraisable(default):
+    """``sys.unraisablehook`` during a command: the KeyboardInterrupt of a signal this process took
+    (``_interrupted``) that Python could not raise, because it landed in a ctypes or compiled callback,
+    a ``__del__`` or a weakref callback (numba's LLVM object cache, during a run's set-up), is noted
+    already and sent again (``_resend_swallowed``): not printed ("Exception ignored ... Traceback"
+    over the command's one line). Anything else goes to ``default``."""
+
+    def hook(unraisable) -> None:
+        if isinstance(unraisable.exc_value, KeyboardInterrupt) and _interrupted:
+            return
+        default(unraisable)
+
+    return hook
+
+
 def _resend_swallowed(signum: int, generation: int) -> None:
     """The KeyboardInterrupt raised for a signal is lost when it lands in code that swallows
     exceptions: a ``__del__`` or a weakref callback run by the garbage collector, a ctypes or compiled
@@ -617,6 +632,8 @@ def main(argv: list[str] | None = None) -> int:
         _interrupted.clear()
         signals = [signal.SIGTERM] + [signal.SIGINT] * (signal.getsignal(signal.SIGINT) is not signal.SIG_IGN)
         previous = {sig: signal.signal(sig, _raise_interrupt) for sig in signals}
+    unraisable = sys.unraisablehook
+    sys.unraisablehook = _signals_unraisable(unraisable)
     try:
         code = handlers[args.command](args)
         sys.stdout.flush()  # here, not at exit: a closed pipe or a full disk is seen by the barrier
@@ -635,6 +652,7 @@ def main(argv: list[str] | None = None) -> int:
         print("\ntether: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     finally:
+        sys.unraisablehook = unraisable
         for sig, handler in previous.items():
             if handler is not None:
                 signal.signal(sig, handler)

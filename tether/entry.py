@@ -26,7 +26,11 @@ def _exit_at_once(line: str):
 
     def handler(_signum, _frame) -> None:
         try:
-            os.write(2, encoded)  # async-signal-safe, unlike print
+            fd = sys.stderr.fileno()  # 2, or its duplicate while a sweep keeps fd 2 from Ray (tether.sweep)
+        except (AttributeError, OSError, ValueError):
+            fd = 2
+        try:
+            os.write(fd, encoded)  # no buffer to finish, unlike print
         except OSError:
             pass
         os._exit(EXIT_INTERRUPTED)
@@ -35,9 +39,11 @@ def _exit_at_once(line: str):
 
 
 def _take_signals(line: str) -> None:
+    """SIGINT (unless ignored), then SIGTERM: once SIGTERM is caught (``SigCgt`` in
+    ``/proc/PID/status``, which Python's own start-up never sets) both are this module's."""
     signals = [signal.SIGTERM]
     if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
-        signals.append(signal.SIGINT)
+        signals.insert(0, signal.SIGINT)
     for sig in signals:
         signal.signal(sig, _exit_at_once(line))
 
@@ -65,7 +71,7 @@ def main() -> None:
 def end_process(code: int) -> None:
     """Run the atexit work under the closing handler, then end with ``code`` (``os._exit``: the
     interpreter's finalization collects nothing, so no object's ``__del__`` can wait there either,
-    e.g. a Rerun stream whose file writer failed). ``python -m tether.cli`` ends here too."""
+    e.g. a library's stream that waits on a failed writer). ``python -m tether.cli`` ends here too."""
     _flush()
     _take_signals("tether: interrupted while closing; the files above are written")
     atexit._run_exitfuncs()

@@ -49,7 +49,7 @@ import socket
 import subprocess
 import sys
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from itertools import product
@@ -641,7 +641,13 @@ class ProcessPool(Engine):
         self.pool = ProcessPoolExecutor(max_workers=max(1, min(self.workers, len(trials))),
                                         mp_context=get_context("forkserver"), initializer=_end_with_driver,
                                         initargs=(os.getpid(),))
-        futures = [self.pool.submit(run_trial, trial, recordings) for trial in trials]
+        from viz.painter import group_signals_deferred
+
+        # The workers start in these submits: a signal is held until each is started and in the pool's
+        # table (close() kills those), not raised inside a start, which would leave a worker the pool
+        # does not know opening the pool's queues by name after this process dropped them.
+        with group_signals_deferred():
+            futures = [self.pool.submit(run_trial, trial, recordings) for trial in trials]
         try:
             for future in as_completed(futures):
                 yield future.result()
@@ -677,6 +683,7 @@ def _end_with_driver(driver_pid: int) -> None:
     # install their own handlers (sim.loop): a signal then ends that trial "interrupted".
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, (signal.SIGINT, signal.SIGTERM))  # started with them held
 
     def watch() -> None:
         while True:
@@ -718,6 +725,7 @@ class RayCluster(Engine):
         import threading
 
         outcome: list[BaseException | None] = []
+        self._stderr = _CoreLogsAside()  # before ray.init: its core worker logs from its first line
 
         def connect() -> None:
             try:
@@ -728,12 +736,18 @@ class RayCluster(Engine):
 
         threading.Thread(target=connect, name="ray-init", daemon=True).start()
         deadline = time.monotonic() + RAY_INIT_TIMEOUT_S
-        while not outcome and time.monotonic() < deadline:
-            time.sleep(0.05)  # not Thread.join: a signal still interrupts the wait
-        if not outcome:
+        try:
+            while not outcome and time.monotonic() < deadline:
+                time.sleep(0.05)  # not Thread.join: a signal still interrupts the wait
+        except BaseException:
+            self._stderr.restore()
+            raise
+        if not outcome:  # (fd 2 stays aside: the thread goes on retrying, and logging)
             raise RayTimeout("--ray", f"{address} answered like a gRPC server but ray.init had not connected "
                                       f"within {RAY_INIT_TIMEOUT_S:.0f} s: is it a Ray cluster's GCS port "
                                       "(ray start --head --port)?")
+        if outcome[0] is not None:
+            self._stderr.restore()
         if isinstance(outcome[0], (ConnectionError, RuntimeError, ValueError)):
             raise ConfigError("--ray", f"cannot connect to Ray at {address!r}: "
                                        f"{str(outcome[0]).splitlines()[0]}") from None
@@ -785,6 +799,7 @@ class RayCluster(Engine):
 
         ray = self.ray
         if not ray.is_initialized():
+            self._stderr.restore()
             return
         finished = threading.Event()
 
@@ -795,8 +810,51 @@ class RayCluster(Engine):
                 finished.set()
 
         threading.Thread(target=shutdown, name="ray-shutdown", daemon=True).start()
-        if not finished.wait(RAY_SHUTDOWN_TIMEOUT_S):
+        if finished.wait(RAY_SHUTDOWN_TIMEOUT_S):
+            self._stderr.restore()
+        else:  # its threads may still log: file descriptor 2 stays aside until the process ends
             atexit.unregister(ray.shutdown)
+
+
+class _CoreLogsAside:
+    """File descriptor 2 pointed at /dev/null while Ray's core worker lives in this process, and
+    ``sys.stderr`` (Python's own writes: the sweep's progress, its summary, tracebacks) on a
+    duplicate of the original, so they reach the terminal as before.
+
+    Ray's C++ core worker and GCS client (Ray 2.60) write every log record of level ERROR to file
+    descriptor 2 as well as to the driver's log file in the Ray session's ``logs/``
+    (``python-core-driver-*.log``): a raylet killed during a sweep printed ``task_manager.cc: Failed
+    to push error to driver for task ...`` between the sweep's lines. ``RAY_BACKEND_LOG_LEVEL=fatal``
+    would drop those records from the log file too, and prints a line of its own; nothing here is
+    lost (the log file has every record). Not done when the user asked for Ray's logs on stderr
+    (``RAY_LOG_TO_STDERR=1``: the core worker has no log file then)."""
+
+    def __init__(self):
+        self.python_stderr = None
+        if os.environ.get("RAY_LOG_TO_STDERR") == "1":
+            return
+        try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (AttributeError, OSError, ValueError):  # no stderr at all: nothing to keep apart
+            return
+        stream = sys.stderr
+        sys.stderr = open(saved, "w", buffering=1, encoding=getattr(stream, "encoding", None) or "utf-8",
+                          errors=getattr(stream, "errors", None) or "backslashreplace")
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 2)
+        os.close(devnull)
+        self.python_stderr, self._saved = stream, saved
+
+    def restore(self) -> None:
+        """File descriptor 2 back where it was; ``sys.stderr`` back to the original object (the duplicate
+        stays open: a progress bar may still hold it, and it writes to the same file)."""
+        if self.python_stderr is None:
+            return
+        with suppress(OSError, ValueError):
+            sys.stderr.flush()
+        os.dup2(self._saved, 2)
+        sys.stderr, self.python_stderr = self.python_stderr, None
 
 
 def _quiet_cluster_errors(ray) -> None:

@@ -26,7 +26,7 @@ in the file.
 
 The file is written as complete segment files (``run.rrd.segments/``,
 each with its footer; the first after 1 s of wall time, then ever longer up
-to 30 s) and
+to 30 s; the stream logs into memory and tether writes the files) and
 merged into ``run.rrd`` when the run ends; a run killed outright leaves its
 finished segments readable (``RrdReader(...).store()``; open them together
 in the viewer: they share one recording id).
@@ -86,12 +86,10 @@ SEGMENT_FIRST_S = 1.0
 SEGMENT_MAX_S = 30.0
 SEGMENTS_SUFFIX = ".segments"
 RADIO_MAP_LIFT_M = 0.01  # the radio map's mesh lies this far above the floor, m
-# Every wait on Rerun's file writer is bounded: once it has failed (a full disk) a flush without a timeout,
-# and a disconnect after it, wait for ever. A segment holds at most FILE_FLUSH_BYTES of unwritten rows.
+# Every flush of the recording's streams (memory sinks: tether writes the files) is bounded.
 SEGMENT_FLUSH_TIMEOUT_S = 20.0
 MERGE_FLUSH_TIMEOUT_S = 20.0  # ... plus a second per MERGE_BYTES_PER_S of the segments
 MERGE_BYTES_PER_S = 10 * 1024 * 1024
-DISCONNECT_TIMEOUT_S = 5.0
 MERGE_SPARE_BYTES = 256 * 1024  # free space the merge needs beyond the segments' own size
 PROPERTIES = "/__properties"  # Rerun's recording properties entity  # ... in run.rrd.segments/, merged into run.rrd when the run ends
 
@@ -125,30 +123,6 @@ def _rerun_writing(path: Path):
             code = int(found.group(1))
             raise OSError(code, os.strerror(code), str(path)) from None
         raise OSError(errno.EIO, f"Rerun could not write it ({str(err).splitlines()[0]})", str(path)) from None
-
-# Streams whose file writer failed, kept for the life of the process: the one dropped, Rerun (0.41) flushes
-# it without a timeout when it or any other stream is collected (``disconnect_orphaned_recordings``), and
-# waits for ever. The process ends with os._exit (tether.entry), which collects nothing.
-_FAILED_STREAMS: list = []
-
-
-def _bounded(call, timeout_s: float) -> bool:
-    """``call()`` in a thread of its own, waited for ``timeout_s``: whether it returned."""
-    import threading
-
-    finished = threading.Event()
-
-    def target() -> None:
-        try:
-            call()
-        except Exception:  # noqa: BLE001  (a stream that failed: the recording is given up anyway)
-            pass
-        finally:
-            finished.set()
-
-    threading.Thread(target=target, name="rerun-wait", daemon=True).start()
-    return finished.wait(timeout_s)
-
 
 class LiveViewer:
     """Rerun's gRPC server and web viewer on ``host`` (default 127.0.0.1:
@@ -308,43 +282,36 @@ class RerunRecorder(Observer):
         self._log_static(scenario_name)
 
     def _segment_stream(self) -> rr.RecordingStream:
-        """A stream writing the next complete segment file (same recording id)."""
+        """The file's stream: a memory sink (``binary_stream``) whose bytes, read at each rotation, are
+        one complete .rrd file (header to footer), written here by Python. Rerun's own file writer is
+        never used: once it has failed (a full disk) every flush, disconnect, sink change or collection
+        of its stream waits for ever (rerun-sdk 0.41), so a stream given up could never be released."""
         batching = rr.ChunkBatcherConfig()
         batching.flush_tick = FILE_FLUSH_PERIOD
         batching.flush_num_bytes = FILE_FLUSH_BYTES
         stream = rr.RecordingStream("tether", recording_id=self.recording_id, batcher_config=batching)
-        part = self.segments / f"part-{self._segment_count:05d}.rrd"
-        with _rerun_writing(part):
-            stream.save(str(part), default_blueprint=default_blueprint())
-        self._segment_count += 1
+        self._bytes = stream.binary_stream()
+        stream.send_blueprint(default_blueprint())
         return stream
 
     def _file_stream(self) -> rr.RecordingStream:
         return self.rec.file_stream if isinstance(self.rec, _Tee) else self.rec
 
-    def _finish(self, stream: rr.RecordingStream, path: Path, timeout_s: float) -> None:
-        """Flush ``stream`` to ``path`` and disconnect it, each wait bounded; OSError if it failed."""
-        try:
-            with _rerun_writing(path):
-                stream.flush(timeout_sec=timeout_s)
-        except OSError:
-            _FAILED_STREAMS.append(stream)
-            raise
-        if not _bounded(stream.disconnect, DISCONNECT_TIMEOUT_S):
-            _FAILED_STREAMS.append(stream)
-            raise OSError(errno.EIO, f"Rerun's writer did not finish it within {DISCONNECT_TIMEOUT_S:g} s", str(path))
+    def _write_segment(self) -> None:
+        """What the stream holds since the last segment, as the next complete segment file; OSError if
+        it could not be written (its partial file is removed with the segments)."""
+        part = self.segments / f"part-{self._segment_count:05d}.rrd"
+        with _rerun_writing(part):
+            data = self._bytes.read(flush=True, flush_timeout_sec=SEGMENT_FLUSH_TIMEOUT_S)
+        partial = part.with_name(part.name + ".partial")
+        with open(partial, "wb") as file:
+            file.write(data or b"")
+        os.replace(partial, part)  # a part-*.rrd is complete, even in a run killed while writing it
+        self._segment_count += 1
 
     def _rotate(self) -> None:
-        """Finish the current segment (a complete .rrd file, footer included) and start the next."""
-        old = self._file_stream()
-        finished = self.segments / f"part-{self._segment_count - 1:05d}.rrd"
         try:
-            fresh = self._segment_stream()
-            if isinstance(self.rec, _Tee):
-                self.rec.file_stream = fresh
-            else:
-                self.rec = fresh
-            self._finish(old, finished, SEGMENT_FLUSH_TIMEOUT_S)
+            self._write_segment()
         except OSError as err:
             self._give_up(err)
         self._segment_period_s = min(2 * self._segment_period_s, SEGMENT_MAX_S)
@@ -362,16 +329,32 @@ class RerunRecorder(Observer):
                           str(self.path))
         merged = rr.RecordingStream("tether", recording_id=self.recording_id)
         try:
+            merged_bytes = merged.binary_stream()
+            merged.send_blueprint(default_blueprint())
             with _rerun_writing(self.path):
-                merged.save(str(self.path), default_blueprint=default_blueprint())
-                for part in parts:  # each segment has its own recording properties: the merged file has one set
+                for part in parts:  # each segment's first chunks are the recording properties: one set here
                     rr.send_chunks((c for c in RrdReader(part).stream()
                                     if not str(c.entity_path).startswith(PROPERTIES)), recording=merged)
-        except OSError:
-            _FAILED_STREAMS.append(merged)
-            raise
-        self._finish(merged, self.path, MERGE_FLUSH_TIMEOUT_S + size / MERGE_BYTES_PER_S)
+                data = merged_bytes.read(flush=True,
+                                         flush_timeout_sec=MERGE_FLUSH_TIMEOUT_S + size / MERGE_BYTES_PER_S)
+        finally:
+            merged.disconnect()
+        with open(self.path, "wb") as file:
+            file.write(data or b"")
         shutil.rmtree(self.segments)
+
+    def _release(self) -> None:
+        """The file's stream disconnected (a memory sink: it returns at once) and dropped, on every
+        path: an API user's run leaves no Rerun stream behind."""
+        stream = self._file_stream()
+        if stream is None:
+            return
+        stream.disconnect()
+        if isinstance(self.rec, _Tee):
+            self.rec.file_stream = None
+        else:
+            self.rec = None
+        self._bytes = None
 
     def _give_up(self, err: OSError) -> None:
         """The recording cannot be written: remove its files (tether's own), stop writing, and end the
@@ -382,8 +365,7 @@ class RerunRecorder(Observer):
             code = errno.ENOSPC
         reason = err.strerror if code == err.errno else os.strerror(code)
         self.failed = f"recording failed, {self.path.name} not written: {reason} ({errno.errorcode.get(code, code)})"
-        _FAILED_STREAMS.append(self._file_stream())
-        rr.unregister_shutdown()  # Rerun's exit handler would flush the failed stream, waiting for ever
+        self._release()
         shutil.rmtree(self.segments, ignore_errors=True)
         with contextlib.suppress(OSError):
             self.path.unlink()
@@ -518,9 +500,9 @@ class RerunRecorder(Observer):
                       tick=tick)
         if isinstance(self.rec, _Tee):
             self.rec.live_stream.flush()
-        last = self.segments / f"part-{self._segment_count - 1:05d}.rrd"
         try:
-            self._finish(self._file_stream(), last, SEGMENT_FLUSH_TIMEOUT_S)
+            self._write_segment()
+            self._release()
             self._merge()
         except OSError as err:
             self._give_up(err)
