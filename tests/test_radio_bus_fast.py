@@ -94,16 +94,22 @@ def test_the_compiled_bus_is_the_reference_loop(case):
     assert all(_same(summaries[0][key], summaries[1][key]) for key in summaries[0])
 
 
+def one_medium_both_buses(n: int, snr_db: float, seed: int, period_s: float):
+    """The compiled bus and the reference, same seed, over ``n`` robots all in one another's carrier sense
+    at ``snr_db``: (buses, link)."""
+    snr = np.full((n, n), snr_db)
+    np.fill_diagonal(snr, np.nan)
+    params = BusParameters.from_preset(IEEE802154)
+    buses = [cls(params, np.random.default_rng(seed), period_s, robot_count=n)
+             for cls in (MessageBus, ReferenceMessageBus)]
+    return buses, link_conditions(snr, True)
+
+
 def test_a_saturated_medium_matches_the_reference_over_many_ticks():
     """Ten robots in one another's carrier sense, each broadcasting every tick more than the air carries:
     the queues grow and both buses still agree, draw for draw."""
     n, period_s = 10, 0.01
-    params = BusParameters.from_preset(IEEE802154)
-    snr = np.full((n, n), 4.0)
-    np.fill_diagonal(snr, np.nan)
-    link = link_conditions(snr, True)
-    buses = [cls(params, np.random.default_rng(11), period_s, robot_count=n)
-             for cls in (MessageBus, ReferenceMessageBus)]
+    buses, link = one_medium_both_buses(n, 4.0, 11, period_s)
     for tick in range(120):
         for bus in buses:
             for robot in range(n):
@@ -232,12 +238,7 @@ def test_latest_only_broadcasts_over_a_saturated_medium_match_the_reference():
     the air carries, sent as one outbox per tick: the leftovers superseded each tick as the reference's
     plain filter does, draw for draw."""
     n, period_s = 12, 0.01
-    params = BusParameters.from_preset(IEEE802154)
-    snr = np.full((n, n), 8.0)
-    np.fill_diagonal(snr, np.nan)
-    link = link_conditions(snr, True)
-    buses = [cls(params, np.random.default_rng(5), period_s, robot_count=n)
-             for cls in (MessageBus, ReferenceMessageBus)]
+    buses, link = one_medium_both_buses(n, 8.0, 5, period_s)
     for tick in range(80):
         outbox = broadcasts("state", np.arange(n) + tick, 8, latest_only=True, as_arrays=True)
         if tick % 7 == 0:

@@ -83,6 +83,17 @@ class Run:
             raise AssertionError(f"no exit {WAIT_LIMIT_S:g} s after {signal.Signals(sig).name}: {self.output()}")
         return time.monotonic() - sent
 
+    def ends_after_killing(self, pid: int, what: str) -> float:
+        """SIGKILL ``pid``, one of the run's children (``what``); the seconds until the run's process exited."""
+        killed = time.monotonic()
+        os.kill(pid, signal.SIGKILL)
+        try:
+            self.proc.wait(timeout=WAIT_LIMIT_S)
+        except subprocess.TimeoutExpired:
+            self.kill()
+            raise AssertionError(f"the run went on after its {what} died: {self.output()}")
+        return time.monotonic() - killed
+
     def kill(self) -> None:
         try:
             os.killpg(self.proc.pid, signal.SIGKILL)
@@ -307,16 +318,9 @@ def test_a_signal_while_closing_ends_the_run_in_seconds(sig, tmp_path):
 def test_a_killed_video_renderer_ends_the_run_failed(tmp_path):
     run = Run(tmp_path, str(long_tiny(tmp_path)), "--rrd", *VIDEO)
     run.wait_for(lambda: run.ticking() and renderer_pid(run.proc.pid) is not None)
-    renderer = renderer_pid(run.proc.pid)
-    killed = time.monotonic()
-    os.kill(renderer, signal.SIGKILL)
-    try:
-        run.proc.wait(timeout=WAIT_LIMIT_S)
-    except subprocess.TimeoutExpired:
-        run.kill()
-        raise AssertionError(f"the run went on after its renderer died: {run.output()}")
-    print(f"exit {time.monotonic() - killed:.2f} s after the renderer was killed")
-    assert time.monotonic() - killed < 10.0
+    took = run.ends_after_killing(renderer_pid(run.proc.pid), "renderer")
+    print(f"exit {took:.2f} s after the renderer was killed")
+    assert took < 10.0
     assert run.proc.returncode == 1, run.output()
     run.assert_clean()
     metrics = run.metrics()
@@ -332,14 +336,7 @@ def test_a_killed_renderer_helper_ends_the_run_failed_naming_it(tmp_path):
     # 160 x 120 at 10 fps: the renderer starts its helpers after 3 s of sim time (HELPERS_AFTER_FRAMES).
     run = Run(tmp_path, str(long_tiny(tmp_path)), *VIDEO)
     run.wait_for(lambda: run.ticking() and helper_pid(run.proc.pid) is not None, timeout_s=120)
-    killed = time.monotonic()
-    os.kill(helper_pid(run.proc.pid), signal.SIGKILL)
-    try:
-        run.proc.wait(timeout=WAIT_LIMIT_S)
-    except subprocess.TimeoutExpired:
-        run.kill()
-        raise AssertionError(f"the run went on after a renderer helper died: {run.output()}")
-    assert time.monotonic() - killed < 10.0
+    assert run.ends_after_killing(helper_pid(run.proc.pid), "renderer helper") < 10.0
     assert run.proc.returncode == 1, run.output()
     run.assert_clean()
     metrics = run.metrics()
