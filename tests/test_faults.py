@@ -333,29 +333,49 @@ def test_a_dead_member_on_its_meeting_point_is_judged_absent_by_its_silence(tmp_
     assert "delay bound of" in metrics["message"] and "broken at t =" in metrics["message"]
 
 
+def test_a_member_that_came_early_waits_for_one_that_is_on_time_without_giving_it_up(tmp_path):
+    """random_meeting, intermittent-8, seed 0, fault-free, the default 60 s member timeout: robot 1 reaches
+    team 7's point at 23 s, robot 7 (busy with team 6's meeting at 47 s) on time for the planned 104 s. The
+    wait counts from the planned time, so robot 1 waits 81 s and nobody is given up (counted from robot 1's
+    arrival, robot 7 was given up at 83 s, 21 s before the meeting was due)."""
+    from tether.runner import run
+
+    metrics = run(load("intermittent-8", ['strategy.kind="random_meeting"'], seed=0, duration_s=120.0),
+                  tmp_path / "out").metrics
+    assert metrics["status"] == "completed", metrics["message"]
+    assert metrics["meetings_missed"] == 0 and metrics["members_given_up"] == [], metrics["members_given_up"]
+    assert metrics["max_wait_s"] > metrics["member_timeout_s"]  # longer than the timeout, and not given up
+    assert metrics["delay_bound_held"] is True
+
+
 def test_a_late_member_given_up_finishes_its_planned_path_to_the_point_first():
-    """random_meeting, intermittent-8, seed 0: robot 7 is given up at 83 s while still on its way. Its next
+    """random_meeting, intermittent-8, seed 0, a 0.5 s member timeout: team 6's meeting of epoch 3 is planned
+    for 188 s and robot 6 reaches its point 0.66 s later, so it is given up while still on its way. Its next
     path starts at this meeting's point, so it goes on along its own planned path to the point (not
     straight to the next path across the walls) and only then on to its next meeting."""
-    scenario = load("intermittent-8", ['strategy.kind="random_meeting"'], seed=0, duration_s=120.0)
+    late, duration_s = 6, 195.0
+    scenario = load("intermittent-8", ['strategy.kind="random_meeting"', "strategy.member_timeout_s=0.5"], seed=0,
+                    duration_s=duration_s)
     from tether.runner import build_simulation
 
     simulation = build_simulation(scenario)
     strategy = simulation.strategy
     held = None
-    while simulation.time_s < 120.0:
+    while simulation.time_s < duration_s:
         frame, _ = simulation.tick(decorations_wanted=False)
-        segment = strategy.queues[7][0]
+        segment = strategy.queues[late][0]
         if held is None and segment.meeting.held_s is not None:
-            held = segment  # the meeting went on without robot 7; its head segment is still the one there
-            assert 7 in segment.meeting.absent and (7, segment.meeting.held_s) in strategy.members_given_up
+            held = segment  # the meeting went on without the late robot; its head segment is still the one there
+            assert late in segment.meeting.absent and (late, segment.meeting.held_s) in strategy.members_given_up
+            # given up one timeout after the meeting's planned time, not after its team mate's early arrival
+            assert segment.meeting.held_s == pytest.approx(segment.meeting.planned_time_s + 0.5, abs=0.05)
             assert not segment.at_end(simulation.time_s)
         if held is not None and segment is not held:
             # It left the held meeting's segment only at that segment's end, at the meeting's point.
             assert held.at_end(simulation.time_s)
             end = held.timed.path.positions[-1]
-            assert np.linalg.norm(frame.observation.position[7, :2] - end) < 0.2  # the body is there too
+            assert np.linalg.norm(frame.observation.position[late, :2] - end) < 0.2  # the body is there too
             assert segment.timed.path.positions[0] == pytest.approx(end)
             break
     else:
-        raise AssertionError("robot 7 never left the meeting held without it")
+        raise AssertionError(f"robot {late} never left the meeting held without it")

@@ -63,9 +63,9 @@ class IntermittentParams:
     # Under a real radio: a meeting whose members' records have not all arrived this long after
     # its exchange began ends without them (counted in meetings_timed_out), s
     exchange_timeout_s: float = param(20.0, unit="s", above=0.0, max=3600.0)
-    # a meeting whose present members have all waited this long at their points for a member who
-    # has not arrived is held without it (counted in meetings_missed); inf: wait for ever, as the
-    # schedule of Khodayi-mehr et al. 2019 assumes, s
+    # a meeting whose present members have all waited this long at their points, and this long past its
+    # planned time, for a member who has not arrived is held without it (counted in meetings_missed);
+    # inf: wait for ever, as the schedule of Khodayi-mehr et al. 2019 assumes, s
     member_timeout_s: float = param(60.0, unit="s", above=0.0, allow_inf=True)
     # Under a real radio: a range-records message without an ack this long is sent again, s
     retransmit_after_s: float = task_param("retransmit_after_s")

@@ -619,7 +619,12 @@ class MeetingStrategy(Strategy):
 
     def _absent_members(self, meeting: Meeting, t: float, adjacency: np.ndarray) -> tuple[int, ...]:
         """The members the meeting goes on without once every member at its point has waited
-        ``member_timeout_s`` (empty: keep waiting).
+        ``member_timeout_s`` past the meeting's planned time (empty: keep waiting).
+
+        The wait counts from the later of the last arrival and the planned meeting time: a member that
+        came early (random_meeting's geodesics of different lengths, all planned to end at the meeting
+        time) waits for the others by design, and a member still on its way before the meeting is due is
+        not late. Only a member ``member_timeout_s`` behind the plan is given up.
 
         Absence is judged by what the members hear, never from the simulator's faults: a member counts
         as present when it is at its point (its current segment leading there) and linked, in the team's
@@ -631,7 +636,7 @@ class MeetingStrategy(Strategy):
         if not math.isfinite(timeout) or meeting.held_s is not None or meeting.exchange is not None:
             return ()
         arrived = [r for r in meeting.members if r in meeting.arrivals and self.queues[r][0].meeting is meeting]
-        if not arrived or t - max(meeting.arrivals[r] for r in arrived) < timeout - 1e-9:
+        if not arrived or t - max(meeting.planned_time_s, *(meeting.arrivals[r] for r in arrived)) < timeout - 1e-9:
             return ()
         groups = linked_groups(adjacency, arrived)
         largest = max(len(g) for g in groups)
