@@ -379,3 +379,37 @@ def test_a_late_member_given_up_finishes_its_planned_path_to_the_point_first():
             break
     else:
         raise AssertionError(f"robot {late} never left the meeting held without it")
+
+
+def _recorded_plans(strategy) -> list:
+    """Wrap the strategy's planner so that each plan records (team, epoch, belief step, members' start steps)."""
+    plans = []
+    design = strategy.design
+
+    def recording_design(team, epoch, members, starts, belief_step, estimate):
+        plans.append((team, epoch, belief_step, [s.time for s in starts]))
+        return design(team, epoch, members, starts, belief_step, estimate)
+
+    strategy.design = recording_design
+    return plans
+
+
+@pytest.mark.parametrize("seed, robot, at_s, timeout_s, duration_s", [(0, 0, 60.0, 60.0, 140.0),
+                                                                       (1, 5, 60.0, 60.0, 130.0)])
+def test_a_member_given_up_starts_its_next_plan_no_earlier_than_the_meeting_it_missed(
+        seed, robot, at_s, timeout_s, duration_s):
+    """A member given up at a meeting still holds its segment to that meeting, planned to end before the
+    meeting went on; its next plans start it no earlier than the belief they are planned on (these cases
+    ended in ``belief_time must not exceed min(start_times)``)."""
+    from tether.runner import build_simulation
+
+    scenario = load("intermittent-8", [f'faults=[{{kind="robot_failure", robot={robot}, at_s={at_s}}}]',
+                                       f"strategy.member_timeout_s={timeout_s}"], seed=seed, duration_s=duration_s)
+    simulation = build_simulation(scenario)
+    plans = _recorded_plans(simulation.strategy)
+    while simulation.time_s < duration_s - 1e-9:
+        simulation.tick(decorations_wanted=False)
+    given_up = simulation.strategy.members_given_up
+    assert any(r == robot for r, _ in given_up), given_up  # the case under test happened
+    later = [p for p in plans if p[2] > 0]
+    assert later and all(min(starts) >= belief for _, _, belief, starts in later), later

@@ -340,19 +340,22 @@ class MeetingStrategy(Strategy):
         """The paths of ``members`` (from ``starts``) to their meeting at ``epoch``,
         planned on the team's belief at ``belief_step`` (``estimate``)."""
 
-    def _member_start(self, robot: int) -> MemberStart:
-        """The end of the robot's last committed segment (its start before any)."""
+    def _member_start(self, robot: int, not_before: int) -> MemberStart:
+        """The end of the robot's last committed segment (its start before any), no earlier than step
+        ``not_before`` (the plan's belief step): a member given up at a meeting still holds its segment
+        to that meeting, which it can now end only late."""
         queue = self.queues[robot]
         if not queue:
             return MemberStart(self.initial_xy[robot].copy(), 0, None)
         last = queue[-1]
         shift = int(math.ceil(max(last.timed.offset_s, 0.0) / self.step_s - 1e-9))
+        shift = max(shift, not_before - last.timed.path.end_time)
         path = shifted(last.timed.path, shift)
         return MemberStart(path.positions[-1].copy(), path.end_time, path)
 
     def _plan(self, team: int, epoch: int, belief_step: int, estimate: FilterState) -> Meeting:
         members = tuple(self.teams.members[team])
-        starts = [self._member_start(r) for r in members]
+        starts = [self._member_start(r, belief_step) for r in members]
         design = self.design(team, epoch, members, starts, belief_step, estimate)
         self.plan_times.append(design.plan_time_s)
         self.cost_times.append(design.cost_time_s)
