@@ -423,8 +423,9 @@ class Simulation:
         if self._bus_flowed:
             last = self.bus.last_tick
             radio = {"radio_tick_delivery_ratio": last.delivery_ratio, "radio_tick_latency_mean_s": last.latency_mean_s}
+        failed = readonly(self.faults.failed.copy()) if self.faults is not None and self.faults.any_failed else None
         return Frame(_readonly_observation(observation), commands, truth, PhysicsState.of(*self._state_arrays),
-                     self._estimation, radio)
+                     self._estimation, radio, failed)
 
     def _check(self, commands) -> str:
         """Why the state after this tick is not sane ("" if it is): non-finite

@@ -81,6 +81,9 @@ class Frame:
     # The message bus's figures of this tick's step (``radio_tick_delivery_ratio``, ``radio_tick_latency_mean_s``;
     # NaN: none this tick), from the first tick that had messages on; None before.
     radio: Mapping[str, float] | None = None
+    # (N,) bool, the robots a fault has failed by this tick (the truth: the graph figures count the survivors);
+    # None while none has.
+    failed: np.ndarray | None = None
 
     @functools.cached_property
     def scalars(self) -> Mapping[str, float]:
@@ -230,9 +233,13 @@ class LinkFigures:
     radio_delivery_mean: float  # mean delivery probability over the pairs in comm range; NaN: none
 
 
-def link_figures(observation: Observation) -> LinkFigures:
+def link_figures(observation: Observation, failed: np.ndarray | None = None) -> LinkFigures:
     """The graph figures of ``observation`` (without a radio, as in a hand-built observation: the
-    communication graph is the sensing one and the delivery is not known)."""
+    communication graph is the sensing one and the delivery is not known), over the robots still
+    working when ``failed`` ((N,) bool) marks some: a dead robot's silence is a fault of its own, and
+    whether the survivors can still talk is the question a guarantee asks."""
+    if failed is not None and failed.any():
+        return _survivors_link_figures(observation, ~np.asarray(failed, dtype=bool))
     adjacency = observation.links.adjacency
     edges = int(np.count_nonzero(adjacency)) // 2
     sensing = graph_lambda2(adjacency)
@@ -254,6 +261,32 @@ def link_figures(observation: Observation) -> LinkFigures:
     return LinkFigures(edges, sensing, comm, delivery)
 
 
+def _survivors_link_figures(observation: Observation, alive: np.ndarray) -> LinkFigures:
+    """``link_figures`` of the graphs restricted to the ``alive`` robots."""
+    adjacency = observation.links.adjacency[np.ix_(alive, alive)]
+    edges = int(np.count_nonzero(adjacency)) // 2
+    sensing = graph_lambda2(adjacency)
+    radio = observation.radio
+    if radio is None:
+        return LinkFigures(edges, sensing, sensing, float("nan"))
+    distance = radio.distance[np.ix_(alive, alive)]
+    n = len(distance)
+    near_pairs = (int(np.count_nonzero(distance <= radio.comm_range_m)) - n) // 2
+    if radio.preset == "ideal":
+        return LinkFigures(edges, sensing, sensing, edges / near_pairs if near_pairs else float("nan"))
+    first, second = radio.pairs
+    pair_delivery = radio.channel_pairs["delivery"]
+    both = alive[first] & alive[second]
+    full = np.zeros((len(alive), len(alive)), dtype=bool)
+    linked = pair_delivery >= radio.delivery_threshold
+    full[first, second] = linked
+    full[second, first] = linked
+    comm = graph_lambda2(full[np.ix_(alive, alive)])
+    near = both & (radio.distance[first, second] <= radio.comm_range_m)
+    delivery = float(pair_delivery[near].mean()) if near.any() else float("nan")
+    return LinkFigures(edges, sensing, comm, delivery)
+
+
 class LinkMetrics(Observer):
     """Sensing- and communication-graph figures over the run."""
 
@@ -268,7 +301,7 @@ class LinkMetrics(Observer):
         return False
 
     def on_tick(self, frame: Frame) -> None:
-        figures = link_figures(frame.observation)
+        figures = link_figures(frame.observation, frame.failed)
         edges = figures.edges
         self.edges_min = edges if self.edges_min is None else min(self.edges_min, edges)
         self.edges_sum += edges

@@ -135,7 +135,7 @@ class PlotRecorder(Observer):
         self._next_time += self.period_s
         error = tracking_errors(self.kinds, frame.observation.position, frame.commands.position)
         self.series[TRACKING_ERROR].append((t, float(error.mean())))
-        figures = link_figures(frame.observation)
+        figures = link_figures(frame.observation, frame.failed)
         self.series[LINKS].append((t, float(figures.edges)))
         self.series[COMM_LAMBDA2].append((t, figures.comm_lambda2))
         self.series[DELIVERY].append((t, figures.radio_delivery_mean))

@@ -430,7 +430,7 @@ class RerunRecorder(Observer):
             np.clip(np.round(palette.link_rgba(values)[:, :3] * 255), 0, 255).astype(np.uint8)
         self.rec.log("world/links", rr.LineStrips3D(strips, colors=colors, radii=0.01))
         error = tracking_errors(self.world.robot_kinds, obs.position, frame.commands.position)
-        figures = link_figures(obs)
+        figures = link_figures(obs, frame.failed)
         foundation = {"edges": float(len(edges)), "tracking_error_mean_m": float(error.mean()),
                       "comm_lambda2": figures.comm_lambda2, "radio_delivery_mean": figures.radio_delivery_mean}
         # A strategy's series of the same name replaces the foundation's (as its summary does in
