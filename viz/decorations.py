@@ -24,6 +24,8 @@ Pure drawing helpers: they only read the frame.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from sim import palette
@@ -149,7 +151,7 @@ def draw_video_decorations(renderer, frame) -> None:
         style = styles[k] if styles is not None and k < len(styles) else "solid"
         points = np.asarray(points, dtype=float)
         if style == "solid":  # each capsule costs software GL ~70 us: nearly collinear runs become one
-            points = merged_polyline(points, merge)
+            points = _merged_path(points, merge)
         for a, b in styled_segments(points, style, period):
             renderer._add_capsule(a, b, width, rgba)
     _draw_spheres(renderer, decorations.meeting_points, decorations.meeting_point_colors,
@@ -204,6 +206,29 @@ def merged_polyline(points: np.ndarray, tolerance_m: float) -> np.ndarray:
     points = np.asarray(points, dtype=float).reshape(-1, 3)
     if len(points) < 3 or tolerance_m <= 0:
         return points
+    return points[_merge_keep(points, tolerance_m)]
+
+
+def _merged_path(points: np.ndarray, tolerance_m: float) -> np.ndarray:
+    """:func:`merged_polyline` of a drawn path, its first segment kept as it is: a path's first
+    vertex is its robot's position, new every frame, the rest the same plan for many frames, so
+    the merge of the rest is remembered (keyed on its bytes) instead of redone each frame."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(points) < 4:
+        return points
+    rest = np.ascontiguousarray(points[1:])
+    keep = _merged_indices(rest.tobytes(), float(tolerance_m))
+    return np.concatenate([points[:1], rest[list(keep)]])
+
+
+@functools.lru_cache(maxsize=256)
+def _merged_indices(rest: bytes, tolerance_m: float) -> tuple[int, ...]:
+    points = np.frombuffer(rest, dtype=float).reshape(-1, 3)
+    return tuple(_merge_keep(points, tolerance_m))
+
+
+def _merge_keep(points: np.ndarray, tolerance_m: float) -> list[int]:
+    """The indices :func:`merged_polyline` keeps."""
     keep = [0]
     start = 0
     for end in range(2, len(points)):
@@ -211,7 +236,7 @@ def merged_polyline(points: np.ndarray, tolerance_m: float) -> np.ndarray:
             start = end - 1
             keep.append(start)
     keep.append(len(points) - 1)
-    return points[keep]
+    return keep
 
 
 def _off_chord(a: np.ndarray, b: np.ndarray, between: np.ndarray) -> float:
