@@ -8,7 +8,7 @@ import pytest
 
 from controllers.intermittent.runtime import team_path_style
 from sim.types import PATH_STYLES, Decorations
-from viz.decorations import DASH_ON_SHARE, styled_segments
+from viz.decorations import DASH_ON_SHARE, merged_polyline, styled_segments
 
 L_SHAPE = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.5, 0.0]])  # 1.5 m along, a corner at 1 m
 
@@ -19,6 +19,19 @@ def test_solid_is_the_polyline_s_segments_without_zero_length_ones():
     assert len(pieces) == 2
     np.testing.assert_allclose(pieces[1][0], [1.0, 0.0, 0.0])
     np.testing.assert_allclose(pieces[1][1], [1.0, 0.5, 0.0])
+
+
+def test_a_solid_path_s_nearly_collinear_vertices_are_merged_and_its_corners_kept():
+    # 0 .. 1 m along x with a 1 mm bump at 0.5 m, then a corner up to (1, 0.5): the bump is within
+    # 2 mm of the chord and goes; the corner (0.5 m off the chord from the start to the end) stays.
+    points = np.array([[0.0, 0, 0], [0.25, 0, 0], [0.5, 0.001, 0], [0.75, 0, 0], [1.0, 0, 0], [1.0, 0.25, 0],
+                       [1.0, 0.5, 0]])
+    np.testing.assert_allclose(merged_polyline(points, 0.002), [[0, 0, 0], [1, 0, 0], [1, 0.5, 0]])
+    # Under a tolerance below the bump (its neighbours are 0.5 mm off the chords past them) they stay;
+    # the vertex on the straight last leg still goes.
+    np.testing.assert_allclose(merged_polyline(points, 0.0001), points[[0, 1, 2, 3, 4, 6]])
+    np.testing.assert_allclose(merged_polyline(points[:2], 0.002), points[:2])
+    np.testing.assert_allclose(merged_polyline(points, 0.0), points)
 
 
 @pytest.mark.parametrize("style", ["dashed", "dotted"])

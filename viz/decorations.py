@@ -24,12 +24,15 @@ Pure drawing helpers: they only read the frame.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from sim import palette
 
 PATH_WIDTH_M = 0.012  # video: planned-path capsule width, m
 PATH_MIN_PX = 1.2  # ... and at least this many pixels: thinner, a path breaks into dots
+PATH_MERGE_PX = 0.25  # video: a solid path's vertex closer than this to the line past it is not drawn
 MARKER_MIN_PX = 4.0  # video: meeting points, estimates, markers: at least this radius, px
 MEETING_RADIUS_M = 0.05  # video: meeting-point sphere radius, m
 ESTIMATE_RADIUS_M = 0.07  # video: estimated-target sphere radius, m
@@ -141,11 +144,15 @@ def draw_video_decorations(renderer, frame) -> None:
     decorations = frame.commands.decorations
     width = renderer.at_least(PATH_WIDTH_M, PATH_MIN_PX)
     period = renderer.at_least(DASH_PERIOD_M, DASH_PERIOD_PX)
+    merge = PATH_MERGE_PX * renderer.metres_per_px
     styles = decorations.path_styles
     for k, (points, rgba) in enumerate(decorations.paths or ()):
         rgba = np.asarray(rgba, dtype=np.float32)
         style = styles[k] if styles is not None and k < len(styles) else "solid"
-        for a, b in styled_segments(np.asarray(points, dtype=float), style, period):
+        points = np.asarray(points, dtype=float)
+        if style == "solid":  # each capsule costs software GL ~70 us: nearly collinear runs become one
+            points = _merged_path(points, merge)
+        for a, b in styled_segments(points, style, period):
             renderer._add_capsule(a, b, width, rgba)
     _draw_spheres(renderer, decorations.meeting_points, decorations.meeting_point_colors,
                   renderer.at_least(MEETING_RADIUS_M, MARKER_MIN_PX),
@@ -189,6 +196,55 @@ def styled_segments(points: np.ndarray, style: str, period_m: float) -> list[tup
         if stop - start > 1e-6:
             pieces.append((_at(points, along, start), _at(points, along, stop)))
     return pieces
+
+
+def merged_polyline(points: np.ndarray, tolerance_m: float) -> np.ndarray:
+    """The vertices of the polyline ``points`` (K, 3) that its picture needs: going along it,
+    a run of vertices is replaced by the segment from its first to its last while every vertex
+    in between lies within ``tolerance_m`` of that segment (first and last vertices kept; a
+    dashed or dotted path is not merged: its pattern runs along the original's length)."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(points) < 3 or tolerance_m <= 0:
+        return points
+    return points[_merge_keep(points, tolerance_m)]
+
+
+def _merged_path(points: np.ndarray, tolerance_m: float) -> np.ndarray:
+    """:func:`merged_polyline` of a drawn path, its first segment kept as it is: a path's first
+    vertex is its robot's position, new every frame, the rest the same plan for many frames, so
+    the merge of the rest is remembered (keyed on its bytes) instead of redone each frame."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(points) < 4:
+        return points
+    rest = np.ascontiguousarray(points[1:])
+    keep = _merged_indices(rest.tobytes(), float(tolerance_m))
+    return np.concatenate([points[:1], rest[list(keep)]])
+
+
+@functools.lru_cache(maxsize=256)
+def _merged_indices(rest: bytes, tolerance_m: float) -> tuple[int, ...]:
+    points = np.frombuffer(rest, dtype=float).reshape(-1, 3)
+    return tuple(_merge_keep(points, tolerance_m))
+
+
+def _merge_keep(points: np.ndarray, tolerance_m: float) -> list[int]:
+    """The indices :func:`merged_polyline` keeps."""
+    keep = [0]
+    start = 0
+    for end in range(2, len(points)):
+        if _off_chord(points[start], points[end], points[start + 1:end]) > tolerance_m:
+            start = end - 1
+            keep.append(start)
+    keep.append(len(points) - 1)
+    return keep
+
+
+def _off_chord(a: np.ndarray, b: np.ndarray, between: np.ndarray) -> float:
+    """The largest distance of the points ``between`` (M, 3) from the segment ``a``-``b``."""
+    ab = b - a
+    length2 = float(ab @ ab)
+    t = np.zeros(len(between)) if length2 < 1e-18 else np.clip((between - a) @ ab / length2, 0.0, 1.0)
+    return float(np.max(np.linalg.norm(a + t[:, None] * ab - between, axis=1)))
 
 
 def _at(points: np.ndarray, along: np.ndarray, s: float) -> np.ndarray:
