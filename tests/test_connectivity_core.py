@@ -252,6 +252,34 @@ def test_lambda2_gradient_matches_finite_differences_on_random_teams(seed):
     np.testing.assert_allclose(state.lambda2_gradient, reference, atol=1e-6 * np.abs(reference).max() + 1e-9)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_a_bystander_counts_in_the_collision_factors_and_its_gradient_matches_finite_differences(seed):
+    """A robot the team dropped is no vertex of the graph but still a body within R'_c (condition (c)):
+    the team's weights are those of the whole group's restricted to the team, and the gradient of the
+    team's lambda2 (bystander held still) pushes the robots near it away."""
+    positions = jittered_wall_configuration(seed)
+    bystander = positions[[1]] + np.array([[0.05, 0.0, 0.85]])  # 0.85 m above robot 1: inside (R_c, R'_c)
+    state = connectivity_state(positions, WALL, OFFICE, bystanders=bystander)
+    whole = link_weights(np.concatenate([positions, bystander]), WALL, OFFICE)
+    np.testing.assert_array_equal(state.weights, whole.weights[:6, :6])
+    assert state.weights[1].max() < link_weights(positions, WALL, OFFICE).weights[1].max()
+    assert len(state.links.bystander_robot) and np.any(state.links.bystander_log_slope != 0)
+    reference = central_difference(
+        lambda q: np.linalg.eigvalsh(weighted_laplacian(
+            link_weights(np.concatenate([q, bystander]), WALL, OFFICE).weights[:6, :6]))[1], positions)
+    np.testing.assert_allclose(state.lambda2_gradient, reference, atol=1e-6 * np.abs(reference).max() + 1e-9)
+    # Its gradient on robot 1 points away from the bystander (up, away from it, lowers its fade).
+    assert state.lambda2_gradient[1, 2] < 0
+
+
+def test_no_bystanders_is_the_plain_graph_bit_for_bit():
+    positions = jittered_wall_configuration(0)
+    plain, empty = connectivity_state(positions, WALL, OFFICE), connectivity_state(positions, WALL, OFFICE,
+                                                                                   np.zeros((0, 3)))
+    np.testing.assert_array_equal(plain.weights, empty.weights)
+    np.testing.assert_array_equal(plain.lambda2_gradient, empty.lambda2_gradient)
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_gradient_on_the_message_links_matches_finite_differences_of_that_graph(seed):
     """Estimator mode controls lambda2(W o A), A the links that carry messages

@@ -49,6 +49,7 @@ Deviations from the paper
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass
 
@@ -103,6 +104,11 @@ class LinkWeights:
     collision_factor: (N,) c_i = prod_{k != i} delta(d_ik).
     collision_log_slope: (P,) delta'(d_ij) / delta(d_ij), 1/m (0 outside (R_c, R'_c)).
     unit: (P, 3) (q_i - q_j) / d_ij.
+    bystander_robot, bystander_log_slope, bystander_unit: (B,), (B,), (B, 3): for
+        each robot i near a bystander b (a body counted by condition (c) but
+        not a vertex of the graph, e.g. a robot the team dropped), i,
+        delta'(d_ib) / delta(d_ib) and (q_i - q_b) / d_ib; empty without
+        bystanders.
     """
 
     pairs: np.ndarray
@@ -113,6 +119,9 @@ class LinkWeights:
     collision_factor: np.ndarray
     collision_log_slope: np.ndarray
     unit: np.ndarray
+    bystander_robot: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    bystander_log_slope: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    bystander_unit: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
     def num_robots(self) -> int:
@@ -147,6 +156,9 @@ class LinkWeights:
             collision_factor=self.collision_factor,
             collision_log_slope=self.collision_log_slope,
             unit=self.unit,
+            bystander_robot=self.bystander_robot,
+            bystander_log_slope=self.bystander_log_slope,
+            bystander_unit=self.bystander_unit,
         )
 
     def lambda2_gradient(self, vector: np.ndarray) -> np.ndarray:
@@ -172,13 +184,14 @@ class LinkWeights:
         gradients = np.empty((vectors.shape[1], n, 3))
         _lambda2_gradients_kernel(self.pairs, np.ascontiguousarray(vectors), self.collision_factor, self.link_factor,
                                   self.link_factor_grad_first, self.link_factor_grad_second,
-                                  self.collision_log_slope, self.unit, gradients)
+                                  self.collision_log_slope, self.unit, self.bystander_robot,
+                                  self.bystander_log_slope, self.bystander_unit, gradients)
         return gradients
 
 
 @kernel
 def _lambda2_gradients_kernel(pairs, vectors, collision_factor, link_factor, grad_first, grad_second, log_slope,
-                              unit, out):
+                              unit, bystander_robot, bystander_log_slope, bystander_unit, out):
     """out[m] = sum_{i<j} dW_ij/dq (v_i - v_j)^2 for v = vectors[:, m]; (M, N, 3).
 
     Each robot's sums run over the pairs in order, the two ends' sums kept
@@ -213,6 +226,13 @@ def _lambda2_gradients_kernel(pairs, vectors, collision_factor, link_factor, gra
             for k in range(3):
                 push_first[m, i, k] += push * unit[p, k]
                 push_second[m, j, k] += push * unit[p, k]
+    # A bystander b moves only c_i of the robots i near it (it has no links of its own).
+    for b in range(bystander_robot.shape[0]):
+        i = bystander_robot[b]
+        for m in range(n_modes):
+            push = bystander_log_slope[b] * (node_first[m, i] + node_second[m, i])
+            for k in range(3):
+                push_first[m, i, k] += push * bystander_unit[b, k]
     for m in range(n_modes):
         for r in range(n):
             for k in range(3):
@@ -353,12 +373,19 @@ def _link_weights_kernel(positions, r_s_full, r_s, r_c, r_c_full, r_o, r_o_full,
 _NO_BOXES = Boxes.axis_aligned(np.zeros((0, 3)), np.zeros((0, 3)))
 
 
-def link_weights(positions: np.ndarray, boxes: Boxes | None, params: ConnectedParams) -> LinkWeights:
-    """Weights W_ij(q) of Appendix A for all robots, with their derivative data (one compiled pass)."""
+def link_weights(positions: np.ndarray, boxes: Boxes | None, params: ConnectedParams,
+                 bystanders: np.ndarray | None = None) -> LinkWeights:
+    """Weights W_ij(q) of Appendix A for all robots, with their derivative data (one compiled pass).
+
+    ``bystanders`` (B, 3), m: bodies that condition (c) counts (a robot within R_c of one drops out of the
+    graph, and the gradient pushes it away) but that are not vertices of the graph: robots the team dropped,
+    still there to be sensed by proximity."""
     positions = np.ascontiguousarray(positions, dtype=float)
     n = len(positions)
     if positions.shape != (n, 3) or n < 2:
         raise ValueError(f"positions must have shape (N, 3) with N >= 2, got {positions.shape}")
+    if bystanders is not None and len(bystanders):
+        return _without_bystanders(link_weights(np.concatenate([positions, bystanders]), boxes, params), n)
     boxes = _NO_BOXES if boxes is None else boxes
     most = n * (n - 1) // 2
     pairs = np.empty((most, 2), dtype=np.int64)
@@ -382,6 +409,27 @@ def link_weights(positions: np.ndarray, boxes: Boxes | None, params: ConnectedPa
         collision_factor=collision_factor,
         collision_log_slope=log_slope[:count],
         unit=unit[:count],
+    )
+
+
+def _without_bystanders(links: LinkWeights, n: int) -> LinkWeights:
+    """The first ``n`` robots' graph from ``links`` over them and the bystanders after them: their links and
+    collision factors (which count the bystanders), and each (robot, bystander) pair's collision slope."""
+    first, second = links.pairs.T
+    team = second < n  # (first < second)
+    near = (first < n) & ~team
+    return LinkWeights(
+        pairs=links.pairs[team],
+        weights=np.ascontiguousarray(links.weights[:n, :n]),
+        link_factor=links.link_factor[team],
+        link_factor_grad_first=links.link_factor_grad_first[team],
+        link_factor_grad_second=links.link_factor_grad_second[team],
+        collision_factor=links.collision_factor[:n].copy(),
+        collision_log_slope=links.collision_log_slope[team],
+        unit=links.unit[team],
+        bystander_robot=np.ascontiguousarray(first[near]),
+        bystander_log_slope=links.collision_log_slope[near],
+        bystander_unit=links.unit[near],
     )
 
 
@@ -453,10 +501,11 @@ class ConnectivityState:
         return self.links.edges
 
 
-def connectivity_state(positions: np.ndarray, boxes: Boxes | None, params: ConnectedParams) -> ConnectivityState:
+def connectivity_state(positions: np.ndarray, boxes: Boxes | None, params: ConnectedParams,
+                       bystanders: np.ndarray | None = None) -> ConnectivityState:
     """Weights, Laplacian and its eigendecomposition (one eigh); lambda2, the
-    Fiedler vector and dlambda2/dq derive from them when read."""
-    links = link_weights(positions, boxes, params)
+    Fiedler vector and dlambda2/dq derive from them when read (``bystanders``: link_weights)."""
+    links = link_weights(positions, boxes, params, bystanders)
     laplacian = weighted_laplacian(links.weights)
     eigenvalues, eigenvectors = _symmetric_eigh(laplacian)
     return ConnectivityState(links, laplacian, eigenvalues, eigenvectors)

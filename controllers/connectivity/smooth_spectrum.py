@@ -120,13 +120,15 @@ def smooth_lambda2_gradient(links: LinkWeights, eigenvalues: np.ndarray, eigenve
     # mode order: one compiled call.
     _weighted_mode_gradient(slope, _MIN_WEIGHT, eigenvectors, links.pairs, links.collision_factor,
                             links.link_factor, links.link_factor_grad_first, links.link_factor_grad_second,
-                            links.collision_log_slope, links.unit, gradient)
+                            links.collision_log_slope, links.unit, links.bystander_robot, links.bystander_log_slope,
+                            links.bystander_unit, gradient)
     return s, gradient
 
 
 @kernel
 def _weighted_mode_gradient(slope, min_weight, eigenvectors, pairs, collision_factor, link_factor, grad_first,
-                            grad_second, log_slope, unit, gradient):
+                            grad_second, log_slope, unit, bystander_robot, bystander_log_slope, bystander_unit,
+                            gradient):
     """gradient += sum over modes k with slope[k] > min_weight max(slope), in order, of slope[k] times eq. (17)
     with eigenvector k + 1: what np.flatnonzero, LinkWeights.lambda2_gradients and _add_weighted did."""
     top = slope[0]
@@ -152,7 +154,7 @@ def _weighted_mode_gradient(slope, min_weight, eigenvectors, pairs, collision_fa
             m += 1
     terms = np.empty((count, n, 3))
     _lambda2_gradients_kernel(pairs, vectors, collision_factor, link_factor, grad_first, grad_second, log_slope,
-                              unit, terms)
+                              unit, bystander_robot, bystander_log_slope, bystander_unit, terms)
     _add_weighted(weights, terms, gradient)
 
 
