@@ -127,10 +127,12 @@ def parse_faults(entries: Any, n_robots: int, duration_s: float) -> tuple[Fault,
             if fault.robot >= n_robots:
                 raise ConfigError(f"{where}.robot", f"must be a robot index below {n_robots} (the run has "
                                                     f"{n_robots} robots), got {fault.robot}")
-            if fault.at_s > duration_s:
-                raise ConfigError(f"{where}.at_s", f"must be within the run (0 to {duration_s:g} s), got {fault.at_s:g}")
-        elif isinstance(fault, RadioBlackout) and fault.from_s > duration_s:
-            raise ConfigError(f"{where}.from_s", f"must be within the run (0 to {duration_s:g} s), got {fault.from_s:g}")
+            if not fault.at_s < duration_s:  # at the end of the run it would never act
+                raise ConfigError(f"{where}.at_s", f"must be within the run (0 to below {duration_s:g} s), "
+                                                   f"got {fault.at_s:g}")
+        elif isinstance(fault, RadioBlackout) and not fault.from_s < duration_s:
+            raise ConfigError(f"{where}.from_s", f"must be within the run (0 to below {duration_s:g} s), "
+                                                 f"got {fault.from_s:g}")
         out.append(fault)
     failed = [f.robot for f in out if isinstance(f, RobotFailure)]
     for robot in failed:
@@ -141,6 +143,11 @@ def parse_faults(entries: Any, n_robots: int, duration_s: float) -> tuple[Fault,
         index = [i for i, f in enumerate(out) if isinstance(f, PositionNoise)][1]
         raise ConfigError(f"faults.{index}.kind", "at most one position_noise fault")
     return tuple(out)
+
+
+def seconds(value: float) -> str:
+    """A fault's time for a message: one decimal (60.0), more where it has them (0.01)."""
+    return f"{value:.1f}" if round(value, 1) == value else f"{value:g}"
 
 
 def position_noise_draw(rng: np.random.Generator, n: int, sigma_m: float) -> np.ndarray:
@@ -187,6 +194,7 @@ class FaultState:
         self._bias = np.zeros((self.n_robots, 3))
         self._bias_until = -np.inf
         self._blackout_seen = [False] * len(self.blackouts)
+        self._noise_seen = False
 
     @property
     def any_failed(self) -> bool:
@@ -197,7 +205,7 @@ class FaultState:
         newly = np.flatnonzero(~self.failed & (self.fail_time <= time_s + 1e-9))
         for robot in newly:
             self.failed[robot] = True
-            self.events.append((time_s, f"robot {robot} failed at {self.fail_time[robot]:.1f} s "
+            self.events.append((time_s, f"robot {robot} failed at {seconds(self.fail_time[robot])} s "
                                         f"({self.fail_mode[robot]}): it {'holds in place' if self.fail_mode[robot] == 'stop' else 'drifts on its last command'} and its radio is silent"))
         for k, blackout in enumerate(self.blackouts):
             if not self._blackout_seen[k] and blackout.active(time_s):
@@ -243,6 +251,9 @@ class FaultState:
     def noisy_positions(self, time_s: float, positions: np.ndarray) -> np.ndarray:
         """``positions`` ((N, 3), m) as the strategy reads them: plus this tick's noise and the robots' biases."""
         noise = self.noise
+        if not self._noise_seen:
+            self._noise_seen = True
+            self.events.append((time_s, noise.describe()))
         if time_s + 1e-9 >= self._bias_until:
             if noise.bias_m > 0:
                 self._bias = bias_draw(self.rng, self.n_robots, noise.bias_m)

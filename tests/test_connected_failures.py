@@ -151,3 +151,47 @@ def test_over_the_radio_the_estimator_drops_the_silent_robot_and_estimates_the_s
     assert np.allclose(reported, alive, atol=1e-6)  # the check is on the survivors' graph, not the ten robots'
     assert errors[0] > 0.4  # at the drop the estimate is still the ten robots'
     assert min(errors) < 0.05, min(errors)  # every survivor's estimate comes to the survivors' lambda2
+
+
+@pytest.mark.parametrize("radio, loss_db, until_s", [((), 30.0, 1.5), (tuple(IEEE), 150.0, 2.0)],
+                         ids=["ideal", "ieee802154"])
+def test_a_robot_dropped_behind_a_blackout_is_taken_back_once_heard_again(radio, loss_db, until_s):
+    robot, from_s = 3, 0.5  # at (4.15, 2.0, 1.0) in the start cluster
+    blackout = (f'faults=[{{kind="radio_blackout", center=[4.15, 2.0, 1.0], radius_m=0.4, '
+                f'extra_loss_db={loss_db}, from_s={from_s}, to_s={until_s}}}]')
+    sim = build_simulation(load("connected-office", [*radio, blackout], duration_s=until_s + 1.0))
+    in_team, primes = [], []
+    for _ in range(int(round((until_s + 1.0) / sim.dt))):
+        frame, healthy = sim.tick()
+        assert healthy and sim.strategy.violation(frame.commands) is None, sim.strategy.violation(frame.commands)
+        in_team.append(bool(sim.strategy.in_team[robot]))
+        primes.append(int(np.count_nonzero(sim.strategy.roles == PRIME_CODE)))
+    (dropped,) = sim.strategy.dropped
+    assert dropped.robot == robot
+    assert from_s <= dropped.at_s < until_s  # dropped during the blackout ...
+    assert dropped.taken_back_at_s is not None and until_s <= dropped.taken_back_at_s <= until_s + 0.5  # ... back after
+    assert in_team[-1] and max(primes) == 1
+    summary = sim.strategy.summary()["dropped_robots"]
+    assert summary[0]["taken_back_at_s"] == pytest.approx(dropped.taken_back_at_s)
+
+
+def test_the_message_names_a_healthy_robot_dropped_and_taken_back(tmp_path):
+    blackout = ('faults=[{kind="radio_blackout", center=[4.15, 2.0, 1.0], radius_m=0.4, extra_loss_db=30.0, '
+                'from_s=0.5, to_s=1.5}]')
+    metrics = run(load("connected-office", [blackout], duration_s=2.0), tmp_path / "out").metrics
+    assert "robot 3 dropped as silent at 0.5 s, taken back at 1.5 s" in metrics["message"], metrics["message"]
+    assert metrics["dropped_robots"][0]["taken_back_at_s"] == pytest.approx(1.5)
+
+
+@pytest.mark.parametrize("radio", [(), tuple(IEEE)], ids=["ideal", "ieee802154"])
+def test_the_first_token_holder_failing_at_0_s_leaves_the_token_with_the_team(radio):
+    """Robot 0 hosts the start-up round. Failing at 0 s, it is dropped before the start-up under ideal, whose
+    token then goes to the next robot; over the radio, one heartbeat timeout after the start (its team mates
+    knew it from the start), the token re-issued. Then a prime traveler is elected, never two."""
+    sim, primes, _ = _failing(0, 0.0, radio, duration_s=3.0)
+    (dropped,) = sim.strategy.dropped
+    assert dropped.held_token and dropped.token_reissued_to == 1
+    assert dropped.at_s <= (0.5 + 0.1 if radio else 0.0)
+    after = primes[int(round(dropped.at_s / sim.dt)) + 1:]
+    assert max(len(p) for p in primes) == 1 and any(after)
+    assert 0 not in {robot for p in after for robot in p}

@@ -18,6 +18,7 @@ import tether.catalog  # noqa: F401 (registers the built-in strategies and scena
 from controllers.lowlevel.actuation import LowLevelControl
 from sim.config import ConfigError
 from sim.estimation_observer import EstimationMetrics
+from sim.faults import seconds
 from sim.loop import Simulation, mujoco_warnings, run_ticks, timing_summary
 from sim.observers import LinkMetrics, Observer, TrackingMetrics
 from sim.outputs import ProgressFile, Staging, json_safe, non_finite_fields, write_json
@@ -159,19 +160,35 @@ def _failure_detections(metrics: dict[str, Any]) -> None:
     detected = metrics.get("silence_detected_s")
     if "faults" not in metrics:
         return
-    dropped = {entry["robot"]: entry for entry in metrics.get("dropped_robots", ())}
+    drops = metrics.get("dropped_robots", ())
+    failed = set()
     for fault in metrics["faults"]:
         if fault["kind"] != "robot_failure" or not fault["happened"]:
             continue
         robot = fault["robot"]
+        failed.add(robot)
         if detected is not None:
-            after = [t - fault["at_s"] for t in detected[robot] if t >= fault["at_s"]]
+            after = [round(t - fault["at_s"], 6) for t in detected[robot] if t >= fault["at_s"]]
             fault["detected_after_s"] = min(after) if after else None
             noticed = (f"noticed by a team mate {min(after):.2f} s after its failure" if after
                        else "never noticed by its team mates")
             metrics["message"] += f"; robot {robot}'s silence {noticed}"
         if "dropped_robots" in metrics:  # a strategy that drops silent robots from its team
-            _failure_consequence(metrics, fault, dropped.get(robot))
+            after_failure = [d for d in drops if d["robot"] == robot and d["dropped_at_s"] >= fault["at_s"] - 1e-9]
+            _failure_consequence(metrics, fault, after_failure[0] if after_failure else None)
+    _drops_of_healthy_robots(metrics, [d for d in drops if d["robot"] not in failed])
+
+
+def _drops_of_healthy_robots(metrics: dict[str, Any], drops: list[dict[str, Any]]) -> None:
+    """The run's message names each robot that no fault failed but that its team dropped as silent (behind a
+    blackout, say), and when it was taken back."""
+    for robot in sorted({drop["robot"] for drop in drops}):
+        own = [drop for drop in drops if drop["robot"] == robot]
+        text = f"; robot {robot} dropped as silent at {own[0]['dropped_at_s']:.1f} s"
+        if len(own) > 1:
+            text += f" (and {len(own) - 1} more times)"
+        back = own[-1].get("taken_back_at_s")
+        metrics["message"] += text + (f", taken back at {back:.1f} s" if back is not None else ", not taken back")
 
 
 def _failure_consequence(metrics: dict[str, Any], fault: dict[str, Any], dropped: dict[str, Any] | None) -> None:
@@ -180,14 +197,15 @@ def _failure_consequence(metrics: dict[str, Any], fault: dict[str, Any], dropped
     robot, at_s = fault["robot"], fault["at_s"]
     if dropped is None or dropped["dropped_at_s"] < at_s - 1e-9:
         fault.update(dropped_after_s=None, targets_reassigned=0, targets_lost=0)
-        metrics["message"] += f"; robot {robot} failed at {at_s:.1f} s and was never dropped from the team"
+        metrics["message"] += f"; robot {robot} failed at {seconds(at_s)} s and was never dropped from the team"
         return
     reassigned, lost = dropped["targets_reassigned"], dropped["targets_lost"]
-    fault.update(dropped_after_s=dropped["dropped_at_s"] - at_s, targets_reassigned=reassigned, targets_lost=lost)
-    fault.setdefault("detected_after_s", dropped["dropped_at_s"] - at_s)
-    text = f"; robot {robot} failed at {at_s:.1f} s"
+    after = round(dropped["dropped_at_s"] - at_s, 6)
+    fault.update(dropped_after_s=after, targets_reassigned=reassigned, targets_lost=lost)
+    fault.setdefault("detected_after_s", after)
+    text = f"; robot {robot} failed at {seconds(at_s)} s"
     total = reassigned + lost
-    text += f"; {reassigned} of its {total} targets reassigned" if total else "; it had no targets left"
+    text += f"; {reassigned} of its {total} targets reassigned" if total else "; it had no target to hand on"
     if lost:
         text += f", {lost} lost (no explorer left)"
     if dropped["token_reissued_to"] is not None:

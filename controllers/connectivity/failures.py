@@ -1,21 +1,26 @@
 """The continuous-connectivity method's reaction to a team mate that went silent (docs/faults.md).
 
 Nestmeyer et al. 2017 assume robots never fail. Here a robot that the whole
-team has stopped hearing is dropped from the team for good:
+team has stopped hearing is dropped from the team, and taken back once it is
+heard again (a healthy robot behind a blackout, say):
 
 - **Who is dropped.** Under a real radio, robot j is dropped once every
   robot still in the team that ever heard j counts j as silent
   (``sim.radio.protocols.HeartbeatMonitor``: nothing from j for
   ``heartbeat_timeout_s``). Under ``ideal`` the in-process exchange reads the
   adjacency, the disk model: a link between every pair in range and line of
-  sight, so a team mate in sight without a link hears nothing. Robot j is
-  dropped on the first tick at which every team mate in range and sight of
-  it has no link to it (detection is immediate, like a heartbeat timeout of
-  one tick). Without a fault that never happens.
+  sight, so a team mate in range and sight without a link hears nothing.
+  Robot j is dropped on the first tick at which every team mate in range and
+  sight of it has no link to it (detection is immediate, like a heartbeat
+  timeout of one tick). Without a fault that never happens; a robot with no
+  team mate in range at all is cut off, not silent: the graph split.
 - **Its graph.** The dropped robot leaves the weights, lambda2, the
   gradient, the election, the consensus and the lambda2 estimator; its virtual point is frozen
   where it was (at rest), so it no longer drags the team nor is dragged by
   it, and the invariants (lambda2, R_c) are those of the team without it.
+  Its body is still there: condition (c) of the weights keeps counting it,
+  at its frozen virtual point, as a bystander (graph.link_weights), so its
+  team mates keep clear of it.
 - **The token.** Every robot knows the last announced token holder (the
   round host's candidacy and the handover flood to everybody). When the
   dropped robot held it, or was the end of a transfer in progress, the token
@@ -23,12 +28,26 @@ team has stopped hearing is dropped from the team for good:
   one, with an epoch above every epoch used so far (stale replies to the
   dead holder's rounds are ignored), and opens a round. A transfer towards
   the dropped robot is called off, and its sender holds the token again.
-  Dropping is final, so the dead robot's token can never come back: never
-  two prime travelers.
+  A dropped robot's token state is cleared at the drop, so a robot taken back
+  returns as a connector without one: never two prime travelers.
 - **Its targets.** Its current target (unless already visited) and its
   queue go, each to the robot still in the team that had targets of its own
   (an explorer) and whose virtual point is nearest; with no explorer left
   they are lost. Both counts are kept per dropped robot.
+- **Taking it back** (exact mode). A dropped robot is taken back once a robot
+  of the team hears it again (under ``ideal``, a link to it; under a real
+  radio, any message from it that arrived after its drop) and the team with
+  it is connected over a strong link: a weight W_ij of at least
+  ``TAKE_BACK_MIN_WEIGHT`` to a team mate (not a link about to fade, which
+  would hold the team's lambda2 at the barrier), the team's graph with it
+  connected, and its virtual point, frozen since the drop, no closer than R_c
+  to any other. It comes back as a connector
+  whose virtual point starts from rest where it was frozen; the targets
+  handed on stay with their new explorers. A robot that really failed is
+  never heard again, so it is never taken back. In estimator mode a dropped
+  robot stays out: its estimator state (consensus averages of the team it
+  left) would bias the team's averages, and the restart that would avoid it
+  needs every robot to restart in the same tick.
 
 The functions below act on the shared state of the exploration layer; the
 strategy (strategy.py) calls them once per dropped robot.
@@ -45,6 +64,12 @@ from controllers.connectivity.roles import CONNECTOR_CODE
 from controllers.connectivity.targets import Target
 
 
+# A dropped robot is taken back only over a link at least this strong (W_ij in [0, 1]; 1 within R'_s in clear
+# sight): taken back over a link at the edge of range, it would hold the team's lambda2 at the barrier (a robot
+# left behind and heard again over a fading link brought lambda2 to 7e-8 in connected-office).
+TAKE_BACK_MIN_WEIGHT = 0.5
+
+
 @dataclass
 class DroppedRobot:
     """What dropping one robot did, for metrics.json and the run's message."""
@@ -56,32 +81,45 @@ class DroppedRobot:
     targets_reassigned: int = 0
     targets_lost: int = 0
     token_reissued_to: int | None = None
+    taken_back_at_s: float | None = None  # when the team took it back (heard again), s; None: still out
 
     def summary(self) -> dict:
-        return {"robot": self.robot, "dropped_at_s": self.at_s, "was_prime_traveler": self.was_prime,
+        # Tick times are sums of the control period: rounded to the microsecond for metrics.json.
+        return {"robot": self.robot, "dropped_at_s": round(self.at_s, 6), "was_prime_traveler": self.was_prime,
                 "held_token": self.held_token, "targets_reassigned": self.targets_reassigned,
-                "targets_lost": self.targets_lost, "token_reissued_to": self.token_reissued_to}
+                "targets_lost": self.targets_lost, "token_reissued_to": self.token_reissued_to,
+                "taken_back_at_s": None if self.taken_back_at_s is None else round(self.taken_back_at_s, 6)}
 
 
-def newly_silent(in_team: np.ndarray, links, heartbeats) -> list[int]:
+def newly_silent(in_team: np.ndarray, links, heartbeats, comm_range_m: float) -> list[int]:
     """Robots of the team that every team mate who ever heard them counts as silent now (``heartbeats``, a
-    HeartbeatMonitor). Under ``ideal`` (``heartbeats`` None) the disk model links every pair in range and
-    line of sight (``links``, the observation's): a team mate that sees j there without a link hears
-    nothing from j, so j is silent once every team mate in range and sight of it has no link to it (and at
-    least one has it in sight)."""
+    HeartbeatMonitor). Under ``ideal`` (``heartbeats`` None) the disk model links every pair within
+    ``comm_range_m`` and in line of sight (``links``, the observation's): a team mate there without a link
+    hears nothing from j, so j is silent once every team mate in range and sight of it has no link to it
+    (and at least one is in range and sight). A robot with no team mate in range is not silent but cut
+    off: the team's graph split, which the method's own invariant reports."""
     out = []
     for j in np.flatnonzero(in_team):
         others = in_team.copy()
         others[j] = False
         if heartbeats is None:
-            in_sight = others & links.line_of_sight[j]
-            if in_sight.any() and not links.adjacency[j, in_sight].any():
+            would_link = others & links.line_of_sight[j] & (links.distance[j] <= comm_range_m)
+            if would_link.any() and not links.adjacency[j, would_link].any():
                 out.append(int(j))
             continue
         heard = others & np.isfinite(heartbeats.last_heard[:, j])
         if heard.any() and heartbeats.silent[heard, j].all():
             out.append(int(j))
     return out
+
+
+def heard_again(robot: int, dropped_at_s: float, in_team: np.ndarray, links, heartbeats) -> bool:
+    """Whether a robot of the team hears the dropped ``robot`` again: under ``ideal`` (``heartbeats`` None)
+    a link to it (``links``, the observation's); under a real radio a message from it that reached a team
+    mate after ``dropped_at_s`` (a HeartbeatMonitor's ``last_heard``)."""
+    if heartbeats is None:
+        return bool(links.adjacency[robot, in_team].any())
+    return bool((heartbeats.last_heard[in_team, robot] > dropped_at_s).any())
 
 
 def _token_in_team(machine, in_team: np.ndarray) -> bool:
@@ -98,6 +136,12 @@ def drop_from_election(machine, robot: int, in_team: np.ndarray) -> tuple[bool, 
     out of every open round, every transfer towards it called off; a new token at the lowest-indexed
     robot of ``in_team`` (``robot`` already out) if the team no longer has one. Returns whether
     ``robot`` held the token and who got a new one (None: nobody needed one)."""
+    if not machine.started:
+        # Dropped before the start-up (a robot failing at 0 s): the start-up gives the token to its host.
+        if machine.host != robot or not in_team.any():
+            return False, None
+        machine.host = int(np.flatnonzero(in_team)[0])
+        return True, machine.host
     held = bool(machine.holds_token[robot]) or (machine.over_bus and machine.tokens[robot].state != "idle")
     machine.roles[robot] = CONNECTOR_CODE
     machine.holds_token[robot] = False

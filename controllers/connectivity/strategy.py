@@ -91,9 +91,10 @@ election.py, targets.py). Here:
   estimator_messages.MessageFedEstimator (one vector; gains
   ``estimator_message_speedup``); each robot's eq. (17) uses the Fiedler
   components it received. Under "ideal" it runs in process as before.
-- Robots never fail in the paper. A robot the team no longer hears is dropped for good (failures.py): out of
-  the graph, the election, the consensus and the estimator (over the radio MessageFedEstimator.drop), its
-  virtual point frozen, a lost token re-issued, its targets handed on. Under position noise (exact mode) the
+- Robots never fail in the paper. A robot the team no longer hears is dropped (failures.py): out of the
+  graph, the election, the consensus and the estimator (over the radio MessageFedEstimator.drop), its virtual
+  point frozen, a lost token re-issued, its targets handed on; in exact mode it is taken back, as a
+  connector, once heard again where that keeps the team connected. Under position noise (exact mode) the
   force comes from the virtual points as measured, each displaced by its robot's fix error
   (``Observation.position_error``); the invariants from the true ones.
 - Exact mode with ``spectrum_smoothing`` > 0: V acts on a smooth lower bound
@@ -117,7 +118,14 @@ from controllers.connectivity.dynamics import step_virtual_dynamics_applied
 from controllers.connectivity.estimator import FiedlerEstimator, SubspaceEstimator, ritz_connectivity_gradient
 from controllers.connectivity.estimator_messages import MessageFedEstimator
 from controllers.connectivity.exploration import ExplorationController, ExplorationStep
-from controllers.connectivity.failures import DroppedRobot, drop_from_election, newly_silent, reassign_targets
+from controllers.connectivity.failures import (
+    TAKE_BACK_MIN_WEIGHT,
+    DroppedRobot,
+    drop_from_election,
+    heard_again,
+    newly_silent,
+    reassign_targets,
+)
 from controllers.connectivity.graph import connectivity_state, generalized_connectivity_force
 from controllers.connectivity.mission import (
     MissionStatistics,
@@ -281,7 +289,8 @@ class ConnectedStrategy(Strategy):
         over_bus = initial.radio is not None and initial.radio.preset != "ideal"
         self.explorer = ExplorationController(p, self.planner, self.queues, self.dt if over_bus else None)
         # Under a real radio each robot watches whom it still hears (every message is a heartbeat).
-        self.heartbeats = HeartbeatMonitor(n, p.heartbeat_timeout_s) if over_bus else None
+        self.heartbeats = (HeartbeatMonitor(n, p.heartbeat_timeout_s, initial.links.adjacency, initial.time_s)
+                           if over_bus else None)
         self.estimator = None
         # Under a real radio the estimator's state travels as messages (estimator_messages.py); under the
         # ideal one it runs in process, as before the bus.
@@ -377,9 +386,10 @@ class ConnectedStrategy(Strategy):
             if self._measured_noise:
                 lost += ("; the robots keep the graph they measure through their position noise connected, "
                          "and the true one lost a link")
-            if self.dropped:  # a dropped robot was the only link between parts of the team
-                lost += (f" after the team dropped the silent {', '.join(self.names[d.robot] for d in self.dropped)}"
-                         f" (t = {', '.join(f'{d.at_s:.2f}' for d in self.dropped)} s): its graph split without it")
+            out = [d for d in self.dropped if d.taken_back_at_s is None]
+            if out:  # a dropped robot was the only link between parts of the team
+                lost += (f" after the team dropped the silent {', '.join(self.names[d.robot] for d in out)}"
+                         f" (t = {', '.join(f'{d.at_s:.2f}' for d in out)} s): its graph split without it")
             if self.estimator_over_radio:
                 estimate = self.estimator.estimate.lambda2
                 lost += (f"; the robots' estimates over the radio were {estimate.min():.3g} to {estimate.max():.3g}, "
@@ -412,9 +422,14 @@ class ConnectedStrategy(Strategy):
                 self._events.append(f"t = {t:.2f} s: {self.names[receiver]} has heard nothing from "
                                     f"{self.names[sender]} for {p.heartbeat_timeout_s:g} s")
         self._drop_silent(t, observation.links)
-        team = None if not self.dropped else self.in_team
-        state = connectivity_state(q if team is None else q[team], self.boxes, p)
-        measured = self._measured_state(observation.position_error, team)
+        if self.estimator is None and not self.in_team.all():
+            self._take_back_heard(t, observation.links)
+        team = None if self.in_team.all() else self.in_team
+        # Condition (c) still counts a dropped robot (no vertex, but a body its team mates keep clear of) at its
+        # virtual point, frozen since the drop: where the team last knew it, so no factor jumps at the drop.
+        bystanders = None if team is None else q[~team]
+        state = connectivity_state(q if team is None else q[team], self.boxes, p, bystanders)
+        measured = self._measured_state(observation.position_error, team, bystanders)
         self._measured_noise = measured is not None
         truth, state = state, state if measured is None else measured  # the force from what is measured
         estimate = None
@@ -500,7 +515,8 @@ class ConnectedStrategy(Strategy):
         self.q, self.v = q_next, v_next
         return commands
 
-    def _measured_state(self, position_error: np.ndarray | None, team: np.ndarray | None):
+    def _measured_state(self, position_error: np.ndarray | None, team: np.ndarray | None,
+                        bystanders: np.ndarray | None):
         """Under position noise (exact mode), the connectivity the robots measure: every virtual point
         q_j seen displaced by robot j's position-fix error, as every robot measures j through the same fix
         (docs/faults.md); None without noise."""
@@ -509,7 +525,9 @@ class ConnectedStrategy(Strategy):
         seen = self.q + position_error
         if self.planar:
             seen[:, 2] = self.plane_z
-        return connectivity_state(seen if team is None else seen[team], self.boxes, self.params)
+        if team is None:
+            return connectivity_state(seen, self.boxes, self.params)
+        return connectivity_state(seen[team], self.boxes, self.params, bystanders + position_error[~team])
 
     def _drop_silent(self, t: float, links) -> None:
         """Drop from the team every robot its team mates no longer hear (failures.py): out of the graph and
@@ -519,7 +537,7 @@ class ConnectedStrategy(Strategy):
                 return  # every pair in sight is linked: nobody is silent (always so without a fault)
         elif not self.heartbeats.silent.any():
             return
-        for robot in newly_silent(self.in_team, links, self.heartbeats):
+        for robot in newly_silent(self.in_team, links, self.heartbeats, self.world.comm_range_m):
             if self.in_team.sum() <= 2:
                 return  # a team of one has nobody to drop anybody
             machine = self.explorer.role_machine
@@ -538,6 +556,32 @@ class ConnectedStrategy(Strategy):
                                 f"{' (prime traveler)' if was_prime else ''}; {reassigned} of its targets "
                                 f"reassigned, {lost} lost"
                                 + (f"; {self.names[heir]} takes a new token" if heir is not None else ""))
+
+    def _take_back_heard(self, t: float, links) -> None:
+        """Take back every dropped robot a team mate hears again over a strong link (weight at least
+        TAKE_BACK_MIN_WEIGHT), with the team's graph connected and no virtual point within R_c of its frozen
+        one (failures.py): a connector again, from rest where it was frozen."""
+        p = self.params
+        for entry in self.dropped:
+            robot = entry.robot
+            if entry.taken_back_at_s is not None or self.in_team[robot]:
+                continue
+            if not heard_again(robot, entry.at_s, self.in_team, links, self.heartbeats):
+                continue
+            with_it = self.in_team.copy()
+            with_it[robot] = True
+            if not pairwise_min_distance(self.q[with_it]) >= p.min_robot_distance_m:
+                continue
+            state = connectivity_state(self.q[with_it], self.boxes, p, self.q[~with_it])
+            row = int(np.count_nonzero(with_it[:robot]))  # its row among the team with it
+            if not (state.weights[row].max() >= TAKE_BACK_MIN_WEIGHT
+                    and state.lambda2 > p.lambda2_min + LAMBDA2_TOLERANCE):
+                continue
+            self.in_team[robot] = True
+            self.v[robot] = 0.0
+            entry.taken_back_at_s = float(t)
+            self._events.append(f"t = {t:.2f} s: the team takes back {self.names[robot]}, heard again "
+                                f"{t - entry.at_s:.2f} s after its drop")
 
     # ------------------------------------------------------------------ outputs
     def _note_changes(self, t: float, out: ExplorationStep) -> None:

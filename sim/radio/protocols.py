@@ -325,9 +325,15 @@ class HeartbeatMonitor:
     nothing else: the monitor reads only i's own inbox, never the simulator's truth.
     """
 
-    def __init__(self, n_robots: int, timeout_s: float):
+    def __init__(self, n_robots: int, timeout_s: float, neighbours_at_start: np.ndarray | None = None,
+                 start_s: float = 0.0):
+        """``neighbours_at_start``: (N, N) bool, the pairs linked when the team starts (it knows its roster and
+        starts connected), counted as heard at ``start_s``, so a robot that fails before its first message
+        still falls silent."""
         self.timeout_s = float(timeout_s)
         self.last_heard = np.full((n_robots, n_robots), -np.inf)  # [receiver, sender] -> last arrival, s
+        if neighbours_at_start is not None:
+            self.last_heard[np.asarray(neighbours_at_start, dtype=bool)] = float(start_s)
         self.silent = np.zeros((n_robots, n_robots), dtype=bool)  # [receiver, sender]: declared silent
         self.detections: list[tuple[float, int, int]] = []  # (t, receiver, sender): each declaration
         self.withdrawn: list[tuple[float, int, int]] = []  # (t, receiver, sender): heard again
