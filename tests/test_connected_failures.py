@@ -195,3 +195,18 @@ def test_the_first_token_holder_failing_at_0_s_leaves_the_token_with_the_team(ra
     after = primes[int(round(dropped.at_s / sim.dt)) + 1:]
     assert max(len(p) for p in primes) == 1 and any(after)
     assert 0 not in {robot for p in after for robot in p}
+
+
+def test_a_robot_whose_only_neighbour_failed_is_cut_off_not_silent():
+    """connected-office, seed 6: robots 7 and 9 hear only robot 5. When it fails, they are not dropped as
+    silent (their one witness is the dead robot itself): the team's graph split, and the run says so, as it
+    does over a real radio."""
+    sim = build_simulation(load("connected-office", ['faults=[{kind="robot_failure", robot=5, at_s=60.0}]'],
+                                seed=6, duration_s=61.0))
+    while True:
+        frame, healthy = sim.tick()
+        broke = sim.strategy.violation(frame.commands)
+        if broke or not healthy or frame.observation.time_s >= 60.5:
+            break
+    assert [d.robot for d in sim.strategy.dropped] == [5]
+    assert broke and "graph split" in broke, broke

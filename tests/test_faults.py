@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 
 import tether.catalog  # noqa: F401 (registers the built-in scenarios)
 from controllers.lowlevel.actuation import LowLevelControl
+from controllers.intermittent.runtime import LAG_HOLD_M, LagHolds
 from sim.config import ConfigError
 from sim.faults import IDEAL_BLACKOUT_CUT_DB, FaultState, PositionNoise
 from sim.loop import Simulation
@@ -65,6 +66,9 @@ def broadcast(overrides, ticks=40, seed=0):
     ('faults=[{kind="robot_failure", robot=10, at_s=1.0}]', "faults.0.robot", "robot index below 10"),
     ('faults=[{kind="robot_failure", robot=1, at_s=-1.0}]', "faults.0.at_s", "must be at least 0"),
     ('faults=[{kind="robot_failure", robot=1, at_s=99.0}]', "faults.0.at_s", "within the run"),
+    ('faults=[{kind="robot_failure", robot=1, at_s=10.0}]', "faults.0.at_s", "within the run"),
+    ('faults=[{kind="radio_blackout", center=[1, 1, 1], radius_m=1.0, extra_loss_db=9.0, from_s=10.0}]',
+     "faults.0.from_s", "within the run"),
     ('faults=[{kind="robot_failure", robot=1, at_s=nan}]', "faults.0.at_s", "finite"),
     ('faults=[{kind="robot_failure", robot=1, at_s=1.0, mode="fly"}]', "faults.0.mode", "must be one of"),
     ('faults=[{kind="meteor"}]', "faults.0.kind", "must be one of robot_failure"),
@@ -438,3 +442,33 @@ def test_the_graph_figures_count_the_survivors_of_a_failure(radio):
     summary = metrics.summary()
     assert summary["comm_lambda2_min"] == pytest.approx(min(survivors.comm_lambda2,
                                                             link_figures(before.observation).comm_lambda2))
+
+
+def test_a_path_clock_waits_for_a_lagging_body_at_most_its_bound_then_until_the_body_comes_close():
+    holds = LagHolds(1, period_s=0.1, max_s=1.0)
+    t, waited = 0.0, []
+    for _ in range(15):  # 1.5 s lagging by 0.3 m: 10 ticks held (1 s), then the clock goes on
+        waited.append(holds.wait(0, True, t, 0.3))
+        t += 0.1
+    assert waited == [True] * 10 + [False] * 5 and holds.released == 1
+    assert holds.longest_s == pytest.approx(1.0)
+    # Still not close (within half of LAG_HOLD_M): the clock stays loose, even where it dips below LAG_HOLD_M.
+    assert not holds.wait(0, False, t, 0.1) and not holds.wait(0, True, t + 0.1, 0.3)
+    # Close again: a new lag is waited for.
+    assert not holds.wait(0, False, t + 0.2, 0.5 * LAG_HOLD_M) and holds.wait(0, True, t + 0.3, 0.3)
+    # A short lag that ends is no stretch to cut.
+    fresh = LagHolds(1, period_s=0.1, max_s=1.0)
+    assert all(fresh.wait(0, True, k * 0.1, 0.3) for k in range(5)) and not fresh.wait(0, False, 0.5, 0.0)
+    assert all(fresh.wait(0, True, 0.6 + k * 0.1, 0.3) for k in range(10)) and fresh.released == 0
+
+
+def test_meetings_are_held_when_a_position_bias_keeps_a_robot_off_its_reference(tmp_path):
+    """A biased fix (0.3 m, beyond LAG_HOLD_M) makes every body look behind its reference forever; a clock that
+    waited for it stopped random_meeting (0 of 8 meetings in 150 s). With the wait bounded, they are held."""
+    from tether.runner import run
+
+    noise = 'faults=[{kind="position_noise", bias_m=0.3}]'
+    metrics = run(load("intermittent-8", ['strategy.kind="random_meeting"', noise], seed=3, duration_s=150.0),
+                  tmp_path / "out").metrics
+    assert metrics["path_clock_holds_cut"] > 0
+    assert metrics["meetings_held"] >= 6, metrics["message"]

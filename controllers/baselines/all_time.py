@@ -49,6 +49,7 @@ from controllers.intermittent.runtime import (
     measurement_records,
     planner_params,
     LAG_HOLD_M,
+    LagHolds,
     prior_state,
     separated_references,
     team_color,
@@ -119,6 +120,7 @@ class AllTimeStrategy(Strategy):
         self.ticks = 0
         self.connected_ticks = 0
         self.held_ticks = 0
+        self.lag_holds = LagHolds(1, world.control_period_s)  # the formation's one clock
         self.events: list[str] = []
         self._time_s = 0.0
         self._scalars = {"lambda_max_m2": float(np.linalg.eigvalsh(self.prior.covariance)[-1]),
@@ -203,7 +205,9 @@ class AllTimeStrategy(Strategy):
                                       self.last_step if self.last_step is not None else 0)
         xy = observation.position[:, :2]
         centre, velocity = self.segment.reference(t)
-        if not self.segment.finished(t) and np.linalg.norm(xy - (centre + self.offsets), axis=1).max() > LAG_HOLD_M:
+        on_path = not self.segment.finished(t)
+        lag_m = np.linalg.norm(xy - (centre + self.offsets), axis=1).max() if on_path else 0.0
+        if self.lag_holds.wait(0, on_path and lag_m > LAG_HOLD_M, t, lag_m):
             # Time scaling: a body lags, the formation's clock waits for it.
             self.segment.offset_s += self.world.control_period_s
             self.held_ticks += 1
@@ -255,6 +259,8 @@ class AllTimeStrategy(Strategy):
             "plan_fallbacks": self.plan_fallbacks,
             "formation_connected_share": self.connected_ticks / self.ticks if self.ticks else 1.0,
             "path_clock_hold_s": self.held_ticks * self.world.control_period_s,
+            "path_clock_hold_longest_s": self.lag_holds.longest_s,
+            "path_clock_holds_cut": self.lag_holds.released,
             "t_star_lag_mean_s": 0.0,
             "t_star_lag_max_s": 0.0,
             **(self.fusion.summary(self.step_s) if self.fusion is not None else {}),

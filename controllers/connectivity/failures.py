@@ -92,25 +92,32 @@ class DroppedRobot:
 
 
 def newly_silent(in_team: np.ndarray, links, heartbeats, comm_range_m: float) -> list[int]:
-    """Robots of the team that every team mate who ever heard them counts as silent now (``heartbeats``, a
-    HeartbeatMonitor). Under ``ideal`` (``heartbeats`` None) the disk model links every pair within
+    """Robots of the team that every live team mate who ever heard them counts as silent now (``heartbeats``,
+    a HeartbeatMonitor). Under ``ideal`` (``heartbeats`` None) the disk model links every pair within
     ``comm_range_m`` and in line of sight (``links``, the observation's): a team mate there without a link
-    hears nothing from j, so j is silent once every team mate in range and sight of it has no link to it
-    (and at least one is in range and sight). A robot with no team mate in range is not silent but cut
-    off: the team's graph split, which the method's own invariant reports."""
-    out = []
+    hears nothing from j, so j is silent once every team mate in range and sight of it has no link to it.
+
+    Only live witnesses count: a team mate that is itself silent now hears nobody, so its silence about j
+    says nothing of j. A robot whose only witnesses are silent (its one neighbour failed) is not silent but
+    cut off: the team's graph split, which the method's own invariant reports; so is a robot with no team
+    mate in range at all."""
+    witnesses = np.zeros((len(in_team), len(in_team)), dtype=bool)  # [j, i]: i's silence about j is evidence
+    quiet = np.zeros(len(in_team), dtype=bool)  # [j]: every witness of j hears nothing from it
     for j in np.flatnonzero(in_team):
         others = in_team.copy()
         others[j] = False
         if heartbeats is None:
-            would_link = others & links.line_of_sight[j] & (links.distance[j] <= comm_range_m)
-            if would_link.any() and not links.adjacency[j, would_link].any():
-                out.append(int(j))
-            continue
-        heard = others & np.isfinite(heartbeats.last_heard[:, j])
-        if heard.any() and heartbeats.silent[heard, j].all():
-            out.append(int(j))
-    return out
+            witnesses[j] = others & links.line_of_sight[j] & (links.distance[j] <= comm_range_m)
+            quiet[j] = witnesses[j].any() and not links.adjacency[j, witnesses[j]].any()
+        else:
+            witnesses[j] = others & np.isfinite(heartbeats.last_heard[:, j])
+            quiet[j] = witnesses[j].any() and heartbeats.silent[witnesses[j], j].all()
+    silent = quiet.copy()
+    while True:  # until no silent robot rests on silent witnesses alone
+        live = silent & (witnesses & ~silent[None, :]).any(axis=1)
+        if np.array_equal(live, silent):
+            return [int(j) for j in np.flatnonzero(silent)]
+        silent = live
 
 
 def heard_again(robot: int, dropped_at_s: float, in_team: np.ndarray, links, heartbeats) -> bool:

@@ -23,6 +23,7 @@ Units: m, s; plane positions (x, y) in the world frame; discrete steps are
 from __future__ import annotations
 
 import bisect
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -204,6 +205,45 @@ def commands_from_plane(observation: Observation, positions: np.ndarray, velocit
 
 
 LAG_HOLD_M = 0.15  # a robot's path clock pauses while its body is this far behind its reference, m
+# A path clock pauses at most this long in one stretch: a body held LAG_HOLD_M off its reference that long is not
+# lagging but standing where it believes itself to be elsewhere (a biased position fix, docs/faults.md), and a
+# clock that waited for it would stop its team for good. The longest stretch of the built-ins without faults
+# is far shorter (docs/faults.md), s.
+LAG_HOLD_MAX_S = 10.0
+
+
+class LagHolds:
+    """Each path clock's current stretch of waiting for its lagging body (the time scaling of the meeting
+    methods' paths), bounded by ``max_s``: after that the clock goes on, and waits again only once its body
+    has come within half of LAG_HOLD_M of its reference. A stretch ends there too, not at LAG_HOLD_M: a fix
+    that wanders about a bias near LAG_HOLD_M would otherwise start a new stretch at every crossing."""
+
+    def __init__(self, n_clocks: int, period_s: float, max_s: float = LAG_HOLD_MAX_S):
+        self.period_s = float(period_s)  # the control period: a stretch of one held tick lasts this long, s
+        self.max_s = float(max_s)
+        self.since = [math.nan] * n_clocks  # when the clock's current stretch began, s (NaN: not lagging)
+        self.cut = [False] * n_clocks  # the clock's last stretch reached max_s and its body has not come close
+        self.longest_s = 0.0  # the longest stretch waited so far, s (held ticks times the period)
+        self.released = 0  # stretches cut at max_s
+
+    def wait(self, clock: int, lagging: bool, t: float, lag_m: float) -> bool:
+        """Whether clock ``clock`` waits this tick (at ``t``, s) for a body that is ``lagging`` (more than
+        LAG_HOLD_M behind, as the caller decides it); ``lag_m``: the body's distance from its reference, m
+        (0 where its path has not started or has ended)."""
+        if lag_m <= 0.5 * LAG_HOLD_M:  # close: whatever stretch there was has ended
+            self.since[clock], self.cut[clock] = math.nan, False
+        if self.cut[clock] or not lagging:
+            return False
+        since = self.since[clock]
+        if since != since:  # NaN: a new stretch
+            self.since[clock] = since = t
+        waited = t - since + self.period_s  # this tick's wait included
+        if waited > self.max_s + 1e-9:
+            self.cut[clock], self.since[clock] = True, math.nan
+            self.released += 1
+            return False
+        self.longest_s = max(self.longest_s, waited)
+        return True
 WALL_KEEP_M = 0.06  # separation never moves a reference closer than this to a wall, m
 SEPARATION_M = 0.12  # bodies (0.072 m across) closer than this push their references apart, m
 SEPARATION_GAIN = 3.0  # reference offset per metre of intrusion, -

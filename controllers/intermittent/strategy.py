@@ -79,6 +79,7 @@ from controllers.intermittent.runtime import (
     measurement_records,
     planner_params,
     LAG_HOLD_M,
+    LagHolds,
     prior_state,
     team_samples,
     separated_references,
@@ -310,6 +311,7 @@ class MeetingStrategy(Strategy):
         self._visual = Decorations()
         self._time_s = 0.0
         self.held_ticks = 0  # robot-ticks a path clock waited for its lagging body
+        self.lag_holds = LagHolds(n, world.control_period_s)
         self.closest_m = math.inf  # closest approach of two robot bodies over the run, m
         # Under the ideal radio a meeting's members pool their logs the tick they meet (Alg. 5), as the
         # paper has it; under a real one the records travel over the bus (docs/radio.md).
@@ -592,8 +594,9 @@ class MeetingStrategy(Strategy):
                 vx = vy = 0.0
             else:
                 (x, y), (vx, vy) = timed.reference_at_tau(tau)
-                if (segment.started and not tau >= timed.end_step - 1e-9
-                        and _farther_than(body[robot], x, y, LAG_HOLD_M)):
+                on_path = segment.started and not tau >= timed.end_step - 1e-9
+                lag_m = math.hypot(body[robot][0] - x, body[robot][1] - y) if on_path else 0.0
+                if self.lag_holds.wait(robot, on_path and _farther_than(body[robot], x, y, LAG_HOLD_M), t, lag_m):
                     # Time scaling: the body lags (a sharp turn, a push); its path clock waits for it.
                     timed.offset_s += self.world.control_period_s
                     self.held_ticks += 1
@@ -788,6 +791,8 @@ class MeetingStrategy(Strategy):
             "plan_failures": self.plan_failures,
             "plan_fallbacks": self.plan_fallbacks,
             "path_clock_hold_s": self.held_ticks * self.world.control_period_s,
+            "path_clock_hold_longest_s": self.lag_holds.longest_s,
+            "path_clock_holds_cut": self.lag_holds.released,
             "closest_robots_m": self.closest_m if math.isfinite(self.closest_m) else None,
             "lag_team": self.params.lag_team,
             "t_star_lag_mean_s": float(lag_steps.mean()) if lag_steps.size else 0.0,
