@@ -317,6 +317,9 @@ def _figure(png: Path, drawn, rungs, names, series, cells, breaks, scenarios, sw
                     if x in pos:
                         ax.plot([x + shift], [p50[pos.index(x)]], marker="X", ms=13, color=color, mec="black",
                                 mew=1.0, ls="none")
+        # Every panel spans every rung, with room for the dodged series (a panel with data at one rung
+        # only would otherwise shrink to it and clip its outer series).
+        ax.set_xlim(xs[0] - 0.3 - len(series) * DODGE / 2, xs[-1] + 0.3 + len(series) * DODGE / 2)
         ax.set_xticks(xs, [n.replace(", ", "\n").replace(" (", "\n(") for n in names], fontsize=9)
         ax.set_xlabel("radio channel, best to worst", fontsize=10)
         ax.set_ylabel(label, fontsize=10)

@@ -34,6 +34,13 @@ heard again (a healthy robot behind a blackout, say):
   queue go, each to the robot still in the team that had targets of its own
   (an explorer) and whose virtual point is nearest; with no explorer left
   they are lost. Both counts are kept per dropped robot.
+- **Its point, in the plans.** Its team mates keep clear of its frozen
+  point (condition (c) counts it, graph.py); the path planner does too, so
+  that no path leads a traveler through it (a prime traveler held 0.85 m
+  from it by its collision factor, its path through the point, stalled a
+  mission for good): a box round the point joins the planner's obstacles
+  (``obstacles_with_dropped``) and every traveler replans. A target no
+  path reaches any more is skipped, as an unreachable one always is.
 - **Taking it back** (exact mode). A dropped robot is taken back once a robot
   of the team hears it again (under ``ideal``, a link to it; under a real
   radio, any message from it that arrived after its drop) and the team with
@@ -62,6 +69,7 @@ import numpy as np
 from controllers.connectivity.election import Handover, Reply
 from controllers.connectivity.roles import CONNECTOR_CODE
 from controllers.connectivity.targets import Target
+from sim.geometry import Boxes
 
 
 # A dropped robot is taken back only over a link at least this strong (W_ij in [0, 1]; 1 within R'_s in clear
@@ -118,6 +126,24 @@ def newly_silent(in_team: np.ndarray, links, heartbeats, comm_range_m: float) ->
         if np.array_equal(live, silent):
             return [int(j) for j in np.flatnonzero(silent)]
         silent = live
+
+
+def obstacles_with_dropped(boxes: Boxes, points: np.ndarray, bounds: np.ndarray, params) -> Boxes:
+    """The scene's ``boxes`` and, for the path planner, a box round each dropped robot's frozen point
+    (``points`` (K, 3), m): wide enough that a path at the planner's preferred clearance passes it at R'_c
+    (full weight) and one at its fallback clearance at R_c, and as tall as the scene (``bounds`` (2, 3))."""
+    if not len(points):
+        return boxes
+    half_width = max(params.full_weight_robot_distance_m - params.path_clearance_m,
+                     params.min_robot_distance_m - params.path_min_clearance_m, 0.01)
+    centers = np.array(points, dtype=float).reshape(-1, 3).copy()
+    centers[:, 2] = 0.5 * (bounds[0, 2] + bounds[1, 2])
+    half = np.empty_like(centers)
+    half[:, :2] = half_width
+    half[:, 2] = max(0.5 * (bounds[1, 2] - bounds[0, 2]), half_width)
+    extra = Boxes.axis_aligned(centers, half)
+    return Boxes(np.concatenate([boxes.centers, extra.centers]), np.concatenate([boxes.half_sizes, extra.half_sizes]),
+                 np.concatenate([boxes.rotations, extra.rotations]))
 
 
 def heard_again(robot: int, dropped_at_s: float, in_team: np.ndarray, links, heartbeats) -> bool:

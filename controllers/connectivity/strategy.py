@@ -124,6 +124,7 @@ from controllers.connectivity.failures import (
     drop_from_election,
     heard_again,
     newly_silent,
+    obstacles_with_dropped,
     reassign_targets,
 )
 from controllers.connectivity.graph import connectivity_state, generalized_connectivity_force
@@ -278,6 +279,7 @@ class ConnectedStrategy(Strategy):
         check_start(state, self.q, self.boxes, self.names, p)
 
         self.planner = shared_planner(self.boxes, bounds, p)
+        self._bounds = bounds
         # Targets first: they are the first draws of the run's generator.
         if self._target_generator is None:
             self.queues = target_queues(p, self.planner, self.q, rng)
@@ -556,6 +558,7 @@ class ConnectedStrategy(Strategy):
                                 f"{' (prime traveler)' if was_prime else ''}; {reassigned} of its targets "
                                 f"reassigned, {lost} lost"
                                 + (f"; {self.names[heir]} takes a new token" if heir is not None else ""))
+            self._plan_around_dropped()
 
     def _take_back_heard(self, t: float, links) -> None:
         """Take back every dropped robot a team mate hears again over a strong link (weight at least
@@ -582,6 +585,17 @@ class ConnectedStrategy(Strategy):
             entry.taken_back_at_s = float(t)
             self._events.append(f"t = {t:.2f} s: the team takes back {self.names[robot]}, heard again "
                                 f"{t - entry.at_s:.2f} s after its drop")
+            self._plan_around_dropped()
+
+    def _plan_around_dropped(self) -> None:
+        """The path planner of the scene with a box round each dropped robot's frozen point (failures.py), and
+        every traveler's path planned again with it (a path that no longer exists keeps the old one)."""
+        p = self.params
+        boxes = obstacles_with_dropped(self.boxes, self.q[~self.in_team], self._bounds, p)
+        self.planner = self.explorer.planner = shared_planner(boxes, self._bounds, p)
+        for robot, path in enumerate(self.explorer.paths):
+            if path is not None and self.explorer.targets[robot] is not None and self.in_team[robot]:
+                self.explorer._replan(robot, self.q[robot])
 
     # ------------------------------------------------------------------ outputs
     def _note_changes(self, t: float, out: ExplorationStep) -> None:
