@@ -210,3 +210,23 @@ def test_a_robot_whose_only_neighbour_failed_is_cut_off_not_silent():
             break
     assert [d.robot for d in sim.strategy.dropped] == [5]
     assert broke and "graph split" in broke, broke
+
+
+def test_the_planner_keeps_clear_of_a_dropped_robots_point_and_forgets_it_when_taken_back():
+    sim, _, points = _failing(EXPLORER, 1.0, duration_s=1.5)
+    strategy = sim.strategy
+    frozen = points[-1]
+    assert not strategy.planner.is_free(frozen[None])[0]
+    assert strategy.explorer.planner is strategy.planner
+    # Every path of the team passes the point at R_c or more.
+    p = strategy.params
+    for path in strategy.explorer.paths:
+        if path is not None and path.spline is not None:
+            samples = path.sample(0.05)
+            assert np.linalg.norm(samples[:, :2] - frozen[:2], axis=1).min() >= p.min_robot_distance_m - 0.05
+    # Taken back: the planner of the scene alone again.
+    entry = strategy.dropped[0]
+    strategy.in_team[EXPLORER] = True
+    entry.taken_back_at_s = 1.5
+    strategy._plan_around_dropped()
+    assert strategy.planner.is_free(frozen[None])[0]
