@@ -177,6 +177,7 @@ class FaultState:
     faults: tuple[Fault, ...]
     n_robots: int
     rng: np.random.Generator | None = None  # the position noise's stream (spawned from the run's)
+    ideal_radio: bool = False  # the radio is the ideal disk: a blackout below IDEAL_BLACKOUT_CUT_DB does nothing
     failed: np.ndarray = field(init=False)
     events: list[tuple[float, str]] = field(init=False, default_factory=list)  # (t, what happened), for messages
 
@@ -210,7 +211,9 @@ class FaultState:
         for k, blackout in enumerate(self.blackouts):
             if not self._blackout_seen[k] and blackout.active(time_s):
                 self._blackout_seen[k] = True
-                self.events.append((time_s, blackout.describe()))
+                weak = self.ideal_radio and blackout.extra_loss_db < IDEAL_BLACKOUT_CUT_DB
+                self.events.append((time_s, blackout.describe() + (
+                    f" (no effect: the ideal radio cuts a link only from {IDEAL_BLACKOUT_CUT_DB:g} dB on)" if weak else "")))
         return newly
 
     def blackout_inside(self, time_s: float, positions: np.ndarray) -> list[tuple[np.ndarray, float]]:

@@ -142,7 +142,8 @@ class Simulation:
         # a stream, so a run without faults draws and spawns exactly as before.
         self.faults: FaultState | None = None
         if scenario.faults:
-            self.faults = FaultState(scenario.faults, self.world.n_robots)
+            self.faults = FaultState(scenario.faults, self.world.n_robots,
+                                     ideal_radio=scenario.radio.preset == "ideal")
             if self.faults.noise is not None:
                 self.faults.rng = self.rng.spawn(1)[0]
             self._robot_actuators = _robot_actuators(self.world)

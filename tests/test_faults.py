@@ -472,3 +472,12 @@ def test_meetings_are_held_when_a_position_bias_keeps_a_robot_off_its_reference(
                   tmp_path / "out").metrics
     assert metrics["path_clock_holds_cut"] > 0
     assert metrics["meetings_held"] >= 6, metrics["message"]
+
+
+def test_a_blackout_too_weak_for_the_ideal_radio_says_it_does_nothing(tmp_path):
+    from tether.runner import run
+
+    weak = ('faults=[{kind="radio_blackout", center=[4.0, 2.0, 1.0], radius_m=2.0, extra_loss_db=9.9, '
+            'from_s=1.0}]')
+    metrics = run(load("connected-office", [weak], duration_s=2.0), tmp_path / "out").metrics
+    assert "(no effect: the ideal radio cuts a link only from 10 dB on)" in metrics["message"], metrics["message"]
