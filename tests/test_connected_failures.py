@@ -96,6 +96,15 @@ def test_position_noise_of_zero_is_the_fault_free_run_bit_for_bit_and_noise_move
     assert reported == connectivity_state(points, sim.strategy.boxes, sim.strategy.params).lambda2
 
 
+def test_in_estimator_mode_position_noise_reaches_the_estimators_weights():
+    estimator = ['strategy.lambda2_source="estimator"']
+    clean, _, _ = _virtual_points(estimator, duration_s=0.5)
+    zero, _, _ = _virtual_points([*estimator, 'faults=[{kind="position_noise", sigma_m=0.0}]'], duration_s=0.5)
+    assert np.array_equal(clean, zero)
+    noisy, _, _ = _virtual_points([*estimator, 'faults=[{kind="position_noise", sigma_m=0.01}]'], duration_s=0.5)
+    assert not np.array_equal(clean, noisy)
+
+
 def test_in_estimator_mode_the_dropped_robot_leaves_the_estimators_graph():
     """lambda2_source = "estimator" under ideal: after the drop the estimator is the nine robots' (its state
     carried over, the dead robot's point frozen), its estimate of the live team's lambda2 stays usable and

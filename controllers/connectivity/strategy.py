@@ -94,7 +94,7 @@ election.py, targets.py). Here:
 - Robots never fail in the paper. A robot the team no longer hears is dropped (failures.py): out of the
   graph, the election, the consensus and the estimator (over the radio MessageFedEstimator.drop), its virtual
   point frozen, a lost token re-issued, its targets handed on; in exact mode it is taken back, as a
-  connector, once heard again where that keeps the team connected. Under position noise (exact mode) the
+  connector, once heard again where that keeps the team connected. Under position noise the
   force comes from the virtual points as measured, each displaced by its robot's fix error
   (``Observation.position_error``); the invariants from the true ones.
 - Exact mode with ``spectrum_smoothing`` > 0: V acts on a smooth lower bound
@@ -519,10 +519,11 @@ class ConnectedStrategy(Strategy):
 
     def _measured_state(self, position_error: np.ndarray | None, team: np.ndarray | None,
                         bystanders: np.ndarray | None):
-        """Under position noise (exact mode), the connectivity the robots measure: every virtual point
-        q_j seen displaced by robot j's position-fix error, as every robot measures j through the same fix
-        (docs/faults.md); None without noise."""
-        if position_error is None or self.estimator is not None:
+        """Under position noise, the connectivity the robots measure (its weights feed the force in exact
+        mode and the lambda2 estimator in estimator mode): every virtual point q_j seen displaced by robot
+        j's position-fix error, as every robot measures j through the same fix (docs/faults.md); None
+        without noise."""
+        if position_error is None:
             return None
         seen = self.q + position_error
         if self.planar:
