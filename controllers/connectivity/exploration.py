@@ -157,6 +157,14 @@ class ExplorationController:
             return True
         return False
 
+    def use_planner(self, planner: GridPlanner, q: np.ndarray, robots) -> None:
+        """Plan with ``planner`` from now on (the scene's obstacles changed), and plan again the current path
+        of each of ``robots`` that has a target from its position in ``q`` (N, 3), m."""
+        self.planner = planner
+        for robot in robots:
+            if self.paths[robot] is not None and self.targets[robot] is not None:
+                self._replan(robot, q[robot])
+
     def _replan(self, robot: int, position: np.ndarray) -> None:
         try:
             self.paths[robot] = self.planner.plan(position, self.targets[robot].position)

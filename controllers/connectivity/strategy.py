@@ -593,10 +593,8 @@ class ConnectedStrategy(Strategy):
         every traveler's path planned again with it (a path that no longer exists keeps the old one)."""
         p = self.params
         boxes = obstacles_with_dropped(self.boxes, self.q[~self.in_team], self._bounds, p)
-        self.planner = self.explorer.planner = shared_planner(boxes, self._bounds, p)
-        for robot, path in enumerate(self.explorer.paths):
-            if path is not None and self.explorer.targets[robot] is not None and self.in_team[robot]:
-                self.explorer._replan(robot, self.q[robot])
+        self.planner = shared_planner(boxes, self._bounds, p)
+        self.explorer.use_planner(self.planner, self.q, np.flatnonzero(self.in_team))
 
     # ------------------------------------------------------------------ outputs
     def _note_changes(self, t: float, out: ExplorationStep) -> None:
