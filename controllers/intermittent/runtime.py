@@ -226,6 +226,10 @@ class LagHolds:
         self.longest_s = 0.0  # the longest stretch waited so far, s (held ticks times the period)
         self.released = 0  # stretches cut at max_s
 
+    def engaged(self, clock: int) -> bool:
+        """Whether clock ``clock`` is in a stretch or cut loose (else a tick without lag changes nothing)."""
+        return self.cut[clock] or self.since[clock] == self.since[clock]
+
     def wait(self, clock: int, lagging: bool, t: float, lag_m: float) -> bool:
         """Whether clock ``clock`` waits this tick (at ``t``, s) for a body that is ``lagging`` (more than
         LAG_HOLD_M behind, as the caller decides it); ``lag_m``: the body's distance from its reference, m

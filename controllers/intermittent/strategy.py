@@ -595,8 +595,10 @@ class MeetingStrategy(Strategy):
             else:
                 (x, y), (vx, vy) = timed.reference_at_tau(tau)
                 on_path = segment.started and not tau >= timed.end_step - 1e-9
-                lag_m = math.hypot(body[robot][0] - x, body[robot][1] - y) if on_path else 0.0
-                if self.lag_holds.wait(robot, on_path and _farther_than(body[robot], x, y, LAG_HOLD_M), t, lag_m):
+                lagging = on_path and _farther_than(body[robot], x, y, LAG_HOLD_M)
+                holds = self.lag_holds
+                if (lagging or holds.engaged(robot)) and holds.wait(
+                        robot, lagging, t, math.hypot(body[robot][0] - x, body[robot][1] - y) if on_path else 0.0):
                     # Time scaling: the body lags (a sharp turn, a push); its path clock waits for it.
                     timed.offset_s += self.world.control_period_s
                     self.held_ticks += 1
