@@ -184,23 +184,42 @@ class Arrivals:
 
 def _arrivals_of(records: list[tuple[Message, Any, float]], n: int) -> Arrivals:
     """``Arrivals`` from (message, receivers reached, arrival s) records of ``n`` robots, in the rows' order."""
-    # One table of the records' numbers (sender, arrival, sent, sequence, payload, receivers reached or -1
-    # for every other robot: all exact as float64) and the other records' receivers, flat.
-    everyone = n - 1
-    table = np.array([(m.sender, a, m.sent_s, m.sequence, m.payload,
-                       -1 if m.receivers is None and len(reached) == everyone else len(reached))
-                      for m, reached, a in records], dtype=float)
-    receivers = np.array([r for m, reached, _ in records if m.receivers is not None or len(reached) != everyone
-                          for r in reached], dtype=np.int64)
-    columns = _arrival_columns(n, table, receivers)
-    for column in columns:
-        column.flags.writeable = False
-    arrivals = _new_object(Arrivals)
-    arrivals.__dict__.update(zip(_ARRIVALS_FIELDS, columns))
-    return arrivals
+    table = _ArrivalTable()
+    for message, reached, arrival_s in records:
+        table.add(message, reached, arrival_s, n - 1)
+    return table.columns(n)
 
 
-_ARRIVALS_FIELDS = ("receiver", "sender", "arrival_s", "sent_s", "sequence", "payload")
+class _ArrivalTable:
+    """One kind's ``as_arrays`` arrivals of a period as they are recorded: per message a row of numbers
+    (sender, arrival, sent, sequence, payload, receivers reached or -1 for every other robot: all exact as
+    float64) and the receivers of the rows that list theirs, flat."""
+
+    __slots__ = ("rows", "receivers")
+
+    def __init__(self) -> None:
+        self.rows: list[tuple[float, ...]] = []
+        self.receivers: list[int] = []
+
+    def add(self, message: Message, reached: Any, arrival_s: float, everyone: int) -> None:
+        """``message`` reached ``reached`` at ``arrival_s``; ``everyone``: how many robots but its sender."""
+        if message.receivers is None and len(reached) == everyone:
+            self.rows.append((message.sender, arrival_s, message.sent_s, message.sequence, message.payload, -1))
+        else:
+            self.rows.append((message.sender, arrival_s, message.sent_s, message.sequence, message.payload,
+                              len(reached)))
+            self.receivers.extend(reached)
+
+    def columns(self, n: int) -> Arrivals:
+        """The ``Arrivals``, in the rows' order (``_arrival_columns``), read-only."""
+        integers, floats = _arrival_columns(n, np.array(self.rows, dtype=float),
+                                            np.array(self.receivers, dtype=np.int64))
+        integers.flags.writeable = False  # before the views: they inherit it
+        floats.flags.writeable = False
+        arrivals = _new_object(Arrivals)
+        arrivals.__dict__.update(receiver=integers[0], sender=integers[1], arrival_s=floats[0], sent_s=floats[1],
+                                 sequence=integers[2], payload=floats[2])
+        return arrivals
 
 
 @kernel
@@ -209,7 +228,8 @@ def _arrival_columns(n, table, receivers):
     (rows of ``table``: sender, arrival, sent, sequence, payload, how many of ``receivers`` are theirs, in
     order, or -1: every robot of ``n`` but the sender) by (arrival, sequence), then a stable counting sort
     by receiver, which is what ``numpy.lexsort((sequence, arrival, receiver))`` gives (no two entries tie).
-    Returns the columns (receiver, sender, arrival, sent, sequence, payload)."""
+    Returns the columns as two blocks (one array each to box, not six): (receiver, sender, sequence) int64
+    and (arrival, sent, payload) float64, (3, D) each."""
     m = table.shape[0]
     starts = np.empty(m, dtype=np.int64)
     counts = np.empty(m, dtype=np.int64)
@@ -246,12 +266,8 @@ def _arrival_columns(n, table, receivers):
         order[b + 1] = k
     for r in range(robots):
         slot[r + 1] += slot[r]
-    out_receiver = np.empty(total, dtype=np.int64)
-    out_sender = np.empty(total, dtype=np.int64)
-    out_arrival = np.empty(total)
-    out_sent = np.empty(total)
-    out_sequence = np.empty(total, dtype=np.int64)
-    out_payload = np.empty(total)
+    integers = np.empty((3, total), dtype=np.int64)  # receiver, sender, sequence
+    floats = np.empty((3, total))  # arrival, sent, payload
     for a in range(m):
         k = order[a]
         everyone = counts[k] < 0
@@ -264,13 +280,13 @@ def _arrival_columns(n, table, receivers):
                 receiver = receivers[starts[k] + d]
             e = slot[receiver]
             slot[receiver] += 1
-            out_receiver[e] = receiver
-            out_sender[e] = int(table[k, 0])
-            out_arrival[e] = table[k, 1]
-            out_sent[e] = table[k, 2]
-            out_sequence[e] = int(table[k, 3])
-            out_payload[e] = table[k, 4]
-    return out_receiver, out_sender, out_arrival, out_sent, out_sequence, out_payload
+            integers[0, e] = receiver
+            integers[1, e] = int(table[k, 0])
+            integers[2, e] = int(table[k, 3])
+            floats[0, e] = table[k, 1]
+            floats[1, e] = table[k, 2]
+            floats[2, e] = table[k, 4]
+    return integers, floats
 
 
 class LinkState(Protocol):
@@ -463,17 +479,17 @@ def _per_802154(snr_db, bits):
 
 
 @kernel
-def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airtime_s, error_bits, audience_start,
-                     audience_count, listed, fading_code, noncentrality, gain_scale, sure_snr_db, decide, rng,
-                     popped, sent_frame, sent_finish, sent_draws, draw_receiver, draw_snr, draw_bits, draw_gain,
-                     draw_uniform, draw_unsure, draw_alive, tally):
+def _schedule_frames(start_s, end_s, eps, sense, snr, queued, timing, audience_count, listed, fading_code,
+                     noncentrality, gain_scale, sure_snr_db, decide, rng, popped, sent_frame, sent_finish, sent_draws,
+                     draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally):
     """One period of the shared medium (``ReferenceMessageBus._step_medium``'s loop, step for step).
 
-    Sender s offers frames first[s] .. first[s] + count[s] - 1 in order. Each round, every sender whose next
+    Sender s offers frames first[s] .. first[s] + count[s] - 1 in order (``queued``'s rows: first, count);
+    frame f's send time, airtime and error bits are ``timing[:, f]``. Each round, every sender whose next
     frame is ready starts at max(ready, the end of the latest frame of anyone it senses); the earliest go,
     a tie broken by ``rng.integers``; a frame that would end after the period stops its sender. A frame
-    that goes draws, per receiver of its audience (``listed[audience_start:][:audience_count]``, or every
-    other robot when the count is -1), its fading gain and then, for all of them, a uniform: the reference's
+    that goes draws, per receiver of its audience (its ``audience_count`` receivers, listed in ``listed``
+    after the earlier frames', or every other robot when the count is -1), its fading gain and then, for all of them, a uniform: the reference's
     draws in its order. Fills ``popped`` (frames gone per sender), the frames gone in order with their end
     and the range of their draws (each with its receiver, mean SNR as ``numpy.nan_to_num(nan=-inf)`` gives
     it, frame bits, fading gain and uniform), and returns how many went. ``sense`` counts as True on the
@@ -487,6 +503,13 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airt
     ``tally`` gets (unsure draws, draws lost here).
     """
     n = sense.shape[0]
+    first, count = queued[0], queued[1]
+    sent_s, airtime_s, error_bits = timing[0], timing[1], timing[2]
+    audience_start = np.empty(audience_count.shape[0], dtype=np.int64)  # where each frame's receivers are listed
+    at = 0
+    for f in range(audience_count.shape[0]):
+        audience_start[f] = at
+        at += max(audience_count[f], 0)
     largest = 1.7976931348623157e308  # numpy.finfo(float).max, what nan_to_num puts for +inf
     on_air_until = np.full(n, -np.inf)
     medium_free = np.full(n, -np.inf)  # per sender: the latest end of a frame of anyone it senses
@@ -588,16 +611,15 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airt
 
 @kernel
 def _schedule_frames_at(state_address, state, next_uint64, next_uint32, next_double, start_s, end_s, eps, sense,
-                        snr, first, count, sent_s, airtime_s, error_bits, audience_start, audience_count, listed,
-                        fading_code, noncentrality, gain_scale, sure_snr_db, decide, popped, sent_frame,
-                        sent_finish, sent_draws, draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform,
-                        draw_unsure, draw_alive, tally):
+                        snr, queued, timing, audience_count, listed, fading_code, noncentrality, gain_scale,
+                        sure_snr_db, decide, popped, sent_frame, sent_finish, sent_draws, draw_receiver, draw_snr,
+                        draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally):
     """``_schedule_frames`` drawing from the Generator of these ``sim.compiled.generator_pointers``."""
     rng = generator_at(state_address, state, next_uint64, next_uint32, next_double)
-    return _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airtime_s, error_bits,
-                            audience_start, audience_count, listed, fading_code, noncentrality, gain_scale,
-                            sure_snr_db, decide, rng, popped, sent_frame, sent_finish, sent_draws, draw_receiver,
-                            draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally)
+    return _schedule_frames(start_s, end_s, eps, sense, snr, queued, timing, audience_count, listed, fading_code,
+                            noncentrality, gain_scale, sure_snr_db, decide, rng, popped, sent_frame, sent_finish,
+                            sent_draws, draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure,
+                            draw_alive, tally)
 
 
 # The kernel's compiled entry per (whether snr and carrier sense are writeable): calling it skips the
@@ -612,7 +634,7 @@ def _schedule(arguments: tuple, pointers: tuple[int, ...] | None) -> int:
     C-contiguous and every scalar as a Python float, int or bool, so one signature per key."""
     if pointers is None or getattr(_schedule_frames_at, "overloads", None) is None:  # numba's JIT disabled
         return _schedule_frames(*arguments)
-    unpacked = pointers + arguments[:18] + arguments[19:]
+    unpacked = pointers + arguments[:14] + arguments[15:]  # all but the Generator
     key = (arguments[3].flags.writeable, arguments[4].flags.writeable)
     entry = _SCHEDULE_ENTRIES.get(key)
     if entry is not None:
@@ -624,7 +646,7 @@ def _schedule(arguments: tuple, pointers: tuple[int, ...] | None) -> int:
     return sent
 
 
-def _rows_to_records(deliveries: list[list[Delivery]], records: dict[str, list]) -> None:
+def _rows_to_records(deliveries: list[list[Delivery]], records: dict[str, _ArrivalTable]) -> None:
     """Move the rows' deliveries of ``as_arrays`` messages into ``records`` (what the compiled period does
     as it goes; the ideal bus and the reference make them as rows)."""
     for receiver, row in enumerate(deliveries):
@@ -632,7 +654,10 @@ def _rows_to_records(deliveries: list[list[Delivery]], records: dict[str, list])
             kept = []
             for d in row:
                 if d.message.as_arrays:
-                    records.setdefault(d.message.kind, []).append((d.message, (receiver,), d.arrival_s))
+                    table = records.get(d.message.kind)
+                    if table is None:
+                        table = records[d.message.kind] = _ArrivalTable()
+                    table.add(d.message, (receiver,), d.arrival_s, len(deliveries) - 1)
                 else:
                     kept.append(d)
             deliveries[receiver] = kept
@@ -694,7 +719,7 @@ class MessageBus:
         # made in that order, are already by (arrival, sequence)
         self._arrivals_in_order = False
         self._arrays_sent = False  # some message went as_arrays: the rows' such deliveries move to columns
-        self._array_records: dict[str, list[tuple[Message, Any, float]]] = {}  # this period's, per kind
+        self._array_records: dict[str, _ArrivalTable] = {}  # this period's, per kind
         self._arrivals: dict[str, Arrivals] = {}
         self._kinds: dict[str, _KindCounters] = {}
         self._elapsed_s = 0.0
@@ -886,7 +911,7 @@ class MessageBus:
         sent, addressed, delivered = (a - b for a, b in zip(after, before))
         latencies = [d.arrival_s - d.message.sent_s for row in deliveries for d in row]  # each one's latency_s
         if records:
-            self._arrivals = {kind: _arrivals_of(records[kind], n) for kind in records}
+            self._arrivals = {kind: table.columns(n) for kind, table in records.items()}
             if latencies or len(records) > 1:
                 latencies = _latencies_in_row_order(deliveries, self._arrivals.values())
             else:  # one kind's columns alone: already in the rows' order
@@ -898,8 +923,11 @@ class MessageBus:
             latency_mean_s = float(np.add.reduce(latencies) / latencies.size)
         else:
             latency_mean_s = math.nan
-        self._last = TickStats(float(time_s), sent, delivered, delivered / addressed if addressed else math.nan,
-                               latency_mean_s, self.queued())
+        # TickStats(...) without the frozen dataclass's per-field __setattr__
+        self._last = last = _new_object(TickStats)
+        last.__dict__.update(time_s=float(time_s), packets_sent=sent, packets_delivered=delivered,
+                             delivery_ratio=delivered / addressed if addressed else math.nan,
+                             latency_mean_s=latency_mean_s, queued=self._waiting_total)
         return deliveries
 
     @property
@@ -976,49 +1004,39 @@ class MessageBus:
         # and one more, which cannot (the loop must meet it to stop that sender, drawing as it does).
         reach_s = self.control_period_s + 1e-6
         frames: list[_Frame] = []
-        sent_at: list[float] = []
-        airtimes: list[float] = []
-        bits: list[float] = []
-        # A frame's audience is its message's (``_audience``: the robot count does not change within a run).
-        audience_start: list[int] = []
-        audience_count: list[int] = []  # -1: every other robot (a broadcast)
-        listed: list[int] = []
-        first = np.zeros(n, dtype=np.int64)
-        count = np.zeros(n, dtype=np.int64)
+        first = [0] * n
+        count = [0] * n
         for sender, queue in self._queues.items():
             if not queue:
                 continue
-            first[sender] = len(frames)
+            first[sender] = start = len(frames)
             before_s = 0.0
             for frame in queue:
                 frames.append(frame)
-                message = frame.message
-                sent_at.append(message.sent_s)
-                airtimes.append(frame.airtime_s)
-                bits.append(frame.error_bits)
-                receivers = message.receivers
-                if receivers is None:
-                    audience_start.append(0)
-                    audience_count.append(-1)
-                else:
-                    audience_start.append(len(listed))
-                    audience_count.append(len(receivers))
-                    listed.extend(receivers)
                 before_s += frame.airtime_s
                 if before_s > reach_s:
                     break
-            count[sender] = len(frames) - first[sender]
+            count[sender] = len(frames) - start
         total = len(frames)
         if total == 0:
             return
+        # The frames' numbers as the rows of two arrays (fewer arrays to build and for the kernel to unbox):
+        # send time, airtime and error bits; how many receivers each lists (-1: every other robot, a
+        # broadcast), and the listed ones, flat. A frame's audience is its message's (``_audience``: the
+        # robot count does not change within a run).
+        messages = [frame.message for frame in frames]
+        timing = np.array([[message.sent_s for message in messages], [frame.airtime_s for frame in frames],
+                           [frame.error_bits for frame in frames]])
+        receivers = [message.receivers for message in messages]
+        audience_count = [-1 if listed is None else len(listed) for listed in receivers]
+        listed = [robot for robots in receivers if robots is not None for robot in robots]
         fading_code, gain_scale = self._fading_draw
         out = self._scratch(total, total * max(n - 1, 0))
         popped = np.zeros(n, dtype=np.int64)
         modulation = self.params.modulation
         sure_snr_db = float(_ZERO_BER_SNR_DB.get(modulation, np.inf))
         tally = self._tally
-        arguments = (start_s, end_s, self._EPS_S, sense, snr, first, count, np.array(sent_at), np.array(airtimes),
-                     np.array(bits), np.array(audience_start, dtype=np.int64),
+        arguments = (start_s, end_s, self._EPS_S, sense, snr, np.array([first, count], dtype=np.int64), timing,
                      np.array(audience_count, dtype=np.int64), np.array(listed, dtype=np.int64), int(fading_code),
                      float(2.0 * self.params.rician_k), float(gain_scale), sure_snr_db,
                      modulation == "oqpsk_dsss_802154", self.rng, popped, *out, tally)
@@ -1049,12 +1067,13 @@ class MessageBus:
             survived_list = draw_alive[:draws].tolist()
         else:
             survived_list = None  # every draw survived
+        waiting = self._waiting
         for sender, gone in enumerate(popped.tolist()):
             if gone:
                 queue = self._queues[sender]
                 for _ in range(gone):
                     if queue.popleft().last:
-                        self._waiting[sender] -= 1
+                        waiting[sender] -= 1
                         self._waiting_total -= 1
         bounds = sent_draws[:sent + 1].tolist()
         finishes = sent_finish[:sent].tolist()
@@ -1062,44 +1081,48 @@ class MessageBus:
         kinds = self._kinds
         in_flight = self._in_flight
         records = self._array_records
+        everyone = n - 1
+        kind = counters = table = None  # the last frame's kind, its counters and arrival table
         for k, index in enumerate(sent_frame[:sent].tolist()):
             frame = frames[index]
             finish_s = finishes[k]
             message = frame.message
-            counters = kinds.get(message.kind)
-            if counters is None or len(counters.airtime_s) < n:
-                counters = self._counters(message.kind, n)
+            if message.kind != kind:  # a period's frames come in runs of one kind (the consensus)
+                kind = message.kind
+                counters = kinds.get(kind)
+                if counters is None or len(counters.airtime_s) < n:
+                    counters = self._counters(kind, n)
+                table = records.get(kind)
             counters.frames_sent += 1
             counters.airtime_s[message.sender] += frame.airtime_s
-            low, high = bounds[k], bounds[k + 1]
-            flight = in_flight.get(message.sequence)
+            flight = in_flight.get(message.sequence) if in_flight else None
             if flight is None:
                 audience = self._audience(message, n)
                 if not frame.last:
+                    low, high = bounds[k], bounds[k + 1]
                     in_flight[message.sequence] = _InFlight(
                         audience, [True] * (high - low) if survived_list is None else survived_list[low:high])
                     continue
-                alive = None if survived_list is None else survived_list[low:high]
+                reached = audience if survived_list is None else [
+                    receiver for receiver, got in zip(audience, survived_list[bounds[k]:bounds[k + 1]]) if got]
             else:
                 audience = flight.audience
                 if survived_list is not None:
-                    flight.alive = [a and b for a, b in zip(flight.alive, survived_list[low:high])]
+                    flight.alive = [a and b for a, b in zip(flight.alive, survived_list[bounds[k]:bounds[k + 1]])]
                 if not frame.last:
                     continue
-                alive = flight.alive
                 del in_flight[message.sequence]
+                reached = [receiver for receiver, got in zip(audience, flight.alive) if got]
             counters.packets_sent += 1
             counters.bytes_sent += message.size_bytes
             counters.addressed += len(audience)
-            reached = audience if alive is None else [receiver for receiver, got in zip(audience, alive) if got]
             if reached:
                 counters.delivered += len(reached)
                 counters.latencies_s += [finish_s - message.sent_s] * len(reached)
                 if message.as_arrays:
-                    kind_records = records.get(message.kind)
-                    if kind_records is None:
-                        kind_records = records[message.kind] = []
-                    kind_records.append((message, reached, finish_s))
+                    if table is None:
+                        table = records[kind] = _ArrivalTable()
+                    table.add(message, reached, finish_s, everyone)
                 else:
                     for receiver in reached:
                         deliveries[receiver].append(_delivery(message, receiver, finish_s))
