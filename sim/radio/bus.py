@@ -125,19 +125,27 @@ _new_object = object.__new__
 def broadcasts(kind: str, values: Any, size_bytes: int, latest_only: bool = False,
                as_arrays: bool = False) -> tuple[Message, ...]:
     """One broadcast ``Message`` per robot, robot i's carrying ``values[i]`` (a number each): every robot's
-    share of a per-tick state at once, checked once instead of per message."""
+    share of a per-tick state at once, checked once (per kind, size and flags) instead of per message."""
     values = np.asarray(values, dtype=float).tolist()
     if not values:
         return ()
-    first = Message(kind, 0, None, values[0], size_bytes, latest_only=latest_only, as_arrays=as_arrays)
-    fields = first.__dict__
-    messages = [first]
-    for sender, value in enumerate(values[1:], start=1):
+    key = (kind, size_bytes, latest_only, as_arrays)
+    fields = _BROADCAST_FIELDS.get(key)
+    if fields is None:  # the checks depend on these alone (the payloads are floats)
+        fields = _BROADCAST_FIELDS[key] = dict(
+            Message(kind, 0, None, values[0], size_bytes, latest_only=latest_only, as_arrays=as_arrays).__dict__)
+    messages = []
+    for sender, value in enumerate(values):
         message = _new_object(Message)
-        message.__dict__.update(fields)
-        message.__dict__.update(sender=sender, payload=value)
+        message_fields = message.__dict__
+        message_fields.update(fields)
+        message_fields["sender"] = sender
+        message_fields["payload"] = value
         messages.append(message)
     return tuple(messages)
+
+
+_BROADCAST_FIELDS: dict[tuple, dict[str, Any]] = {}  # broadcasts' checked fields per (kind, size, flags)
 
 
 def _stamped(message: Message, sequence: int, sent_s: float) -> Message:
@@ -399,13 +407,21 @@ class BusParameters:
         return channel.packet_error_rate(ber, self.error_bits(payload_bytes))
 
 
-@dataclass(slots=True)
 class _Frame:
-    message: Message
-    payload_bytes: int
-    last: bool
-    airtime_s: float
-    error_bits: float = 0.0  # bits whose errors lose it (``BusParameters.error_bits``), as a float
+    """One frame of a queued message."""
+
+    __slots__ = ("message", "payload_bytes", "last", "airtime_s", "error_bits", "numbers")
+
+    def __init__(self, message: Message, payload_bytes: int, last: bool, airtime_s: float, error_bits: float = 0.0):
+        self.message = message
+        self.payload_bytes = payload_bytes
+        self.last = last  # the message's last frame
+        self.airtime_s = airtime_s
+        self.error_bits = error_bits  # bits whose errors lose it (``BusParameters.error_bits``), as a float
+        # What the scheduling kernel reads of it, made once, not per period it waits: the send time, the
+        # airtime, the error bits and how many receivers it lists (-1: every other robot, a broadcast)
+        receivers = message.receivers
+        self.numbers = (message.sent_s, airtime_s, error_bits, -1.0 if receivers is None else float(len(receivers)))
 
 
 @dataclass
@@ -479,16 +495,17 @@ def _per_802154(snr_db, bits):
 
 
 @kernel
-def _schedule_frames(start_s, end_s, eps, sense, snr, queued, timing, audience_count, listed, fading_code,
+def _schedule_frames(start_s, end_s, eps, sense, snr, queued, frames, listed, fading_code,
                      noncentrality, gain_scale, sure_snr_db, decide, rng, popped, sent_frame, sent_finish, sent_draws,
                      draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally):
     """One period of the shared medium (``ReferenceMessageBus._step_medium``'s loop, step for step).
 
     Sender s offers frames first[s] .. first[s] + count[s] - 1 in order (``queued``'s rows: first, count);
-    frame f's send time, airtime and error bits are ``timing[:, f]``. Each round, every sender whose next
+    frame f's send time, airtime, error bits and audience count are ``frames[f]``. Each round, every sender
+    whose next
     frame is ready starts at max(ready, the end of the latest frame of anyone it senses); the earliest go,
     a tie broken by ``rng.integers``; a frame that would end after the period stops its sender. A frame
-    that goes draws, per receiver of its audience (its ``audience_count`` receivers, listed in ``listed``
+    that goes draws, per receiver of its audience (its audience count's receivers, listed in ``listed``
     after the earlier frames', or every other robot when the count is -1), its fading gain and then, for all of them, a uniform: the reference's
     draws in its order. Fills ``popped`` (frames gone per sender), the frames gone in order with their end
     and the range of their draws (each with its receiver, mean SNR as ``numpy.nan_to_num(nan=-inf)`` gives
@@ -504,10 +521,12 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, queued, timing, audience_c
     """
     n = sense.shape[0]
     first, count = queued[0], queued[1]
-    sent_s, airtime_s, error_bits = timing[0], timing[1], timing[2]
-    audience_start = np.empty(audience_count.shape[0], dtype=np.int64)  # where each frame's receivers are listed
+    sent_s, airtime_s, error_bits = frames[:, 0], frames[:, 1], frames[:, 2]
+    audience_count = np.empty(frames.shape[0], dtype=np.int64)
+    audience_start = np.empty(frames.shape[0], dtype=np.int64)  # where each frame's receivers are listed
     at = 0
-    for f in range(audience_count.shape[0]):
+    for f in range(frames.shape[0]):
+        audience_count[f] = int(frames[f, 3])
         audience_start[f] = at
         at += max(audience_count[f], 0)
     largest = 1.7976931348623157e308  # numpy.finfo(float).max, what nan_to_num puts for +inf
@@ -611,12 +630,12 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, queued, timing, audience_c
 
 @kernel
 def _schedule_frames_at(state_address, state, next_uint64, next_uint32, next_double, start_s, end_s, eps, sense,
-                        snr, queued, timing, audience_count, listed, fading_code, noncentrality, gain_scale,
+                        snr, queued, frames, listed, fading_code, noncentrality, gain_scale,
                         sure_snr_db, decide, popped, sent_frame, sent_finish, sent_draws, draw_receiver, draw_snr,
                         draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally):
     """``_schedule_frames`` drawing from the Generator of these ``sim.compiled.generator_pointers``."""
     rng = generator_at(state_address, state, next_uint64, next_uint32, next_double)
-    return _schedule_frames(start_s, end_s, eps, sense, snr, queued, timing, audience_count, listed, fading_code,
+    return _schedule_frames(start_s, end_s, eps, sense, snr, queued, frames, listed, fading_code,
                             noncentrality, gain_scale, sure_snr_db, decide, rng, popped, sent_frame, sent_finish,
                             sent_draws, draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure,
                             draw_alive, tally)
@@ -634,7 +653,7 @@ def _schedule(arguments: tuple, pointers: tuple[int, ...] | None) -> int:
     C-contiguous and every scalar as a Python float, int or bool, so one signature per key."""
     if pointers is None or getattr(_schedule_frames_at, "overloads", None) is None:  # numba's JIT disabled
         return _schedule_frames(*arguments)
-    unpacked = pointers + arguments[:14] + arguments[15:]  # all but the Generator
+    unpacked = pointers + arguments[:13] + arguments[14:]  # all but the Generator
     key = (arguments[3].flags.writeable, arguments[4].flags.writeable)
     entry = _SCHEDULE_ENTRIES.get(key)
     if entry is not None:
@@ -1020,24 +1039,19 @@ class MessageBus:
         total = len(frames)
         if total == 0:
             return
-        # The frames' numbers as the rows of two arrays (fewer arrays to build and for the kernel to unbox):
-        # send time, airtime and error bits; how many receivers each lists (-1: every other robot, a
-        # broadcast), and the listed ones, flat. A frame's audience is its message's (``_audience``: the
-        # robot count does not change within a run).
-        messages = [frame.message for frame in frames]
-        timing = np.array([[message.sent_s for message in messages], [frame.airtime_s for frame in frames],
-                           [frame.error_bits for frame in frames]])
-        receivers = [message.receivers for message in messages]
-        audience_count = [-1 if listed is None else len(listed) for listed in receivers]
-        listed = [robot for robots in receivers if robots is not None for robot in robots]
+        # The frames' numbers (``_Frame.numbers``) as one array, and the receivers the frames list, flat. A
+        # frame's audience is its message's (``_audience``: the robot count does not change within a run).
+        numbers = np.array([frame.numbers for frame in frames])
+        listed = [robot for frame in frames if frame.message.receivers is not None
+                  for robot in frame.message.receivers]
         fading_code, gain_scale = self._fading_draw
         out = self._scratch(total, total * max(n - 1, 0))
         popped = np.zeros(n, dtype=np.int64)
         modulation = self.params.modulation
         sure_snr_db = float(_ZERO_BER_SNR_DB.get(modulation, np.inf))
         tally = self._tally
-        arguments = (start_s, end_s, self._EPS_S, sense, snr, np.array([first, count], dtype=np.int64), timing,
-                     np.array(audience_count, dtype=np.int64), np.array(listed, dtype=np.int64), int(fading_code),
+        arguments = (start_s, end_s, self._EPS_S, sense, snr, np.array([first, count], dtype=np.int64), numbers,
+                     np.array(listed, dtype=np.int64), int(fading_code),
                      float(2.0 * self.params.rician_k), float(gain_scale), sure_snr_db,
                      modulation == "oqpsk_dsss_802154", self.rng, popped, *out, tally)
         sent = _schedule(arguments, self._pointers())
@@ -1067,26 +1081,23 @@ class MessageBus:
             survived_list = draw_alive[:draws].tolist()
         else:
             survived_list = None  # every draw survived
-        waiting = self._waiting
-        for sender, gone in enumerate(popped.tolist()):
-            if gone:
-                queue = self._queues[sender]
-                for _ in range(gone):
-                    if queue.popleft().last:
-                        waiting[sender] -= 1
-                        self._waiting_total -= 1
-        bounds = sent_draws[:sent + 1].tolist()
+        bounds = sent_draws[:sent + 1].tolist() if survived_list is not None else None
         finishes = sent_finish[:sent].tolist()
         self._arrivals_in_order = all(earlier < later for earlier, later in zip(finishes, finishes[1:]))
         kinds = self._kinds
         in_flight = self._in_flight
         records = self._array_records
+        queues, waiting = self._queues, self._waiting
         everyone = n - 1
         kind = counters = table = None  # the last frame's kind, its counters and arrival table
         for k, index in enumerate(sent_frame[:sent].tolist()):
             frame = frames[index]
             finish_s = finishes[k]
             message = frame.message
+            queues[message.sender].popleft()  # the head of its queue: a sender's frames go in order
+            if frame.last:
+                waiting[message.sender] -= 1
+                self._waiting_total -= 1
             if message.kind != kind:  # a period's frames come in runs of one kind (the consensus)
                 kind = message.kind
                 counters = kinds.get(kind)
@@ -1098,10 +1109,10 @@ class MessageBus:
             flight = in_flight.get(message.sequence) if in_flight else None
             if flight is None:
                 audience = self._audience(message, n)
-                if not frame.last:
-                    low, high = bounds[k], bounds[k + 1]
+                if not frame.last:  # one alive flag per receiver of its audience, one draw each
                     in_flight[message.sequence] = _InFlight(
-                        audience, [True] * (high - low) if survived_list is None else survived_list[low:high])
+                        audience, [True] * len(audience) if survived_list is None
+                        else survived_list[bounds[k]:bounds[k + 1]])
                     continue
                 reached = audience if survived_list is None else [
                     receiver for receiver, got in zip(audience, survived_list[bounds[k]:bounds[k + 1]]) if got]
