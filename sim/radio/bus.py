@@ -790,53 +790,60 @@ class MessageBus:
         ideal = self.params.is_ideal
         time_s = float(time_s)
         queues, waiting, sizes, kinds = self._queues, self._waiting, self._frames_of_size, self._kinds
-        for message in messages:
-            sender = message.sender
-            receivers = message.receivers
-            if robots is not None and (not 0 <= sender < robots or (
-                    receivers and any(not 0 <= r < robots for r in receivers))):
-                raise ValueError(f"message {message.kind!r} names a robot outside 0..{robots - 1}")
-            if ideal:
-                frames = None
-            else:
-                frames = sizes.get(message.size_bytes)
-                if frames is None:
-                    frames = self._frames(message.size_bytes)
-            stamped = _new_object(type(message))
-            fields = stamped.__dict__
-            fields.update(message.__dict__)
-            fields["sequence"] = self._sequence
-            fields["sent_s"] = time_s
-            self._sequence += 1
-            queue = queues.get(sender)
-            if queue is None:
-                queue = queues[sender] = deque()
-            elif queue and fields["latest_only"]:
-                if len(queue) == 1:  # a state update left over from the last period, usually: _supersede inline
-                    head = queue[0].message
-                    if head.latest_only and head.kind == stamped.kind and head.sequence not in self._in_flight:
-                        queue.clear()
-                        waiting[sender] -= 1
-                        self._waiting_total -= 1
-                        counters = kinds.get(stamped.kind)
-                        if counters is None or len(counters.airtime_s) < (robots or sender + 1):
-                            counters = self._counters(stamped.kind, robots or sender + 1)
-                        counters.superseded += 1
+        in_flight = self._in_flight
+        sequence = self._sequence
+        added = 0  # to self._waiting_total (which _supersede may lower meanwhile)
+        try:
+            for message in messages:
+                sender = message.sender
+                receivers = message.receivers
+                if robots is not None and (not 0 <= sender < robots or (
+                        receivers and any(not 0 <= r < robots for r in receivers))):
+                    raise ValueError(f"message {message.kind!r} names a robot outside 0..{robots - 1}")
+                if ideal:
+                    frames = None
                 else:
-                    self._supersede(queue, stamped)
-            if frames is None:
-                queue.append(_Frame(stamped, stamped.size_bytes, True, 0.0))
-            elif len(frames) == 1:
-                payload, airtime, bits = frames[0]
-                queue.append(_Frame(stamped, payload, True, airtime, bits))
-            else:
-                last = len(frames) - 1
-                for k, (payload, airtime, bits) in enumerate(frames):
-                    queue.append(_Frame(stamped, payload, k == last, airtime, bits))
-            waiting[sender] = waiting.get(sender, 0) + 1
-            self._waiting_total += 1
-            if fields["as_arrays"]:
-                self._arrays_sent = True
+                    frames = sizes.get(message.size_bytes)
+                    if frames is None:
+                        frames = self._frames(message.size_bytes)
+                stamped = _new_object(type(message))
+                fields = stamped.__dict__
+                fields.update(message.__dict__)
+                fields["sequence"] = sequence
+                fields["sent_s"] = time_s
+                sequence += 1
+                self._sequence = sequence
+                queue = queues.get(sender)
+                if queue is None:
+                    queue = queues[sender] = deque()
+                elif queue and fields["latest_only"]:
+                    if len(queue) == 1:  # a state update left over from the last period, usually: _supersede inline
+                        head = queue[0].message
+                        if head.latest_only and head.kind == stamped.kind and head.sequence not in in_flight:
+                            queue.clear()
+                            waiting[sender] -= 1
+                            added -= 1
+                            counters = kinds.get(stamped.kind)
+                            if counters is None or len(counters.airtime_s) < (robots or sender + 1):
+                                counters = self._counters(stamped.kind, robots or sender + 1)
+                            counters.superseded += 1
+                    else:
+                        self._supersede(queue, stamped)
+                if frames is None:
+                    queue.append(_Frame(stamped, stamped.size_bytes, True, 0.0))
+                elif len(frames) == 1:
+                    payload, airtime, bits = frames[0]
+                    queue.append(_Frame(stamped, payload, True, airtime, bits))
+                else:
+                    last = len(frames) - 1
+                    for k, (payload, airtime, bits) in enumerate(frames):
+                        queue.append(_Frame(stamped, payload, k == last, airtime, bits))
+                waiting[sender] = waiting.get(sender, 0) + 1
+                added += 1
+                if fields["as_arrays"]:
+                    self._arrays_sent = True
+        finally:
+            self._waiting_total += added
 
     def _frames(self, size_bytes: int) -> tuple[tuple[int, float, float], ...]:
         """(payload bytes, airtime s, error bits) of each frame of a ``size_bytes`` message, computed once per
@@ -1130,10 +1137,16 @@ class MessageBus:
             if reached:
                 counters.delivered += len(reached)
                 counters.latencies_s += [finish_s - message.sent_s] * len(reached)
-                if message.as_arrays:
+                if message.as_arrays:  # _ArrivalTable.add, inline
                     if table is None:
                         table = records[kind] = _ArrivalTable()
-                    table.add(message, reached, finish_s, everyone)
+                    if message.receivers is None and len(reached) == everyone:
+                        table.rows.append((message.sender, finish_s, message.sent_s, message.sequence,
+                                           message.payload, -1))
+                    else:
+                        table.rows.append((message.sender, finish_s, message.sent_s, message.sequence,
+                                           message.payload, len(reached)))
+                        table.receivers.extend(reached)
                 else:
                     for receiver in reached:
                         deliveries[receiver].append(_delivery(message, receiver, finish_s))
