@@ -730,6 +730,7 @@ class MessageBus:
         self._waiting_total = 0
         self._frames_of_size: dict[int, tuple[tuple[int, float], ...]] = {}  # (payload, airtime) of each frame
         self._broadcast_audiences: dict[tuple[int, int], tuple[int, ...]] = {}  # (sender, robots): every other
+        self._broadcast_audience_lists: dict[int, list[tuple[int, ...]]] = {}  # robots: ``_audience`` per sender
         self._scratch_arrays: tuple[np.ndarray, ...] | None = None  # _schedule_frames' outputs, reused
         self._rng_pointers: tuple[Any, tuple[int, ...] | None] | None = None  # (rng, its pointers)
         self._tally = np.zeros(2, dtype=np.int64)  # _schedule_frames' (unsure draws, draws lost in it)
@@ -1096,26 +1097,36 @@ class MessageBus:
         records = self._array_records
         queues, waiting = self._queues, self._waiting
         everyone = n - 1
-        kind = counters = table = None  # the last frame's kind, its counters and arrival table
+        broadcast_audiences = self._everyone_but(n)
+        finished = 0  # messages whose last frame went (self._waiting_total's decrease)
+        # The current run of one kind's frames (a period's frames come in runs, the consensus's mostly): its
+        # counters, arrival table, and its counts and latencies, added to the counters when the run ends.
+        kind = counters = table = None
+        frames_sent = packets_sent = bytes_sent = addressed = delivered = 0
+        latencies: list[float] = []
         for k, index in enumerate(sent_frame[:sent].tolist()):
             frame = frames[index]
-            finish_s = finishes[k]
             message = frame.message
-            queues[message.sender].popleft()  # the head of its queue: a sender's frames go in order
+            sender = message.sender
+            queues[sender].popleft()  # the head of its queue: a sender's frames go in order
             if frame.last:
-                waiting[message.sender] -= 1
-                self._waiting_total -= 1
-            if message.kind != kind:  # a period's frames come in runs of one kind (the consensus)
+                waiting[sender] -= 1
+                finished += 1
+            if message.kind != kind:
+                if counters is not None:
+                    self._add_run(counters, frames_sent, packets_sent, bytes_sent, addressed, delivered, latencies)
+                    frames_sent = packets_sent = bytes_sent = addressed = delivered = 0
+                    latencies = []
                 kind = message.kind
                 counters = kinds.get(kind)
                 if counters is None or len(counters.airtime_s) < n:
                     counters = self._counters(kind, n)
                 table = records.get(kind)
-            counters.frames_sent += 1
-            counters.airtime_s[message.sender] += frame.airtime_s
+            frames_sent += 1
+            counters.airtime_s[sender] += frame.airtime_s
             flight = in_flight.get(message.sequence) if in_flight else None
             if flight is None:
-                audience = self._audience(message, n)
+                audience = broadcast_audiences[sender] if message.receivers is None else message.receivers
                 if not frame.last:  # one alive flag per receiver of its audience, one draw each
                     in_flight[message.sequence] = _InFlight(
                         audience, [True] * len(audience) if survived_list is None
@@ -1131,25 +1142,47 @@ class MessageBus:
                     continue
                 del in_flight[message.sequence]
                 reached = [receiver for receiver, got in zip(audience, flight.alive) if got]
-            counters.packets_sent += 1
-            counters.bytes_sent += message.size_bytes
-            counters.addressed += len(audience)
+            packets_sent += 1
+            bytes_sent += message.size_bytes
+            addressed += len(audience)
             if reached:
-                counters.delivered += len(reached)
-                counters.latencies_s += [finish_s - message.sent_s] * len(reached)
+                finish_s = finishes[k]
+                delivered += len(reached)
+                latencies += [finish_s - message.sent_s] * len(reached)
                 if message.as_arrays:  # _ArrivalTable.add, inline
                     if table is None:
                         table = records[kind] = _ArrivalTable()
                     if message.receivers is None and len(reached) == everyone:
-                        table.rows.append((message.sender, finish_s, message.sent_s, message.sequence,
-                                           message.payload, -1))
+                        table.rows.append((sender, finish_s, message.sent_s, message.sequence, message.payload, -1))
                     else:
-                        table.rows.append((message.sender, finish_s, message.sent_s, message.sequence,
-                                           message.payload, len(reached)))
+                        table.rows.append((sender, finish_s, message.sent_s, message.sequence, message.payload,
+                                           len(reached)))
                         table.receivers.extend(reached)
                 else:
                     for receiver in reached:
                         deliveries[receiver].append(_delivery(message, receiver, finish_s))
+        if counters is not None:
+            self._add_run(counters, frames_sent, packets_sent, bytes_sent, addressed, delivered, latencies)
+        self._waiting_total -= finished
+
+    @staticmethod
+    def _add_run(counters: _KindCounters, frames_sent: int, packets_sent: int, bytes_sent: int, addressed: int,
+                 delivered: int, latencies: list[float]) -> None:
+        """A run of one kind's frames of a period into its counters (its latencies in the frames' order)."""
+        counters.frames_sent += frames_sent
+        counters.packets_sent += packets_sent
+        counters.bytes_sent += bytes_sent
+        counters.addressed += addressed
+        counters.delivered += delivered
+        counters.latencies_s += latencies
+
+    def _everyone_but(self, n: int) -> list[tuple[int, ...]]:
+        """Per sender, the audience of its broadcast among ``n`` robots: every other robot (``_audience``)."""
+        audiences = self._broadcast_audience_lists.get(n)
+        if audiences is None:
+            audiences = self._broadcast_audience_lists[n] = [
+                self._audience(Message("audience", sender, None, None, 1), n) for sender in range(n)]
+        return audiences
 
     def _pointers(self) -> tuple[int, ...] | None:
         """``sim.compiled.generator_pointers`` of ``self.rng`` (None for a generator that is not numpy's),
