@@ -917,7 +917,8 @@ class MessageBus:
             n = self._robot_count(link) if link is not None else self._n or 0
             return [[] for _ in range(n)]
         n = self._robot_count(link)
-        before = self._totals()
+        counted = self._medium_counts_its_period and not self.params.is_ideal
+        before = None if counted else self._totals()
         deliveries: list[list[Delivery]] = [[] for _ in range(n)]
         records = self._array_records = {}
         if self.params.is_ideal:
@@ -934,8 +935,10 @@ class MessageBus:
         self._arrivals_in_order = False
         if self._arrays_sent and (self.params.is_ideal or not self._medium_makes_columns):
             _rows_to_records(deliveries, records)
-        after = self._totals()
-        sent, addressed, delivered = (a - b for a, b in zip(after, before))
+        if counted:
+            sent, addressed, delivered = self._period_counts
+        else:
+            sent, addressed, delivered = (a - b for a, b in zip(self._totals(), before))
         latencies = [d.arrival_s - d.message.sent_s for row in deliveries for d in row]  # each one's latency_s
         if records:
             self._arrivals = {kind: table.columns(n) for kind, table in records.items()}
@@ -1018,10 +1021,14 @@ class MessageBus:
     # Tolerance on instants: airtimes are sums of microseconds; 1 ns never changes an order.
     _EPS_S = 1e-9
     _medium_makes_columns = True  # _step_medium puts as_arrays messages' arrivals in the columns, not the rows
+    # _step_medium counts its period's packets sent, (message, receiver) pairs addressed and deliveries
+    # (``_period_counts``), so ``step`` need not sum every kind's counters before and after
+    _medium_counts_its_period = True
 
     def _step_medium(self, start_s: float, link: LinkState, n: int, deliveries: list[list[Delivery]]) -> None:
         """The medium's period, scheduled by the compiled ``_schedule_frames``: the same frames, instants and
         random draws, in the same order, as ``ReferenceMessageBus``'s loop (tests/test_radio_bus_fast.py)."""
+        self._period_counts = (0, 0, 0)  # (packets sent, pairs addressed, deliveries) of the period
         end_s = start_s + self.control_period_s
         sense = np.ascontiguousarray(link.carrier_sense, dtype=bool)
         snr = np.ascontiguousarray(link.snr_db, dtype=float)
@@ -1091,7 +1098,6 @@ class MessageBus:
             survived_list = None  # every draw survived
         bounds = sent_draws[:sent + 1].tolist() if survived_list is not None else None
         finishes = sent_finish[:sent].tolist()
-        self._arrivals_in_order = all(earlier < later for earlier, later in zip(finishes, finishes[1:]))
         kinds = self._kinds
         in_flight = self._in_flight
         records = self._array_records
@@ -1104,6 +1110,8 @@ class MessageBus:
         kind = counters = table = None
         frames_sent = packets_sent = bytes_sent = addressed = delivered = 0
         latencies: list[float] = []
+        period_packets = period_addressed = period_delivered = 0  # the runs' before the current one
+        rows_made = False
         for k, index in enumerate(sent_frame[:sent].tolist()):
             frame = frames[index]
             message = frame.message
@@ -1115,6 +1123,9 @@ class MessageBus:
             if message.kind != kind:
                 if counters is not None:
                     self._add_run(counters, frames_sent, packets_sent, bytes_sent, addressed, delivered, latencies)
+                    period_packets += packets_sent
+                    period_addressed += addressed
+                    period_delivered += delivered
                     frames_sent = packets_sent = bytes_sent = addressed = delivered = 0
                     latencies = []
                 kind = message.kind
@@ -1159,11 +1170,19 @@ class MessageBus:
                                            len(reached)))
                         table.receivers.extend(reached)
                 else:
+                    rows_made = True
                     for receiver in reached:
                         deliveries[receiver].append(_delivery(message, receiver, finish_s))
         if counters is not None:
+            period_packets += packets_sent
+            period_addressed += addressed
+            period_delivered += delivered
             self._add_run(counters, frames_sent, packets_sent, bytes_sent, addressed, delivered, latencies)
         self._waiting_total -= finished
+        self._period_counts = (period_packets, period_addressed, period_delivered)
+        # Rows made: in order if the frames ended at distinct increasing instants; none: nothing to sort
+        self._arrivals_in_order = not rows_made or all(
+            earlier < later for earlier, later in zip(finishes, finishes[1:]))
 
     @staticmethod
     def _add_run(counters: _KindCounters, frames_sent: int, packets_sent: int, bytes_sent: int, addressed: int,
@@ -1296,6 +1315,7 @@ class ReferenceMessageBus(MessageBus):
     (tests/test_radio_bus_fast.py), frame by frame and draw by draw."""
 
     _medium_makes_columns = False  # its rows hold every delivery; ``step`` moves the as_arrays ones out
+    _medium_counts_its_period = False  # ``step`` sums the counters before and after its period
 
     def send_all(self, messages: Any, time_s: float) -> None:
         for message in messages:
