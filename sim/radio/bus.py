@@ -821,13 +821,24 @@ class MessageBus:
                     if len(queue) == 1:  # a state update left over from the last period, usually: _supersede inline
                         head = queue[0].message
                         if head.latest_only and head.kind == stamped.kind and head.sequence not in in_flight:
-                            queue.clear()
-                            waiting[sender] -= 1
-                            added -= 1
                             counters = kinds.get(stamped.kind)
                             if counters is None or len(counters.airtime_s) < (robots or sender + 1):
                                 counters = self._counters(stamped.kind, robots or sender + 1)
                             counters.superseded += 1
+                            replaced = queue[0]
+                            if frames is not None and len(frames) == 1 and replaced.payload_bytes == frames[0][0]:
+                                # A frame of the same payload, so the same airtime and error bits: the queue's
+                                # entry takes the new message, as a new _Frame would (the waiting counts stay,
+                                # one message replacing one)
+                                replaced.message = stamped
+                                replaced.numbers = (time_s, replaced.airtime_s, replaced.error_bits,
+                                                    -1.0 if receivers is None else float(len(receivers)))
+                                if fields["as_arrays"]:
+                                    self._arrays_sent = True
+                                continue
+                            queue.clear()
+                            waiting[sender] -= 1
+                            added -= 1
                     else:
                         self._supersede(queue, stamped)
                 if frames is None:
