@@ -54,6 +54,7 @@ from __future__ import annotations
 import copy
 import math
 from collections import deque
+from itertools import chain
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -495,18 +496,18 @@ def _per_802154(snr_db, bits):
 
 
 @kernel
-def _schedule_frames(start_s, end_s, eps, sense, snr, queued, frames, listed, fading_code,
+def _schedule_frames(start_s, end_s, eps, sense, snr, queued, numbers, listed, fading_code,
                      noncentrality, gain_scale, sure_snr_db, decide, rng, popped, sent_frame, sent_finish, sent_draws,
                      draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally):
     """One period of the shared medium (``ReferenceMessageBus._step_medium``'s loop, step for step).
 
     Sender s offers frames first[s] .. first[s] + count[s] - 1 in order (``queued``'s rows: first, count);
-    frame f's send time, airtime, error bits and audience count are ``frames[f]``. Each round, every sender
-    whose next
-    frame is ready starts at max(ready, the end of the latest frame of anyone it senses); the earliest go,
-    a tie broken by ``rng.integers``; a frame that would end after the period stops its sender. A frame
-    that goes draws, per receiver of its audience (its audience count's receivers, listed in ``listed``
-    after the earlier frames', or every other robot when the count is -1), its fading gain and then, for all of them, a uniform: the reference's
+    frame f's send time, airtime, error bits and audience count are ``numbers[4 f:4 f + 4]`` (one flat
+    array: quicker to build). Each round, every sender whose next frame is ready starts at max(ready, the
+    end of the latest frame of anyone it senses); the earliest go, a tie broken by ``rng.integers``; a
+    frame that would end after the period stops its sender. A frame that goes draws, per receiver of its
+    audience (its audience count's receivers, listed in ``listed`` after the earlier frames', or every
+    other robot when the count is -1), its fading gain and then, for all of them, a uniform: the reference's
     draws in its order. Fills ``popped`` (frames gone per sender), the frames gone in order with their end
     and the range of their draws (each with its receiver, mean SNR as ``numpy.nan_to_num(nan=-inf)`` gives
     it, frame bits, fading gain and uniform), and returns how many went. ``sense`` counts as True on the
@@ -521,6 +522,7 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, queued, frames, listed, fa
     """
     n = sense.shape[0]
     first, count = queued[0], queued[1]
+    frames = numbers.reshape((-1, 4))
     sent_s, airtime_s, error_bits = frames[:, 0], frames[:, 1], frames[:, 2]
     audience_count = np.empty(frames.shape[0], dtype=np.int64)
     audience_start = np.empty(frames.shape[0], dtype=np.int64)  # where each frame's receivers are listed
@@ -630,12 +632,12 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, queued, frames, listed, fa
 
 @kernel
 def _schedule_frames_at(state_address, state, next_uint64, next_uint32, next_double, start_s, end_s, eps, sense,
-                        snr, queued, frames, listed, fading_code, noncentrality, gain_scale,
+                        snr, queued, numbers, listed, fading_code, noncentrality, gain_scale,
                         sure_snr_db, decide, popped, sent_frame, sent_finish, sent_draws, draw_receiver, draw_snr,
                         draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally):
     """``_schedule_frames`` drawing from the Generator of these ``sim.compiled.generator_pointers``."""
     rng = generator_at(state_address, state, next_uint64, next_uint32, next_double)
-    return _schedule_frames(start_s, end_s, eps, sense, snr, queued, frames, listed, fading_code,
+    return _schedule_frames(start_s, end_s, eps, sense, snr, queued, numbers, listed, fading_code,
                             noncentrality, gain_scale, sure_snr_db, decide, rng, popped, sent_frame, sent_finish,
                             sent_draws, draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure,
                             draw_alive, tally)
@@ -1065,9 +1067,9 @@ class MessageBus:
         total = len(frames)
         if total == 0:
             return
-        # The frames' numbers (``_Frame.numbers``) as one array, and the receivers the frames list, flat. A
+        # The frames' numbers (``_Frame.numbers``) as one flat array, and the receivers the frames list. A
         # frame's audience is its message's (``_audience``: the robot count does not change within a run).
-        numbers = np.array([frame.numbers for frame in frames])
+        numbers = np.fromiter(chain.from_iterable([frame.numbers for frame in frames]), float, 4 * total)
         listed = [robot for frame in frames if frame.message.receivers is not None
                   for robot in frame.message.receivers]
         fading_code, gain_scale = self._fading_draw
