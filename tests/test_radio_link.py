@@ -167,6 +167,21 @@ def test_under_ideal_the_delivery_is_the_adjacency_on_a_run():
         assert np.all(np.isnan(radio.rx_power_dbm)) and not radio.delivery.flags.writeable
 
 
+def test_the_communication_graph_from_the_pairs_is_the_delivery_matrix_at_the_threshold():
+    """``RadioState.comm_adjacency``, read from the pairs, is ``delivery >= delivery_threshold`` of the
+    delivery matrix, under a real radio (some pairs below the threshold) and read before or after it."""
+    frames = _ticks(load("intermittent-8", ['radio.preset="ieee802154"', "radio.tx_power_dbm=-60"], duration_s=1.0),
+                    30)
+    for k, frame in enumerate(frames[::3]):
+        radio = frame.observation.radio
+        first = radio.comm_adjacency if k % 2 else None
+        expected = radio.delivery >= radio.delivery_threshold
+        assert np.array_equal(radio.comm_adjacency, expected) and not radio.comm_adjacency.flags.writeable
+        assert first is None or first is radio.comm_adjacency
+    pairs = np.concatenate([frame.observation.radio.comm_adjacency[~np.eye(8, dtype=bool)] for frame in frames])
+    assert pairs.any() and not pairs.all()  # linked pairs and pairs below the threshold
+
+
 def test_under_ideal_nothing_is_drawn():
     simulation = build_simulation(load("connected-office", ["robots.0.count=6"], duration_s=1.0))
     before = simulation.radio.rng.bit_generator.state
