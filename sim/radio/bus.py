@@ -757,6 +757,7 @@ class MessageBus:
         """New parameters (the tuning page's retuning) drop the frames' airtimes computed under the old."""
         self._params = params
         self._frames_of_size = {}
+        self._medium_constants: tuple | None = None  # ``_constants_of_medium``, made at the next period
 
     # --- sending ---------------------------------------------------------------------------------
 
@@ -1072,16 +1073,14 @@ class MessageBus:
         numbers = np.fromiter(chain.from_iterable([frame.numbers for frame in frames]), float, 4 * total)
         listed = [robot for frame in frames if frame.message.receivers is not None
                   for robot in frame.message.receivers]
-        fading_code, gain_scale = self._fading_draw
+        constants = self._medium_constants
+        if constants is None:
+            constants = self._medium_constants = self._constants_of_medium()
+        fading_code = constants[0]
         out = self._scratch(total, total * max(n - 1, 0))
         popped = np.zeros(n, dtype=np.int64)
-        modulation = self.params.modulation
-        sure_snr_db = float(_ZERO_BER_SNR_DB.get(modulation, np.inf))
-        tally = self._tally
         arguments = (start_s, end_s, self._EPS_S, sense, snr, np.array([first, count], dtype=np.int64), numbers,
-                     np.array(listed, dtype=np.int64), int(fading_code),
-                     float(2.0 * self.params.rician_k), float(gain_scale), sure_snr_db,
-                     modulation == "oqpsk_dsss_802154", self.rng, popped, *out, tally)
+                     np.array(listed, dtype=np.int64), *constants, self.rng, popped, *out, self._tally)
         sent = _schedule(arguments, self._pointers())
         if sent == 0:
             return
@@ -1091,7 +1090,7 @@ class MessageBus:
         # Per-packet fading and loss of every (frame, receiver) tried, with the reference formulas: a frame
         # whose SNR with fading is above the modulation's zero-BER SNR has PER exactly 0 and always arrives;
         # the kernel decided the others whose uniform lies clear of the PER, numpy decides the rest.
-        unsure_count, lost_count = int(tally[0]), int(tally[1])
+        unsure_count, lost_count = int(self._tally[0]), int(self._tally[1])
         if unsure_count:
             unsure = np.flatnonzero(draw_unsure[:draws])
             survived = draw_alive[:draws].copy()
@@ -1215,6 +1214,14 @@ class MessageBus:
             audiences = self._broadcast_audience_lists[n] = [
                 self._audience(Message("audience", sender, None, None, 1), n) for sender in range(n)]
         return audiences
+
+    def _constants_of_medium(self) -> tuple[int, float, float, float, bool]:
+        """The scheduling kernel's arguments that only the parameters set: how it draws the fading gain, the
+        Rician noncentrality and the gain's divisor, the zero-BER SNR and whether it computes 802.15.4 PERs."""
+        fading_code, gain_scale = self._fading_draw
+        modulation = self.params.modulation
+        return (int(fading_code), float(2.0 * self.params.rician_k), float(gain_scale),
+                float(_ZERO_BER_SNR_DB.get(modulation, np.inf)), modulation == "oqpsk_dsss_802154")
 
     def _pointers(self) -> tuple[int, ...] | None:
         """``sim.compiled.generator_pointers`` of ``self.rng`` (None for a generator that is not numpy's),
