@@ -13,7 +13,7 @@ from hypothesis import given, settings, strategies as st
 from sim.config import ConfigError, build
 from sim.geometry import Boxes
 from sim.radio.config import RadioConfig
-from sim.radio.link import RadioChannel
+from sim.radio.link import RadioChannel, _shadowing_step_at
 from sim.radio.presets import IEEE802154
 from sim.radio.walls import walls_crossed
 from sim.scenario import load, to_scenario_table, from_table
@@ -334,3 +334,23 @@ def test_lambda2_from_pairs_is_the_matrix_graphs(n, seed, density):
     observers._LAMBDA2_SEEN.clear()
     assert from_pairs == observers.graph_lambda2(adjacency)
     assert observers.pairs_graph_lambda2(n, (first, second), edges) == from_pairs  # remembered
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), pairs=st.integers(1, 700),
+       steps=st.lists(st.sampled_from([0.01, 0.02, 0.02 + 1e-12, 0.05, 0.3]), min_size=1, max_size=8))
+def test_the_compiled_shadowing_step_is_numpys(seed, pairs, steps):
+    """The AR(1) shadowing step in one compiled pass (``_shadowing_step_at``) draws what
+    ``Generator.standard_normal`` draws and rounds as the numpy expression does: the same values and the
+    same generator state after every step, whatever the step lengths."""
+    config = build(RadioConfig, {"preset": "ieee802154"}, "radio")
+    boxes, _ = _scene()
+    compiled, plain = (RadioChannel(config, boxes, None, 10.0, np.random.default_rng(seed)) for _ in range(2))
+    plain._rng_pointers = (plain.rng, None)  # the numpy expression
+    time_s = 0.0
+    for dt in [0.0, *steps]:
+        time_s += dt
+        assert np.array_equal(compiled._advance_shadowing(time_s, pairs), plain._advance_shadowing(time_s, pairs))
+        assert compiled.rng.bit_generator.state == plain.rng.bit_generator.state
+    assert compiled._rng_pointers[1] is not None or getattr(_shadowing_step_at, "overloads", None) is None
+
