@@ -128,10 +128,10 @@ class RadioChannel:
         -> snr_db -> delivery_at_snr gives them, bit for bit (tests/test_radio_link.py): the logarithm here
         and the BER of the pairs in the uncertain band with numpy, the rest in one compiled pass."""
         config = self.config
-        log_ratio = np.log10(np.maximum(np.asarray(distance_m, dtype=float), 1.0) / 1.0)  # d0 = 1 m
-        rx = np.empty(len(log_ratio))
-        snr = np.empty(len(log_ratio))
-        delivery = np.empty(len(log_ratio))
+        # log10(max(d, d0) / d0) with d0 = 1 m: dividing by 1.0 changes no value, so it is left out
+        log_ratio = np.maximum(np.asarray(distance_m, dtype=float), 1.0)
+        np.log10(log_ratio, out=log_ratio)
+        rx, snr, delivery = np.empty((3, len(log_ratio)))  # one block, three rows
         uncertain = np.empty(len(log_ratio), dtype=np.bool_)
         below, above = self._certain
         some = _pair_figures(log_ratio, np.ascontiguousarray(wall_loss_db, dtype=float),
