@@ -1212,7 +1212,8 @@ class MessageBus:
         audiences = self._broadcast_audience_lists.get(n)
         if audiences is None:
             audiences = self._broadcast_audience_lists[n] = [
-                self._audience(Message("audience", sender, None, None, 1), n) for sender in range(n)]
+                self._broadcast_audiences.setdefault((sender, n), tuple(j for j in range(n) if j != sender))
+                for sender in range(n)]
         return audiences
 
     def _constants_of_medium(self) -> tuple[int, float, float, float, bool]:
