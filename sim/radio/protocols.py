@@ -347,7 +347,7 @@ class HeartbeatMonitor:
         (``Observation.arrivals``, or None) at ``time_s`` (s); the pairs (receiver, sender) declared
         silent now."""
         last, silent = self.last_heard, self.silent
-        for receiver, row in enumerate(inbox):
+        for receiver, row in (enumerate(inbox) if any(inbox) else ()):
             if not row:
                 continue
             for delivery in row:
@@ -366,11 +366,13 @@ class HeartbeatMonitor:
             back = np.empty(len(columns), dtype=np.int64)
             heard_again, quiet = _hear_columns_then_quiet_pairs(columns.receiver, columns.sender, columns.arrival_s,
                                                                 last, silent, back, time_s - self.timeout_s)
-            for k in back[:heard_again]:
+            for k in (back[:heard_again] if heard_again else ()):
                 self.withdrawn.append((time_s, int(columns.receiver[k]), int(columns.sender[k])))
         else:
             quiet = _quiet_pairs(last, silent, time_s - self.timeout_s)
-        new = list(zip(quiet[0].tolist(), quiet[1].tolist())) if quiet.shape[1] else []
+        if not quiet.shape[1]:
+            return []
+        new = list(zip(quiet[0].tolist(), quiet[1].tolist()))
         for sender in {j for _, j in new}:
             if not silent[:, sender].any():
                 self.silence_detected_s[sender].append(float(time_s))
