@@ -383,7 +383,7 @@ class Simulation:
             rows = [() if failed[robot] else row for robot, row in enumerate(rows)]
             arrivals = {kind: columns.where(~np.asarray(failed, dtype=bool)[columns.receiver])
                         for kind, columns in arrivals.items()}
-        self._inbox = tuple(tuple(row) for row in rows)
+        self._inbox = tuple(map(tuple, rows)) if any(rows) else self._no_inbox  # (most ticks: columns only)
         self._arrivals = MappingProxyType(arrivals) if arrivals else NO_ARRIVALS
         self._bus_flowed = True
 

@@ -157,8 +157,15 @@ class RadioState:
 
     @_lazy
     def comm_adjacency(self) -> np.ndarray:
-        """bool: the communication graph, delivery >= delivery_threshold, no self-loops."""
-        return readonly(self.delivery >= self.delivery_threshold)
+        """bool: the communication graph, delivery >= delivery_threshold, no self-loops. Read from the pairs
+        (a strategy reads it every tick under a real radio): ``delivery``'s matrix is not built for it."""
+        n = self.distance.shape[0]
+        first, second = self.pairs
+        linked = self.channel_pairs["delivery"] >= self.delivery_threshold
+        out = np.full((n, n), 0.0 >= self.delivery_threshold)  # the diagonal, as delivery's 0 there compares
+        out[first, second] = linked
+        out[second, first] = linked
+        return readonly(out)
 
     @_lazy
     def in_range(self) -> np.ndarray:

@@ -13,7 +13,7 @@ from hypothesis import given, settings, strategies as st
 from sim.config import ConfigError, build
 from sim.geometry import Boxes
 from sim.radio.config import RadioConfig
-from sim.radio.link import RadioChannel
+from sim.radio.link import RadioChannel, _shadowing_step_at
 from sim.radio.presets import IEEE802154
 from sim.radio.walls import walls_crossed
 from sim.scenario import load, to_scenario_table, from_table
@@ -165,6 +165,21 @@ def test_under_ideal_the_delivery_is_the_adjacency_on_a_run():
         assert np.array_equal(radio.delivery, links.adjacency.astype(float))
         assert np.array_equal(radio.comm_adjacency, links.adjacency)
         assert np.all(np.isnan(radio.rx_power_dbm)) and not radio.delivery.flags.writeable
+
+
+def test_the_communication_graph_from_the_pairs_is_the_delivery_matrix_at_the_threshold():
+    """``RadioState.comm_adjacency``, read from the pairs, is ``delivery >= delivery_threshold`` of the
+    delivery matrix, under a real radio (some pairs below the threshold) and read before or after it."""
+    frames = _ticks(load("intermittent-8", ['radio.preset="ieee802154"', "radio.tx_power_dbm=-60"], duration_s=1.0),
+                    30)
+    for k, frame in enumerate(frames[::3]):
+        radio = frame.observation.radio
+        first = radio.comm_adjacency if k % 2 else None
+        expected = radio.delivery >= radio.delivery_threshold
+        assert np.array_equal(radio.comm_adjacency, expected) and not radio.comm_adjacency.flags.writeable
+        assert first is None or first is radio.comm_adjacency
+    pairs = np.concatenate([frame.observation.radio.comm_adjacency[~np.eye(8, dtype=bool)] for frame in frames])
+    assert pairs.any() and not pairs.all()  # linked pairs and pairs below the threshold
 
 
 def test_under_ideal_nothing_is_drawn():
@@ -319,3 +334,23 @@ def test_lambda2_from_pairs_is_the_matrix_graphs(n, seed, density):
     observers._LAMBDA2_SEEN.clear()
     assert from_pairs == observers.graph_lambda2(adjacency)
     assert observers.pairs_graph_lambda2(n, (first, second), edges) == from_pairs  # remembered
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), pairs=st.integers(1, 700),
+       steps=st.lists(st.sampled_from([0.01, 0.02, 0.02 + 1e-12, 0.05, 0.3]), min_size=1, max_size=8))
+def test_the_compiled_shadowing_step_is_numpys(seed, pairs, steps):
+    """The AR(1) shadowing step in one compiled pass (``_shadowing_step_at``) draws what
+    ``Generator.standard_normal`` draws and rounds as the numpy expression does: the same values and the
+    same generator state after every step, whatever the step lengths."""
+    config = build(RadioConfig, {"preset": "ieee802154"}, "radio")
+    boxes, _ = _scene()
+    compiled, plain = (RadioChannel(config, boxes, None, 10.0, np.random.default_rng(seed)) for _ in range(2))
+    plain._rng_pointers = (plain.rng, None)  # the numpy expression
+    time_s = 0.0
+    for dt in [0.0, *steps]:
+        time_s += dt
+        assert np.array_equal(compiled._advance_shadowing(time_s, pairs), plain._advance_shadowing(time_s, pairs))
+        assert compiled.rng.bit_generator.state == plain.rng.bit_generator.state
+    assert compiled._rng_pointers[1] is not None or getattr(_shadowing_step_at, "overloads", None) is None
+

@@ -238,6 +238,8 @@ class BusFlooding:
         """This tick's election broadcasts, one per robot that forwards anything."""
         messages = []
         for robot, forwarding in enumerate(self._forwarding):
+            if not forwarding:
+                continue  # nothing to expire or to send (most robots, most ticks)
             if self.forward_ticks is not None:
                 for message in [m for m, learned in forwarding.items() if tick - learned >= self.forward_ticks]:
                     del forwarding[message]

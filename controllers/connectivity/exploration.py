@@ -386,7 +386,7 @@ def split_consensus(inbox, n_robots: int, arrivals=None) -> tuple[np.ndarray, np
     columns = arrivals.get(CONSENSUS_KIND) if arrivals else None
     if columns is not None and len(columns):
         _heard_cells(columns.receiver, columns.sender, columns.payload, heard, arrived)
-    if not any(any(d.message.kind == CONSENSUS_KIND for d in row) for row in inbox):
+    if not any(delivery.message.kind == CONSENSUS_KIND for row in inbox if row for delivery in row):
         return heard, arrived, inbox
     rest: list[list] = [[] for _ in range(n_robots)]
     for robot, deliveries in enumerate(inbox):

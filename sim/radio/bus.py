@@ -54,6 +54,7 @@ from __future__ import annotations
 import copy
 import math
 from collections import deque
+from itertools import chain
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -125,19 +126,27 @@ _new_object = object.__new__
 def broadcasts(kind: str, values: Any, size_bytes: int, latest_only: bool = False,
                as_arrays: bool = False) -> tuple[Message, ...]:
     """One broadcast ``Message`` per robot, robot i's carrying ``values[i]`` (a number each): every robot's
-    share of a per-tick state at once, checked once instead of per message."""
+    share of a per-tick state at once, checked once (per kind, size and flags) instead of per message."""
     values = np.asarray(values, dtype=float).tolist()
     if not values:
         return ()
-    first = Message(kind, 0, None, values[0], size_bytes, latest_only=latest_only, as_arrays=as_arrays)
-    fields = first.__dict__
-    messages = [first]
-    for sender, value in enumerate(values[1:], start=1):
+    key = (kind, size_bytes, latest_only, as_arrays)
+    fields = _BROADCAST_FIELDS.get(key)
+    if fields is None:  # the checks depend on these alone (the payloads are floats)
+        fields = _BROADCAST_FIELDS[key] = dict(
+            Message(kind, 0, None, values[0], size_bytes, latest_only=latest_only, as_arrays=as_arrays).__dict__)
+    messages = []
+    for sender, value in enumerate(values):
         message = _new_object(Message)
-        message.__dict__.update(fields)
-        message.__dict__.update(sender=sender, payload=value)
+        message_fields = message.__dict__
+        message_fields.update(fields)
+        message_fields["sender"] = sender
+        message_fields["payload"] = value
         messages.append(message)
     return tuple(messages)
+
+
+_BROADCAST_FIELDS: dict[tuple, dict[str, Any]] = {}  # broadcasts' checked fields per (kind, size, flags)
 
 
 def _stamped(message: Message, sequence: int, sent_s: float) -> Message:
@@ -184,23 +193,42 @@ class Arrivals:
 
 def _arrivals_of(records: list[tuple[Message, Any, float]], n: int) -> Arrivals:
     """``Arrivals`` from (message, receivers reached, arrival s) records of ``n`` robots, in the rows' order."""
-    # One table of the records' numbers (sender, arrival, sent, sequence, payload, receivers reached or -1
-    # for every other robot: all exact as float64) and the other records' receivers, flat.
-    everyone = n - 1
-    table = np.array([(m.sender, a, m.sent_s, m.sequence, m.payload,
-                       -1 if m.receivers is None and len(reached) == everyone else len(reached))
-                      for m, reached, a in records], dtype=float)
-    receivers = np.array([r for m, reached, _ in records if m.receivers is not None or len(reached) != everyone
-                          for r in reached], dtype=np.int64)
-    columns = _arrival_columns(n, table, receivers)
-    for column in columns:
-        column.flags.writeable = False
-    arrivals = _new_object(Arrivals)
-    arrivals.__dict__.update(zip(_ARRIVALS_FIELDS, columns))
-    return arrivals
+    table = _ArrivalTable()
+    for message, reached, arrival_s in records:
+        table.add(message, reached, arrival_s, n - 1)
+    return table.columns(n)
 
 
-_ARRIVALS_FIELDS = ("receiver", "sender", "arrival_s", "sent_s", "sequence", "payload")
+class _ArrivalTable:
+    """One kind's ``as_arrays`` arrivals of a period as they are recorded: per message a row of numbers
+    (sender, arrival, sent, sequence, payload, receivers reached or -1 for every other robot: all exact as
+    float64) and the receivers of the rows that list theirs, flat."""
+
+    __slots__ = ("rows", "receivers")
+
+    def __init__(self) -> None:
+        self.rows: list[tuple[float, ...]] = []
+        self.receivers: list[int] = []
+
+    def add(self, message: Message, reached: Any, arrival_s: float, everyone: int) -> None:
+        """``message`` reached ``reached`` at ``arrival_s``; ``everyone``: how many robots but its sender."""
+        if message.receivers is None and len(reached) == everyone:
+            self.rows.append((message.sender, arrival_s, message.sent_s, message.sequence, message.payload, -1))
+        else:
+            self.rows.append((message.sender, arrival_s, message.sent_s, message.sequence, message.payload,
+                              len(reached)))
+            self.receivers.extend(reached)
+
+    def columns(self, n: int) -> Arrivals:
+        """The ``Arrivals``, in the rows' order (``_arrival_columns``), read-only."""
+        integers, floats = _arrival_columns(n, np.array(self.rows, dtype=float),
+                                            np.array(self.receivers, dtype=np.int64))
+        integers.flags.writeable = False  # before the views: they inherit it
+        floats.flags.writeable = False
+        arrivals = _new_object(Arrivals)
+        arrivals.__dict__.update(receiver=integers[0], sender=integers[1], arrival_s=floats[0], sent_s=floats[1],
+                                 sequence=integers[2], payload=floats[2])
+        return arrivals
 
 
 @kernel
@@ -209,7 +237,8 @@ def _arrival_columns(n, table, receivers):
     (rows of ``table``: sender, arrival, sent, sequence, payload, how many of ``receivers`` are theirs, in
     order, or -1: every robot of ``n`` but the sender) by (arrival, sequence), then a stable counting sort
     by receiver, which is what ``numpy.lexsort((sequence, arrival, receiver))`` gives (no two entries tie).
-    Returns the columns (receiver, sender, arrival, sent, sequence, payload)."""
+    Returns the columns as two blocks (one array each to box, not six): (receiver, sender, sequence) int64
+    and (arrival, sent, payload) float64, (3, D) each."""
     m = table.shape[0]
     starts = np.empty(m, dtype=np.int64)
     counts = np.empty(m, dtype=np.int64)
@@ -246,12 +275,8 @@ def _arrival_columns(n, table, receivers):
         order[b + 1] = k
     for r in range(robots):
         slot[r + 1] += slot[r]
-    out_receiver = np.empty(total, dtype=np.int64)
-    out_sender = np.empty(total, dtype=np.int64)
-    out_arrival = np.empty(total)
-    out_sent = np.empty(total)
-    out_sequence = np.empty(total, dtype=np.int64)
-    out_payload = np.empty(total)
+    integers = np.empty((3, total), dtype=np.int64)  # receiver, sender, sequence
+    floats = np.empty((3, total))  # arrival, sent, payload
     for a in range(m):
         k = order[a]
         everyone = counts[k] < 0
@@ -264,13 +289,13 @@ def _arrival_columns(n, table, receivers):
                 receiver = receivers[starts[k] + d]
             e = slot[receiver]
             slot[receiver] += 1
-            out_receiver[e] = receiver
-            out_sender[e] = int(table[k, 0])
-            out_arrival[e] = table[k, 1]
-            out_sent[e] = table[k, 2]
-            out_sequence[e] = int(table[k, 3])
-            out_payload[e] = table[k, 4]
-    return out_receiver, out_sender, out_arrival, out_sent, out_sequence, out_payload
+            integers[0, e] = receiver
+            integers[1, e] = int(table[k, 0])
+            integers[2, e] = int(table[k, 3])
+            floats[0, e] = table[k, 1]
+            floats[1, e] = table[k, 2]
+            floats[2, e] = table[k, 4]
+    return integers, floats
 
 
 class LinkState(Protocol):
@@ -383,13 +408,21 @@ class BusParameters:
         return channel.packet_error_rate(ber, self.error_bits(payload_bytes))
 
 
-@dataclass(slots=True)
 class _Frame:
-    message: Message
-    payload_bytes: int
-    last: bool
-    airtime_s: float
-    error_bits: float = 0.0  # bits whose errors lose it (``BusParameters.error_bits``), as a float
+    """One frame of a queued message."""
+
+    __slots__ = ("message", "payload_bytes", "last", "airtime_s", "error_bits", "numbers")
+
+    def __init__(self, message: Message, payload_bytes: int, last: bool, airtime_s: float, error_bits: float = 0.0):
+        self.message = message
+        self.payload_bytes = payload_bytes
+        self.last = last  # the message's last frame
+        self.airtime_s = airtime_s
+        self.error_bits = error_bits  # bits whose errors lose it (``BusParameters.error_bits``), as a float
+        # What the scheduling kernel reads of it, made once, not per period it waits: the send time, the
+        # airtime, the error bits and how many receivers it lists (-1: every other robot, a broadcast)
+        receivers = message.receivers
+        self.numbers = (message.sent_s, airtime_s, error_bits, -1.0 if receivers is None else float(len(receivers)))
 
 
 @dataclass
@@ -463,16 +496,17 @@ def _per_802154(snr_db, bits):
 
 
 @kernel
-def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airtime_s, error_bits, audience_start,
-                     audience_count, listed, fading_code, noncentrality, gain_scale, sure_snr_db, decide, rng,
-                     popped, sent_frame, sent_finish, sent_draws, draw_receiver, draw_snr, draw_bits, draw_gain,
-                     draw_uniform, draw_unsure, draw_alive, tally):
+def _schedule_frames(start_s, end_s, eps, sense, snr, queued, numbers, listed, fading_code,
+                     noncentrality, gain_scale, sure_snr_db, decide, rng, popped, sent_frame, sent_finish, sent_draws,
+                     draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally):
     """One period of the shared medium (``ReferenceMessageBus._step_medium``'s loop, step for step).
 
-    Sender s offers frames first[s] .. first[s] + count[s] - 1 in order. Each round, every sender whose next
-    frame is ready starts at max(ready, the end of the latest frame of anyone it senses); the earliest go,
-    a tie broken by ``rng.integers``; a frame that would end after the period stops its sender. A frame
-    that goes draws, per receiver of its audience (``listed[audience_start:][:audience_count]``, or every
+    Sender s offers frames first[s] .. first[s] + count[s] - 1 in order (``queued``'s rows: first, count);
+    frame f's send time, airtime, error bits and audience count are ``numbers[4 f:4 f + 4]`` (one flat
+    array: quicker to build). Each round, every sender whose next frame is ready starts at max(ready, the
+    end of the latest frame of anyone it senses); the earliest go, a tie broken by ``rng.integers``; a
+    frame that would end after the period stops its sender. A frame that goes draws, per receiver of its
+    audience (its audience count's receivers, listed in ``listed`` after the earlier frames', or every
     other robot when the count is -1), its fading gain and then, for all of them, a uniform: the reference's
     draws in its order. Fills ``popped`` (frames gone per sender), the frames gone in order with their end
     and the range of their draws (each with its receiver, mean SNR as ``numpy.nan_to_num(nan=-inf)`` gives
@@ -487,6 +521,16 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airt
     ``tally`` gets (unsure draws, draws lost here).
     """
     n = sense.shape[0]
+    first, count = queued[0], queued[1]
+    frames = numbers.reshape((-1, 4))
+    sent_s, airtime_s, error_bits = frames[:, 0], frames[:, 1], frames[:, 2]
+    audience_count = np.empty(frames.shape[0], dtype=np.int64)
+    audience_start = np.empty(frames.shape[0], dtype=np.int64)  # where each frame's receivers are listed
+    at = 0
+    for f in range(frames.shape[0]):
+        audience_count[f] = int(frames[f, 3])
+        audience_start[f] = at
+        at += max(audience_count[f], 0)
     largest = 1.7976931348623157e308  # numpy.finfo(float).max, what nan_to_num puts for +inf
     on_air_until = np.full(n, -np.inf)
     medium_free = np.full(n, -np.inf)  # per sender: the latest end of a frame of anyone it senses
@@ -588,16 +632,15 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airt
 
 @kernel
 def _schedule_frames_at(state_address, state, next_uint64, next_uint32, next_double, start_s, end_s, eps, sense,
-                        snr, first, count, sent_s, airtime_s, error_bits, audience_start, audience_count, listed,
-                        fading_code, noncentrality, gain_scale, sure_snr_db, decide, popped, sent_frame,
-                        sent_finish, sent_draws, draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform,
-                        draw_unsure, draw_alive, tally):
+                        snr, queued, numbers, listed, fading_code, noncentrality, gain_scale,
+                        sure_snr_db, decide, popped, sent_frame, sent_finish, sent_draws, draw_receiver, draw_snr,
+                        draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally):
     """``_schedule_frames`` drawing from the Generator of these ``sim.compiled.generator_pointers``."""
     rng = generator_at(state_address, state, next_uint64, next_uint32, next_double)
-    return _schedule_frames(start_s, end_s, eps, sense, snr, first, count, sent_s, airtime_s, error_bits,
-                            audience_start, audience_count, listed, fading_code, noncentrality, gain_scale,
-                            sure_snr_db, decide, rng, popped, sent_frame, sent_finish, sent_draws, draw_receiver,
-                            draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally)
+    return _schedule_frames(start_s, end_s, eps, sense, snr, queued, numbers, listed, fading_code,
+                            noncentrality, gain_scale, sure_snr_db, decide, rng, popped, sent_frame, sent_finish,
+                            sent_draws, draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure,
+                            draw_alive, tally)
 
 
 # The kernel's compiled entry per (whether snr and carrier sense are writeable): calling it skips the
@@ -612,7 +655,7 @@ def _schedule(arguments: tuple, pointers: tuple[int, ...] | None) -> int:
     C-contiguous and every scalar as a Python float, int or bool, so one signature per key."""
     if pointers is None or getattr(_schedule_frames_at, "overloads", None) is None:  # numba's JIT disabled
         return _schedule_frames(*arguments)
-    unpacked = pointers + arguments[:18] + arguments[19:]
+    unpacked = pointers + arguments[:13] + arguments[14:]  # all but the Generator
     key = (arguments[3].flags.writeable, arguments[4].flags.writeable)
     entry = _SCHEDULE_ENTRIES.get(key)
     if entry is not None:
@@ -624,7 +667,7 @@ def _schedule(arguments: tuple, pointers: tuple[int, ...] | None) -> int:
     return sent
 
 
-def _rows_to_records(deliveries: list[list[Delivery]], records: dict[str, list]) -> None:
+def _rows_to_records(deliveries: list[list[Delivery]], records: dict[str, _ArrivalTable]) -> None:
     """Move the rows' deliveries of ``as_arrays`` messages into ``records`` (what the compiled period does
     as it goes; the ideal bus and the reference make them as rows)."""
     for receiver, row in enumerate(deliveries):
@@ -632,7 +675,10 @@ def _rows_to_records(deliveries: list[list[Delivery]], records: dict[str, list])
             kept = []
             for d in row:
                 if d.message.as_arrays:
-                    records.setdefault(d.message.kind, []).append((d.message, (receiver,), d.arrival_s))
+                    table = records.get(d.message.kind)
+                    if table is None:
+                        table = records[d.message.kind] = _ArrivalTable()
+                    table.add(d.message, (receiver,), d.arrival_s, len(deliveries) - 1)
                 else:
                     kept.append(d)
             deliveries[receiver] = kept
@@ -686,6 +732,7 @@ class MessageBus:
         self._waiting_total = 0
         self._frames_of_size: dict[int, tuple[tuple[int, float], ...]] = {}  # (payload, airtime) of each frame
         self._broadcast_audiences: dict[tuple[int, int], tuple[int, ...]] = {}  # (sender, robots): every other
+        self._broadcast_audience_lists: dict[int, list[tuple[int, ...]]] = {}  # robots: ``_audience`` per sender
         self._scratch_arrays: tuple[np.ndarray, ...] | None = None  # _schedule_frames' outputs, reused
         self._rng_pointers: tuple[Any, tuple[int, ...] | None] | None = None  # (rng, its pointers)
         self._tally = np.zeros(2, dtype=np.int64)  # _schedule_frames' (unsure draws, draws lost in it)
@@ -694,7 +741,7 @@ class MessageBus:
         # made in that order, are already by (arrival, sequence)
         self._arrivals_in_order = False
         self._arrays_sent = False  # some message went as_arrays: the rows' such deliveries move to columns
-        self._array_records: dict[str, list[tuple[Message, Any, float]]] = {}  # this period's, per kind
+        self._array_records: dict[str, _ArrivalTable] = {}  # this period's, per kind
         self._arrivals: dict[str, Arrivals] = {}
         self._kinds: dict[str, _KindCounters] = {}
         self._elapsed_s = 0.0
@@ -710,6 +757,7 @@ class MessageBus:
         """New parameters (the tuning page's retuning) drop the frames' airtimes computed under the old."""
         self._params = params
         self._frames_of_size = {}
+        self._medium_constants: tuple | None = None  # ``_constants_of_medium``, made at the next period
 
     # --- sending ---------------------------------------------------------------------------------
 
@@ -746,53 +794,71 @@ class MessageBus:
         ideal = self.params.is_ideal
         time_s = float(time_s)
         queues, waiting, sizes, kinds = self._queues, self._waiting, self._frames_of_size, self._kinds
-        for message in messages:
-            sender = message.sender
-            receivers = message.receivers
-            if robots is not None and (not 0 <= sender < robots or (
-                    receivers and any(not 0 <= r < robots for r in receivers))):
-                raise ValueError(f"message {message.kind!r} names a robot outside 0..{robots - 1}")
-            if ideal:
-                frames = None
-            else:
-                frames = sizes.get(message.size_bytes)
-                if frames is None:
-                    frames = self._frames(message.size_bytes)
-            stamped = _new_object(type(message))
-            fields = stamped.__dict__
-            fields.update(message.__dict__)
-            fields["sequence"] = self._sequence
-            fields["sent_s"] = time_s
-            self._sequence += 1
-            queue = queues.get(sender)
-            if queue is None:
-                queue = queues[sender] = deque()
-            elif queue and fields["latest_only"]:
-                if len(queue) == 1:  # a state update left over from the last period, usually: _supersede inline
-                    head = queue[0].message
-                    if head.latest_only and head.kind == stamped.kind and head.sequence not in self._in_flight:
-                        queue.clear()
-                        waiting[sender] -= 1
-                        self._waiting_total -= 1
-                        counters = kinds.get(stamped.kind)
-                        if counters is None or len(counters.airtime_s) < (robots or sender + 1):
-                            counters = self._counters(stamped.kind, robots or sender + 1)
-                        counters.superseded += 1
+        in_flight = self._in_flight
+        sequence = self._sequence
+        added = 0  # to self._waiting_total (which _supersede may lower meanwhile)
+        try:
+            for message in messages:
+                sender = message.sender
+                receivers = message.receivers
+                if robots is not None and (not 0 <= sender < robots or (
+                        receivers and any(not 0 <= r < robots for r in receivers))):
+                    raise ValueError(f"message {message.kind!r} names a robot outside 0..{robots - 1}")
+                if ideal:
+                    frames = None
                 else:
-                    self._supersede(queue, stamped)
-            if frames is None:
-                queue.append(_Frame(stamped, stamped.size_bytes, True, 0.0))
-            elif len(frames) == 1:
-                payload, airtime, bits = frames[0]
-                queue.append(_Frame(stamped, payload, True, airtime, bits))
-            else:
-                last = len(frames) - 1
-                for k, (payload, airtime, bits) in enumerate(frames):
-                    queue.append(_Frame(stamped, payload, k == last, airtime, bits))
-            waiting[sender] = waiting.get(sender, 0) + 1
-            self._waiting_total += 1
-            if fields["as_arrays"]:
-                self._arrays_sent = True
+                    frames = sizes.get(message.size_bytes)
+                    if frames is None:
+                        frames = self._frames(message.size_bytes)
+                stamped = _new_object(type(message))
+                fields = stamped.__dict__
+                fields.update(message.__dict__)
+                fields["sequence"] = sequence
+                fields["sent_s"] = time_s
+                sequence += 1
+                self._sequence = sequence
+                queue = queues.get(sender)
+                if queue is None:
+                    queue = queues[sender] = deque()
+                elif queue and fields["latest_only"]:
+                    if len(queue) == 1:  # a state update left over from the last period, usually: _supersede inline
+                        head = queue[0].message
+                        if head.latest_only and head.kind == stamped.kind and head.sequence not in in_flight:
+                            counters = kinds.get(stamped.kind)
+                            if counters is None or len(counters.airtime_s) < (robots or sender + 1):
+                                counters = self._counters(stamped.kind, robots or sender + 1)
+                            counters.superseded += 1
+                            replaced = queue[0]
+                            if frames is not None and len(frames) == 1 and replaced.payload_bytes == frames[0][0]:
+                                # A frame of the same payload, so the same airtime and error bits: the queue's
+                                # entry takes the new message, as a new _Frame would (the waiting counts stay,
+                                # one message replacing one)
+                                replaced.message = stamped
+                                replaced.numbers = (time_s, replaced.airtime_s, replaced.error_bits,
+                                                    -1.0 if receivers is None else float(len(receivers)))
+                                if fields["as_arrays"]:
+                                    self._arrays_sent = True
+                                continue
+                            queue.clear()
+                            waiting[sender] -= 1
+                            added -= 1
+                    else:
+                        self._supersede(queue, stamped)
+                if frames is None:
+                    queue.append(_Frame(stamped, stamped.size_bytes, True, 0.0))
+                elif len(frames) == 1:
+                    payload, airtime, bits = frames[0]
+                    queue.append(_Frame(stamped, payload, True, airtime, bits))
+                else:
+                    last = len(frames) - 1
+                    for k, (payload, airtime, bits) in enumerate(frames):
+                        queue.append(_Frame(stamped, payload, k == last, airtime, bits))
+                waiting[sender] = waiting.get(sender, 0) + 1
+                added += 1
+                if fields["as_arrays"]:
+                    self._arrays_sent = True
+        finally:
+            self._waiting_total += added
 
     def _frames(self, size_bytes: int) -> tuple[tuple[int, float, float], ...]:
         """(payload bytes, airtime s, error bits) of each frame of a ``size_bytes`` message, computed once per
@@ -865,7 +931,8 @@ class MessageBus:
             n = self._robot_count(link) if link is not None else self._n or 0
             return [[] for _ in range(n)]
         n = self._robot_count(link)
-        before = self._totals()
+        counted = self._medium_counts_its_period and not self.params.is_ideal
+        before = None if counted else self._totals()
         deliveries: list[list[Delivery]] = [[] for _ in range(n)]
         records = self._array_records = {}
         if self.params.is_ideal:
@@ -882,11 +949,13 @@ class MessageBus:
         self._arrivals_in_order = False
         if self._arrays_sent and (self.params.is_ideal or not self._medium_makes_columns):
             _rows_to_records(deliveries, records)
-        after = self._totals()
-        sent, addressed, delivered = (a - b for a, b in zip(after, before))
+        if counted:
+            sent, addressed, delivered = self._period_counts
+        else:
+            sent, addressed, delivered = (a - b for a, b in zip(self._totals(), before))
         latencies = [d.arrival_s - d.message.sent_s for row in deliveries for d in row]  # each one's latency_s
         if records:
-            self._arrivals = {kind: _arrivals_of(records[kind], n) for kind in records}
+            self._arrivals = {kind: table.columns(n) for kind, table in records.items()}
             if latencies or len(records) > 1:
                 latencies = _latencies_in_row_order(deliveries, self._arrivals.values())
             else:  # one kind's columns alone: already in the rows' order
@@ -898,8 +967,11 @@ class MessageBus:
             latency_mean_s = float(np.add.reduce(latencies) / latencies.size)
         else:
             latency_mean_s = math.nan
-        self._last = TickStats(float(time_s), sent, delivered, delivered / addressed if addressed else math.nan,
-                               latency_mean_s, self.queued())
+        # TickStats(...) without the frozen dataclass's per-field __setattr__
+        self._last = last = _new_object(TickStats)
+        last.__dict__.update(time_s=float(time_s), packets_sent=sent, packets_delivered=delivered,
+                             delivery_ratio=delivered / addressed if addressed else math.nan,
+                             latency_mean_s=latency_mean_s, queued=self._waiting_total)
         return deliveries
 
     @property
@@ -963,10 +1035,14 @@ class MessageBus:
     # Tolerance on instants: airtimes are sums of microseconds; 1 ns never changes an order.
     _EPS_S = 1e-9
     _medium_makes_columns = True  # _step_medium puts as_arrays messages' arrivals in the columns, not the rows
+    # _step_medium counts its period's packets sent, (message, receiver) pairs addressed and deliveries
+    # (``_period_counts``), so ``step`` need not sum every kind's counters before and after
+    _medium_counts_its_period = True
 
     def _step_medium(self, start_s: float, link: LinkState, n: int, deliveries: list[list[Delivery]]) -> None:
         """The medium's period, scheduled by the compiled ``_schedule_frames``: the same frames, instants and
         random draws, in the same order, as ``ReferenceMessageBus``'s loop (tests/test_radio_bus_fast.py)."""
+        self._period_counts = (0, 0, 0)  # (packets sent, pairs addressed, deliveries) of the period
         end_s = start_s + self.control_period_s
         sense = np.ascontiguousarray(link.carrier_sense, dtype=bool)
         snr = np.ascontiguousarray(link.snr_db, dtype=float)
@@ -976,52 +1052,35 @@ class MessageBus:
         # and one more, which cannot (the loop must meet it to stop that sender, drawing as it does).
         reach_s = self.control_period_s + 1e-6
         frames: list[_Frame] = []
-        sent_at: list[float] = []
-        airtimes: list[float] = []
-        bits: list[float] = []
-        # A frame's audience is its message's (``_audience``: the robot count does not change within a run).
-        audience_start: list[int] = []
-        audience_count: list[int] = []  # -1: every other robot (a broadcast)
-        listed: list[int] = []
-        first = np.zeros(n, dtype=np.int64)
-        count = np.zeros(n, dtype=np.int64)
+        first = [0] * n
+        count = [0] * n
         for sender, queue in self._queues.items():
             if not queue:
                 continue
-            first[sender] = len(frames)
+            first[sender] = start = len(frames)
             before_s = 0.0
             for frame in queue:
                 frames.append(frame)
-                message = frame.message
-                sent_at.append(message.sent_s)
-                airtimes.append(frame.airtime_s)
-                bits.append(frame.error_bits)
-                receivers = message.receivers
-                if receivers is None:
-                    audience_start.append(0)
-                    audience_count.append(-1)
-                else:
-                    audience_start.append(len(listed))
-                    audience_count.append(len(receivers))
-                    listed.extend(receivers)
                 before_s += frame.airtime_s
                 if before_s > reach_s:
                     break
-            count[sender] = len(frames) - first[sender]
+            count[sender] = len(frames) - start
         total = len(frames)
         if total == 0:
             return
-        fading_code, gain_scale = self._fading_draw
+        # The frames' numbers (``_Frame.numbers``) as one flat array, and the receivers the frames list. A
+        # frame's audience is its message's (``_audience``: the robot count does not change within a run).
+        numbers = np.fromiter(chain.from_iterable([frame.numbers for frame in frames]), float, 4 * total)
+        listed = [robot for frame in frames if frame.message.receivers is not None
+                  for robot in frame.message.receivers]
+        constants = self._medium_constants
+        if constants is None:
+            constants = self._medium_constants = self._constants_of_medium()
+        fading_code = constants[0]
         out = self._scratch(total, total * max(n - 1, 0))
         popped = np.zeros(n, dtype=np.int64)
-        modulation = self.params.modulation
-        sure_snr_db = float(_ZERO_BER_SNR_DB.get(modulation, np.inf))
-        tally = self._tally
-        arguments = (start_s, end_s, self._EPS_S, sense, snr, first, count, np.array(sent_at), np.array(airtimes),
-                     np.array(bits), np.array(audience_start, dtype=np.int64),
-                     np.array(audience_count, dtype=np.int64), np.array(listed, dtype=np.int64), int(fading_code),
-                     float(2.0 * self.params.rician_k), float(gain_scale), sure_snr_db,
-                     modulation == "oqpsk_dsss_802154", self.rng, popped, *out, tally)
+        arguments = (start_s, end_s, self._EPS_S, sense, snr, np.array([first, count], dtype=np.int64), numbers,
+                     np.array(listed, dtype=np.int64), *constants, self.rng, popped, *out, self._tally)
         sent = _schedule(arguments, self._pointers())
         if sent == 0:
             return
@@ -1031,7 +1090,7 @@ class MessageBus:
         # Per-packet fading and loss of every (frame, receiver) tried, with the reference formulas: a frame
         # whose SNR with fading is above the modulation's zero-BER SNR has PER exactly 0 and always arrives;
         # the kernel decided the others whose uniform lies clear of the PER, numpy decides the rest.
-        unsure_count, lost_count = int(tally[0]), int(tally[1])
+        unsure_count, lost_count = int(self._tally[0]), int(self._tally[1])
         if unsure_count:
             unsure = np.flatnonzero(draw_unsure[:draws])
             survived = draw_alive[:draws].copy()
@@ -1049,60 +1108,121 @@ class MessageBus:
             survived_list = draw_alive[:draws].tolist()
         else:
             survived_list = None  # every draw survived
-        for sender, gone in enumerate(popped.tolist()):
-            if gone:
-                queue = self._queues[sender]
-                for _ in range(gone):
-                    if queue.popleft().last:
-                        self._waiting[sender] -= 1
-                        self._waiting_total -= 1
-        bounds = sent_draws[:sent + 1].tolist()
+        bounds = sent_draws[:sent + 1].tolist() if survived_list is not None else None
         finishes = sent_finish[:sent].tolist()
-        self._arrivals_in_order = all(earlier < later for earlier, later in zip(finishes, finishes[1:]))
         kinds = self._kinds
         in_flight = self._in_flight
         records = self._array_records
+        queues, waiting = self._queues, self._waiting
+        everyone = n - 1
+        broadcast_audiences = self._everyone_but(n)
+        finished = 0  # messages whose last frame went (self._waiting_total's decrease)
+        # The current run of one kind's frames (a period's frames come in runs, the consensus's mostly): its
+        # counters, arrival table, and its counts and latencies, added to the counters when the run ends.
+        kind = counters = table = None
+        frames_sent = packets_sent = bytes_sent = addressed = delivered = 0
+        latencies: list[float] = []
+        period_packets = period_addressed = period_delivered = 0  # the runs' before the current one
+        rows_made = False
         for k, index in enumerate(sent_frame[:sent].tolist()):
             frame = frames[index]
-            finish_s = finishes[k]
             message = frame.message
-            counters = kinds.get(message.kind)
-            if counters is None or len(counters.airtime_s) < n:
-                counters = self._counters(message.kind, n)
-            counters.frames_sent += 1
-            counters.airtime_s[message.sender] += frame.airtime_s
-            low, high = bounds[k], bounds[k + 1]
-            flight = in_flight.get(message.sequence)
+            sender = message.sender
+            queues[sender].popleft()  # the head of its queue: a sender's frames go in order
+            if frame.last:
+                waiting[sender] -= 1
+                finished += 1
+            if message.kind != kind:
+                if counters is not None:
+                    self._add_run(counters, frames_sent, packets_sent, bytes_sent, addressed, delivered, latencies)
+                    period_packets += packets_sent
+                    period_addressed += addressed
+                    period_delivered += delivered
+                    frames_sent = packets_sent = bytes_sent = addressed = delivered = 0
+                    latencies = []
+                kind = message.kind
+                counters = kinds.get(kind)
+                if counters is None or len(counters.airtime_s) < n:
+                    counters = self._counters(kind, n)
+                table = records.get(kind)
+            frames_sent += 1
+            counters.airtime_s[sender] += frame.airtime_s
+            flight = in_flight.get(message.sequence) if in_flight else None
             if flight is None:
-                audience = self._audience(message, n)
-                if not frame.last:
+                audience = broadcast_audiences[sender] if message.receivers is None else message.receivers
+                if not frame.last:  # one alive flag per receiver of its audience, one draw each
                     in_flight[message.sequence] = _InFlight(
-                        audience, [True] * (high - low) if survived_list is None else survived_list[low:high])
+                        audience, [True] * len(audience) if survived_list is None
+                        else survived_list[bounds[k]:bounds[k + 1]])
                     continue
-                alive = None if survived_list is None else survived_list[low:high]
+                reached = audience if survived_list is None else [
+                    receiver for receiver, got in zip(audience, survived_list[bounds[k]:bounds[k + 1]]) if got]
             else:
                 audience = flight.audience
                 if survived_list is not None:
-                    flight.alive = [a and b for a, b in zip(flight.alive, survived_list[low:high])]
+                    flight.alive = [a and b for a, b in zip(flight.alive, survived_list[bounds[k]:bounds[k + 1]])]
                 if not frame.last:
                     continue
-                alive = flight.alive
                 del in_flight[message.sequence]
-            counters.packets_sent += 1
-            counters.bytes_sent += message.size_bytes
-            counters.addressed += len(audience)
-            reached = audience if alive is None else [receiver for receiver, got in zip(audience, alive) if got]
+                reached = [receiver for receiver, got in zip(audience, flight.alive) if got]
+            packets_sent += 1
+            bytes_sent += message.size_bytes
+            addressed += len(audience)
             if reached:
-                counters.delivered += len(reached)
-                counters.latencies_s += [finish_s - message.sent_s] * len(reached)
-                if message.as_arrays:
-                    kind_records = records.get(message.kind)
-                    if kind_records is None:
-                        kind_records = records[message.kind] = []
-                    kind_records.append((message, reached, finish_s))
+                finish_s = finishes[k]
+                delivered += len(reached)
+                latencies += [finish_s - message.sent_s] * len(reached)
+                if message.as_arrays:  # _ArrivalTable.add, inline
+                    if table is None:
+                        table = records[kind] = _ArrivalTable()
+                    if message.receivers is None and len(reached) == everyone:
+                        table.rows.append((sender, finish_s, message.sent_s, message.sequence, message.payload, -1))
+                    else:
+                        table.rows.append((sender, finish_s, message.sent_s, message.sequence, message.payload,
+                                           len(reached)))
+                        table.receivers.extend(reached)
                 else:
+                    rows_made = True
                     for receiver in reached:
                         deliveries[receiver].append(_delivery(message, receiver, finish_s))
+        if counters is not None:
+            period_packets += packets_sent
+            period_addressed += addressed
+            period_delivered += delivered
+            self._add_run(counters, frames_sent, packets_sent, bytes_sent, addressed, delivered, latencies)
+        self._waiting_total -= finished
+        self._period_counts = (period_packets, period_addressed, period_delivered)
+        # Rows made: in order if the frames ended at distinct increasing instants; none: nothing to sort
+        self._arrivals_in_order = not rows_made or all(
+            earlier < later for earlier, later in zip(finishes, finishes[1:]))
+
+    @staticmethod
+    def _add_run(counters: _KindCounters, frames_sent: int, packets_sent: int, bytes_sent: int, addressed: int,
+                 delivered: int, latencies: list[float]) -> None:
+        """A run of one kind's frames of a period into its counters (its latencies in the frames' order)."""
+        counters.frames_sent += frames_sent
+        counters.packets_sent += packets_sent
+        counters.bytes_sent += bytes_sent
+        counters.addressed += addressed
+        counters.delivered += delivered
+        counters.latencies_s += latencies
+
+    def _everyone_but(self, n: int) -> list[tuple[int, ...]]:
+        """Per sender, the audience of its broadcast among ``n`` robots: every other robot (``_audience``)."""
+        audiences = self._broadcast_audience_lists.get(n)
+        if audiences is None:
+            audiences = self._broadcast_audience_lists[n] = [
+                self._broadcast_audiences.setdefault((sender, n), tuple(j for j in range(n) if j != sender))
+                for sender in range(n)]
+        return audiences
+
+    def _constants_of_medium(self) -> tuple[int, float, float, float, bool]:
+        """The scheduling kernel's arguments that only the parameters set: how it draws the fading gain, the
+        Rician noncentrality and the gain's divisor, the zero-BER SNR and whether it computes 802.15.4 PERs."""
+        fading_code, gain_scale = self._fading_draw
+        modulation = self.params.modulation
+        return (int(fading_code), float(2.0 * self.params.rician_k), float(gain_scale),
+                float(_ZERO_BER_SNR_DB.get(modulation, np.inf)), modulation == "oqpsk_dsss_802154")
 
     def _pointers(self) -> tuple[int, ...] | None:
         """``sim.compiled.generator_pointers`` of ``self.rng`` (None for a generator that is not numpy's),
@@ -1216,6 +1336,7 @@ class ReferenceMessageBus(MessageBus):
     (tests/test_radio_bus_fast.py), frame by frame and draw by draw."""
 
     _medium_makes_columns = False  # its rows hold every delivery; ``step`` moves the as_arrays ones out
+    _medium_counts_its_period = False  # ``step`` sums the counters before and after its period
 
     def send_all(self, messages: Any, time_s: float) -> None:
         for message in messages:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.compiled import kernel
+from sim.compiled import generator_at, generator_pointers, kernel
 from sim.geometry import Boxes
 from sim.radio import channel
 from sim.radio.config import RadioConfig
@@ -42,6 +42,7 @@ class RadioChannel:
         self._shadowing: np.ndarray | None = None  # (P,) dB, the AR(1) state
         self._shadowing_time = -np.inf
         self._step: tuple[float, float, float] = (np.nan, 0.0, 0.0)  # dt, rho, innovation std of the last step
+        self._rng_pointers: tuple | None = None  # (rng, sim.compiled.generator_pointers of it)
         if not config.is_ideal:
             self._certain = self._certain_snr_db()
 
@@ -97,13 +98,28 @@ class RadioChannel:
                                                              config.shadowing_correlation_s, standard_normal=1.0))
                 self._step = (dt, rho, innovation)
             _, rho, innovation = self._step
-            innovations = self.rng.standard_normal(pairs)
-            innovations *= innovation
-            stepped = rho * self._shadowing
-            stepped += innovations  # rho X + sigma_innovation z, as one expression would round it
+            pointers = self._pointers()
+            if pointers is None:
+                innovations = self.rng.standard_normal(pairs)
+                innovations *= innovation
+                stepped = rho * self._shadowing
+                stepped += innovations  # rho X + sigma_innovation z, as one expression would round it
+            else:  # the same draws and operations in one compiled pass
+                stepped = np.empty(pairs)
+                _shadowing_step_at(*pointers, self._shadowing, float(rho), float(innovation), stepped)
             self._shadowing = stepped
         self._shadowing_time = time_s
         return self._shadowing
+
+    def _pointers(self) -> tuple[int, ...] | None:
+        """``sim.compiled.generator_pointers`` of ``self.rng``, kept with it; None where the kernels are not
+        compiled (numba's JIT disabled) or the generator is not numpy's."""
+        held = self._rng_pointers
+        if held is None or held[0] is not self.rng:
+            usable = (isinstance(self.rng, np.random.Generator)
+                      and getattr(_shadowing_step_at, "overloads", None) is not None)
+            held = self._rng_pointers = (self.rng, generator_pointers(self.rng) if usable else None)
+        return held[1]
 
     def pair_figures(self, distance_m: np.ndarray, wall_loss_db: np.ndarray,
                      shadowing_db: np.ndarray) -> dict[str, np.ndarray]:
@@ -112,10 +128,10 @@ class RadioChannel:
         -> snr_db -> delivery_at_snr gives them, bit for bit (tests/test_radio_link.py): the logarithm here
         and the BER of the pairs in the uncertain band with numpy, the rest in one compiled pass."""
         config = self.config
-        log_ratio = np.log10(np.maximum(np.asarray(distance_m, dtype=float), 1.0) / 1.0)  # d0 = 1 m
-        rx = np.empty(len(log_ratio))
-        snr = np.empty(len(log_ratio))
-        delivery = np.empty(len(log_ratio))
+        # log10(max(d, d0) / d0) with d0 = 1 m: dividing by 1.0 changes no value, so it is left out
+        log_ratio = np.maximum(np.asarray(distance_m, dtype=float), 1.0)
+        np.log10(log_ratio, out=log_ratio)
+        rx, snr, delivery = np.empty((3, len(log_ratio)))  # one block, three rows
         uncertain = np.empty(len(log_ratio), dtype=np.bool_)
         below, above = self._certain
         some = _pair_figures(log_ratio, np.ascontiguousarray(wall_loss_db, dtype=float),
@@ -192,3 +208,16 @@ def _pair_figures(log_ratio, wall_loss_db, shadowing_db, distance_coefficient, r
         uncertain[p] = snr[p] > below and snr[p] < above
         inside += uncertain[p]
     return inside
+
+
+@kernel
+def _shadowing_step_at(state_address, state, next_uint64, next_uint32, next_double, shadowing, rho, innovation,
+                       out):
+    """One AR(1) step of the shadowing: out = rho X + innovation z, z standard normal drawn in order from the
+    Generator of these ``sim.compiled.generator_pointers`` (numba's ``standard_normal`` advances it as
+    numpy's does, tests/test_radio_link.py), with ``_advance_shadowing``'s numpy operations: z * innovation,
+    rho * X, then their sum."""
+    rng = generator_at(state_address, state, next_uint64, next_uint32, next_double)
+    for p in range(shadowing.shape[0]):
+        scaled = rng.standard_normal() * innovation
+        out[p] = rho * shadowing[p] + scaled

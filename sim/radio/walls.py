@@ -124,21 +124,37 @@ def _crossings(starts, ends, centers, halves, rotations, extents, losses, count,
 
 @kernel
 def _pair_crossings(positions, first, second, centers, halves, rotations, extents, losses, count, loss):
+    """``_crossings`` of the segments between ``positions[first[p]]`` and ``positions[second[p]]``. Each
+    robot's side of each box's bounding extents, per axis (-1 below, +1 above, 0 within), is found once
+    rather than per pair: a segment misses the extents, and skips the slab test, exactly when both its ends
+    lie on the same side (-1 or +1) along some axis, as ``_crossings``' comparisons of its bounds decide."""
+    n, boxes = positions.shape[0], centers.shape[0]
+    side = np.empty((n, boxes, 3), dtype=np.int8)
+    for r in range(n):
+        for k in range(boxes):
+            for axis in range(3):
+                x = positions[r, axis]
+                if x < centers[k, axis] - extents[k, axis]:
+                    side[r, k, axis] = -1
+                elif x > centers[k, axis] + extents[k, axis]:
+                    side[r, k, axis] = 1
+                else:
+                    side[r, k, axis] = 0
     for s in range(first.shape[0]):
-        a, b = positions[first[s]], positions[second[s]]
-        n = 0
+        i, j = first[s], second[s]
+        a, b = positions[i], positions[j]
+        n_crossed = 0
         total = 0.0
-        for k in range(centers.shape[0]):
+        for k in range(boxes):
             apart = False
             for axis in range(3):
-                low, high = min(a[axis], b[axis]), max(a[axis], b[axis])
-                if high < centers[k, axis] - extents[k, axis] or low > centers[k, axis] + extents[k, axis]:
+                if side[i, k, axis] != 0 and side[i, k, axis] == side[j, k, axis]:
                     apart = True
                     break
             if apart:
                 continue
             if segment_crosses_box(a[0], a[1], a[2], b[0], b[1], b[2], centers[k], halves[k], rotations[k]):
-                n += 1
+                n_crossed += 1
                 total += losses[k]
-        count[s] = n
+        count[s] = n_crossed
         loss[s] = total
