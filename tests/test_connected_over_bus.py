@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import tether.catalog  # noqa: F401 (registers the built-in scenarios)
@@ -162,6 +162,7 @@ def test_startup_election_over_a_clean_bus_elects_the_closest_traveler():
 
 @settings(max_examples=15, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(4, 8), snr_db=st.floats(1.0, 5.0))
+@example(seed=13467, n=4, snr_db=1.0)
 def test_election_converges_over_the_lossy_bus(seed, n, snr_db):
     """Frames lost to fading: one prime traveler at most at every tick, and one within a few windows."""
     rng = np.random.default_rng(seed)
@@ -171,7 +172,10 @@ def test_election_converges_over_the_lossy_bus(seed, n, snr_db):
     machine = RoleMachine(n, 1, host=int(rng.integers(n)), bus_period_s=PERIOD_S)
     machine.start(has_target)
     bus, step = lossy_802154_bus(n, snr_db, seed)
-    history = run_over(machine, step, bus.send, remaining, 6 * election_window_ticks(n, 1) + 40)
+    # At 1 dB about 43 % of frames arrive and the handover's offer and confirm wait out their retransmission
+    # timeouts: over 600 cases the first prime came by 6 windows + 39 ticks, one rarer one (seed 13467, n 4)
+    # at + 79; the horizon leaves twice that.
+    history = run_over(machine, step, bus.send, remaining, 6 * election_window_ticks(n, 1) + 160)
     assert bus.summary()["radio_delivery_ratio"] < 1.0  # the radio did lose frames
     assert machine.prime >= 0 and has_target[machine.prime]
     assert (history == Role.PRIME_TRAVELER).sum(axis=1).max() <= 1
