@@ -239,3 +239,24 @@ def test_the_planner_keeps_clear_of_a_dropped_robots_point_and_forgets_it_when_t
     entry.taken_back_at_s = 1.5
     strategy._plan_around_dropped()
     assert strategy.planner.is_free(frozen[None])[0]
+
+
+def test_a_robot_failing_at_0_s_in_the_start_cluster_leaves_every_target_reachable():
+    """Robot 4, the middle of the start grid, fails at 0 s: the points kept clear round it are a preference
+    for the planner, not a wall round its neighbours' starts (before: 10 of 25 targets skipped at t = 0)."""
+    sim = build_simulation(load("connected-office", ['faults=[{kind="robot_failure", robot=4, at_s=0.0}]'],
+                                seed=5, duration_s=1.0))
+    for _ in range(50):
+        sim.tick()
+    explorer = sim.strategy.explorer
+    assert explorer.skipped == []
+    assert sum(path is not None for path in explorer.paths) >= 1
+
+
+def test_a_drop_is_blamed_for_a_split_only_when_the_team_with_it_is_connected():
+    sim = build_simulation(load("connected-office", ['faults=[{kind="robot_failure", robot=5, at_s=60.0}]'],
+                                seed=6, duration_s=61.0))
+    while not sim.strategy.dropped:
+        sim.tick()
+    sim.tick()
+    assert sim.strategy._split_by_drops()  # robot 5 was the only link of robots 7 and 9

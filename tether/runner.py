@@ -184,11 +184,15 @@ def _drops_of_healthy_robots(metrics: dict[str, Any], drops: list[dict[str, Any]
     blackout, say), and when it was taken back."""
     for robot in sorted({drop["robot"] for drop in drops}):
         own = [drop for drop in drops if drop["robot"] == robot]
-        text = f"; robot {robot} dropped as silent at {own[0]['dropped_at_s']:.1f} s"
+        text = f"; robot {robot} dropped as silent at {seconds(own[0]['dropped_at_s'])} s"
         if len(own) > 1:
             text += f" (and {len(own) - 1} more times)"
         back = own[-1].get("taken_back_at_s")
-        metrics["message"] += text + (f", taken back at {back:.1f} s" if back is not None else ", not taken back")
+        text += f", taken back at {seconds(back)} s" if back is not None else ", not taken back"
+        for drop in own:
+            if drop.get("token_reissued_to") is not None:
+                text += f"; the token was re-issued to robot {drop['token_reissued_to']}"
+        metrics["message"] += text
 
 
 def _failure_consequence(metrics: dict[str, Any], fault: dict[str, Any], dropped: dict[str, Any] | None) -> None:

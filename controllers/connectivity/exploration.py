@@ -126,6 +126,7 @@ class ExplorationController:
             raise ValueError(f"election_host ({params.election_host}) must be a robot index below {n}")
         self.params = params
         self.planner = planner
+        self.scene_planner = planner  # the scene's own obstacles (``planner`` may add dropped robots)
         self.queues = queues
         self.n_robots = n
         self.role_machine = RoleMachine(n, params.message_latency_ticks, params.election_host, bus_period_s)
@@ -148,7 +149,7 @@ class ExplorationController:
         """Lines 5-6: next reachable target and its path; False if the queue ran dry."""
         while (target := self.queues.pop(robot)) is not None:
             try:
-                self.paths[robot] = self.planner.plan(position, target.position)
+                self.paths[robot] = self._plan(position, target.position)
             except NoPathError:
                 self.skipped.append(target)
                 continue
@@ -167,9 +168,20 @@ class ExplorationController:
 
     def _replan(self, robot: int, position: np.ndarray) -> None:
         try:
-            self.paths[robot] = self.planner.plan(position, self.targets[robot].position)
+            self.paths[robot] = self._plan(position, self.targets[robot].position)
         except NoPathError:
             pass  # keep following the old path; f_lambda keeps the robot safe meanwhile
+
+    def _plan(self, start: np.ndarray, goal: np.ndarray) -> SplinePath:
+        """A path from ``start`` to ``goal``, clear of the dropped robots' points where one exists: the points
+        kept clear are a preference (a start next to one, a passage one narrows), except for a goal inside
+        one, which a dropped robot blocks (NoPathError)."""
+        try:
+            return self.planner.plan(start, goal)
+        except NoPathError:
+            if self.planner is self.scene_planner or not self.planner.is_free(np.asarray(goal)[None])[0]:
+                raise
+        return self.scene_planner.plan(start, goal)
 
     def retarget(self, robot: int, position, dwell_time: float, robot_position=None) -> Target | None:
         """Online target generators: replace robot ``robot``'s current target

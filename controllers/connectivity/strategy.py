@@ -389,11 +389,12 @@ class ConnectedStrategy(Strategy):
                 lost += ("; the robots keep the graph they measure through their position noise connected, "
                          "and the true one lost a link")
             out = [d for d in self.dropped if d.taken_back_at_s is None]
-            if out:  # a dropped robot was the only link between parts of the team
+            if out and self._split_by_drops():  # a dropped robot was the only link between parts of the team
+                them = "it" if len(out) == 1 else "them"
                 lost += (f" after the team dropped the silent {', '.join(self.names[d.robot] for d in out)}"
-                         f" (t = {', '.join(f'{d.at_s:.2f}' for d in out)} s): its graph split without it")
+                         f" (t = {', '.join(f'{d.at_s:.2f}' for d in out)} s): its graph split without {them}")
             if self.estimator_over_radio:
-                estimate = self.estimator.estimate.lambda2
+                estimate = self.estimator.estimate.lambda2[self.in_team]  # a dropped robot's row is NaN
                 lost += (f"; the robots' estimates over the radio were {estimate.min():.3g} to {estimate.max():.3g}, "
                          f"over {int(self.estimator.used.sum())} of {int(np.count_nonzero(self._weights))} link "
                          "directions heard")
@@ -561,6 +562,12 @@ class ConnectedStrategy(Strategy):
                                 + (f"; {self.names[heir]} takes a new token" if heir is not None else ""))
             self._plan_around_dropped()
 
+    def _split_by_drops(self) -> bool:
+        """Whether the team's graph is split only because of the robots it dropped: connected with their
+        (frozen) points as members, not without them."""
+        p = self.params
+        return connectivity_state(self.q, self.boxes, p).lambda2 > p.lambda2_min + LAMBDA2_TOLERANCE
+
     def _take_back_heard(self, t: float, links) -> None:
         """Take back every dropped robot a team mate hears again over a strong link (weight at least
         TAKE_BACK_MIN_WEIGHT), with the team's graph connected and no virtual point within R_c of its frozen
@@ -684,7 +691,9 @@ class ConnectedStrategy(Strategy):
     def progress(self) -> str:
         """How far the mission got, for the run's status message."""
         visited = len(self.last.visits) if self.last is not None else 0
-        return f"{visited}/{self.targets_total} targets visited"
+        skipped = len(self.last.skipped) if self.last is not None else 0
+        return f"{visited}/{self.targets_total} targets visited" + (
+            f", {skipped} skipped (no path reaches them)" if skipped else "")
 
     def summary(self) -> dict:
         """The continuous-connectivity paper's figures for metrics.json (docs/connected.md)."""
