@@ -39,8 +39,9 @@ heard again (a healthy robot behind a blackout, say):
   that no path leads a traveler through it (a prime traveler held 0.85 m
   from it by its collision factor, its path through the point, stalled a
   mission for good): a box round the point joins the planner's obstacles
-  (``obstacles_with_dropped``) and every traveler replans. A target no
-  path reaches any more is skipped, as an unreachable one always is.
+  (``obstacles_with_dropped``) and every traveler replans. The box is a
+  preference (ExplorationController._plan): where no path avoids it the
+  scene's own obstacles decide, and only a target inside it is skipped.
 - **Taking it back** (exact mode). A dropped robot is taken back once a robot
   of the team hears it again (under ``ideal``, a link to it; under a real
   radio, any message from it that arrived after its drop) and the team with
