@@ -307,6 +307,7 @@ def test_report_on_a_fixture_table_writes_figures_and_tables(tmp_path, capsys):
     assert "0.929 ± 0.561" in report and "2.517 ± 0.810" in report and "n=3)" in report
     # Team graphs beside the paper's figures.
     assert "G_T^1" in report and "G_T^2" in report and "1.127" in report and "0.532" in report
+    assert_tables_well_formed(report)
 
 
 def test_a_users_own_sweep_of_the_meeting_methods_is_not_set_beside_the_papers(tmp_path):
@@ -339,6 +340,7 @@ def test_a_users_own_sweep_of_the_meeting_methods_is_not_set_beside_the_papers(t
         for paper_value in ("0.929 ± 0.561", "2.517 ± 0.810", "0.879 ± 0.461", "1.030 ± 0.466"):
             assert paper_value not in report, (scenario, paper_value)
         assert "(paper)" not in report
+        assert_tables_well_formed(report)
         assert any(p.name == "table1.png" for p in files)
         assert matplotlib.image.imread(folder / "table1.png").std() > 0.05
 
@@ -450,3 +452,17 @@ def test_fig9_is_left_out_of_a_sweep_that_varies_more_than_scene_and_team_size(t
     same_radio = [dict(row, **{"radio.preset": "ideal"}) for row in rows]
     lines, files = fig9_section(same_radio, tmp_path)
     assert files == [tmp_path / "fig9.png"] and lines[0].startswith("## Nestmeyer et al. 2017, Fig. 9")
+
+
+def assert_tables_well_formed(markdown: str) -> None:
+    """Every Markdown table has as many cells in each row as in its header (a renderer drops one that does
+    not)."""
+    block: list[str] = []
+    for line in [*markdown.splitlines(), ""]:
+        if line.startswith("|"):
+            block.append(line)
+            continue
+        if block:
+            cells = [len(row.strip().strip("|").split("|")) for row in block]
+            assert len(set(cells)) == 1, block
+        block = []

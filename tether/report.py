@@ -344,10 +344,9 @@ def table1_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
                 + f", {PAPER_DURATION_S:g} s, all three methods, no other overrides)."), ""]
     for n_targets in targets:
         paper = papers[n_targets]
-        lines += [f"**{n_targets} targets**", "",
-                  "| | " + " | ".join(f"{METHOD_LABELS[m]} (ours)" for m in methods) + " | "
-                  + " | ".join(f"{METHOD_LABELS[m]} (paper)" for m in methods if m in paper) + " |",
-                  "|" + " --- |" * (1 + len(methods) + sum(m in paper for m in methods))]
+        header = ["", *(f"{METHOD_LABELS[m]} (ours)" for m in methods),
+                  *(f"{METHOD_LABELS[m]} (paper)" for m in methods if m in paper)]
+        lines += [f"**{n_targets} targets**", "", "| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
         for name, key, unit, index in (("e_g", "e_g", "m", 0), ("lambda-bar", "lam", "m^2", 1)):
             ours = []
             for m in methods:
