@@ -145,6 +145,7 @@ def test_panels_put_the_headline_first_drop_repeats_and_empty_series_and_label_u
             recorder.series["stretch_m"].append((t, 1.5 + 0.3 * k))
             recorder.series["lambda2"].append((t, 0.5))
             recorder.series["prime_traveler"].append((t, float(k % 3)))
+            recorder.series["robots_waiting"].append((t, 0.0))  # a count that stays 0
         panels = recorder.panels()
         assert panels[:2] == ["lambda2", "stretch_m"]  # the continuous-connectivity paper's headline first
         assert LINKS not in panels and "edges" in panels and "t_star_s" not in panels
@@ -165,5 +166,10 @@ def test_panels_put_the_headline_first_drop_repeats_and_empty_series_and_label_u
         index = labels.index("prime traveler (robot index)")
         ticks = page_figure.axes[index].get_yticks()
         assert np.allclose(ticks, np.round(ticks))
+        # A count that stays 0: whole-number ticks on an axis from 0 (it once read -0.5, 0, 0.5).
+        flat = page_figure.axes[labels.index("robots waiting (count)")]
+        low, high = flat.get_ylim()
+        shown = [tick for tick in flat.get_yticks() if low <= tick <= high]
+        assert -0.1 < low < 0 and high >= 1 and shown == [0.0, 1.0], (low, high, shown)
     finally:
         recorder._painters.finish()

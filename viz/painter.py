@@ -201,8 +201,9 @@ def build_page(layout: tuple[PanelLayout, ...], robot_names: tuple[str, ...] | N
                 # One word a line: "secondary traveler" on one line ran past the page's left edge.
                 ax.set_yticks([v for v, _ in levels], [label.replace(" ", "\n") for _, label in levels], fontsize=7)
                 ax.set_ylim(levels[0][0] - 0.5, levels[-1][0] + 0.5)
-        if not levels:
-            ax.yaxis.set_major_locator(MaxNLocator(nbins=4, steps=[1, 2, 5, 10], integer=integer))
+        if not levels:  # counts: whole-number ticks only, one if that is all there is room for
+            ax.yaxis.set_major_locator(MaxNLocator(nbins=4, steps=[1, 2, 5, 10], integer=integer,
+                                                   min_n_ticks=1 if integer else 2))
         ax.set_ylabel(textwrap.fill(panel_title, LABEL_WRAP_CHARS), fontsize=8)
         # At a fixed distance left of the axes, beyond 8 pt tick labels: placing it after the tick labels'
         # extents (matplotlib's default) took a third of a page's drawing.
@@ -230,11 +231,14 @@ def fill_page(page: Page, panels: list[Panel], title: str) -> None:
                 line.set_data(data, values[:, robot])
         ax.relim()
         ax.autoscale_view()
-        if len(panel) > 4 and panel[4] and not levels:  # counts: whole numbers, a flat one not padded by 0.05
+        if len(panel) > 4 and panel[4] and not levels:  # counts: from 0 (when none is negative), at least 0..1
             shown = (data[:, 1] if values is None else values).astype(float)
             shown = shown[np.isfinite(shown)]
-            if shown.size and shown.max() - shown.min() < 2:
-                ax.set_ylim(shown.min() - 0.5, shown.max() + 0.5)
+            if shown.size:
+                low = min(0.0, shown.min())
+                high = max(shown.max(), low + 1.0)
+                pad = 0.05 * (high - low)
+                ax.set_ylim(low - pad, high + pad)
     page.title.set_text(title)
 
 
