@@ -231,14 +231,20 @@ def fill_page(page: Page, panels: list[Panel], title: str) -> None:
                 line.set_data(data, values[:, robot])
         ax.relim()
         ax.autoscale_view()
-        if len(panel) > 4 and panel[4] and not levels:  # counts: from 0 (when none is negative), at least 0..1
-            shown = (data[:, 1] if values is None else values).astype(float)
-            shown = shown[np.isfinite(shown)]
-            if shown.size:
-                low = min(0.0, shown.min())
-                high = max(shown.max(), low + 1.0)
-                pad = 0.05 * (high - low)
-                ax.set_ylim(low - pad, high + pad)
+        shown = (data[:, 1] if values is None else values).astype(float)
+        shown = shown[np.isfinite(shown)]
+        if levels or not shown.size:
+            continue
+        if len(panel) > 4 and panel[4]:  # counts: from 0 (when none is negative), at least 0..1
+            low = min(0.0, shown.min())
+            high = max(shown.max(), low + 1.0)
+            pad = 0.05 * (high - low)
+            ax.set_ylim(low - pad, high + pad)
+        elif panel[0].endswith("(ratio)") and shown.min() >= 0 and shown.max() <= 1:  # a share: 0 to 1
+            ax.set_ylim(-0.03, 1.03)
+        elif shown.min() >= 0 and ax.get_ylim()[0] < 0:  # never negative: the axis does not pretend it could be
+            high = ax.get_ylim()[1]
+            ax.set_ylim(-0.03 * high, high)
     page.title.set_text(title)
 
 
