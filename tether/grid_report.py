@@ -28,6 +28,18 @@ BOOKKEEPING = frozenset({"trial_id", "trial_index", "seed", "attempt", "duration
 MAIN_METRICS = ("completion_time_s", "targets_visited", "e_g_mean_m", "lambda_bar_mean_m2", "lambda2_mean",
                 "comm_lambda2_min", "mean_travel_m", "meetings_held", "tracking_error_mean_m")
 FIGURE_PANELS = 4
+# The figure's axis labels: words and a unit (other columns: viz.plots.axis_label, from the key's suffix).
+METRIC_LABELS = {
+    "completion_time_s": "mission time (s)",
+    "targets_visited": "targets visited (count)",
+    "e_g_mean_m": "e_g, time average (m)",
+    "lambda_bar_mean_m2": "lambda-bar, time average (m²)",
+    "lambda2_mean": "lambda2, time average (1)",
+    "comm_lambda2_min": "lowest lambda2, comm. graph (1)",
+    "mean_travel_m": "distance travelled, mean (m)",
+    "meetings_held": "meetings held (count)",
+    "tracking_error_mean_m": "tracking error, mean (m)",
+}
 
 
 def swept_keys(rows: list[dict], manifest: dict | None) -> list[str]:
@@ -177,26 +189,45 @@ def _figure(png: Path, keys: list[str], cells: list[tuple[tuple, dict]], metrics
     lines: dict[tuple, list[tuple[Any, tuple]]] = {}
     for values, stats in cells:
         lines.setdefault(values[1:], []).append((values[0] if keys else "all", stats))
-    fig, axes = plt.subplots(1, len(chosen), figsize=(3.6 * len(chosen), 3.4), squeeze=False)
+    from matplotlib.ticker import MaxNLocator
+
+    from sim.palette import SERIES
+    from viz.plots import axis_label
+
+    fig, axes = plt.subplots(1, len(chosen), figsize=(4.2 * len(chosen), 3.9), squeeze=False)
+    colors = {rest: tuple(SERIES[k % len(SERIES)]) for k, rest in enumerate(lines)}
     for ax, metric in zip(axes[0], chosen):
-        for rest, points in lines.items():
+        means = []
+        for index, (rest, points) in enumerate(lines.items()):
             points = [(x, s[metric]) for x, s in sorted(points, key=lambda p: float(p[0]) if numeric else xs.index(p[0])) if metric in s]
             if not points:
                 continue
-            pos = [float(x) if numeric else xs.index(x) for x, _ in points]
+            # Categories side by side, unjoined (a line between two methods means nothing).
+            shift = 0.0 if numeric else (index - (len(lines) - 1) / 2) * 0.08
+            pos = [(float(x) if numeric else xs.index(x)) + shift for x, _ in points]
             label = _cell_name(keys[1:], rest) if rest else None
-            ax.errorbar(pos, [s[0] for _, s in points], yerr=[s[1] for _, s in points], marker="o", ms=4,
-                        capsize=3, label=label)
+            ax.errorbar(pos, [s[0] for _, s in points], yerr=[s[1] for _, s in points], marker="o", ms=5,
+                        capsize=3, label=label, color=colors[rest], ls="-" if numeric else "none")
+            means += [s[0] for _, s in points]
         if not numeric:
-            ax.set_xticks(range(len(xs)), [_text(x) for x in xs], fontsize=7, rotation=20)
-        ax.set_xlabel(keys[0] if keys else "")
-        ax.set_title(metric, fontsize=9)
+            ax.set_xticks(range(len(xs)), [_text(x) for x in xs], fontsize=9, rotation=20 if len(xs) > 3 else 0)
+            ax.set_xlim(-0.5, len(xs) - 0.5)
+        label = METRIC_LABELS.get(metric) or axis_label(metric)
+        if label.endswith("(count)") or (means and all(float(m).is_integer() for m in means) and "(" not in label):
+            ax.yaxis.set_major_locator(MaxNLocator(integer=True, min_n_ticks=1))
+        low, high = ax.get_ylim()
+        if means and min(means) >= 0 and low < 0:  # a never-negative figure: the axis starts at 0
+            high = max(high, 1.0) if max(means) == 0 else high
+            ax.set_ylim(-0.03 * high, high)
+        ax.set_xlabel(keys[0] if keys else "", fontsize=10)
+        ax.set_ylabel(label, fontsize=10)
+        ax.tick_params(labelsize=9)
         ax.grid(alpha=0.3)
     handles, labels = axes[0][0].get_legend_handles_labels()
     if labels:
-        fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=min(len(labels), 4))
-    fig.suptitle("mean ± std over seeds per grid cell", fontsize=9)
-    fig.tight_layout(rect=(0, 0.08 if labels else 0, 1, 1))
-    fig.savefig(png, dpi=110)
+        fig.legend(handles, labels, fontsize=9, loc="lower center", ncol=min(len(labels), 4))
+    fig.suptitle("mean ± std over seeds per grid cell", fontsize=10)
+    fig.tight_layout(rect=(0, 0.1 if labels else 0, 1, 1))
+    fig.savefig(png, dpi=120)
     plt.close(fig)
     return png
