@@ -8,7 +8,7 @@ import pytest
 
 from controllers.intermittent.runtime import team_path_style
 from sim.types import PATH_STYLES, Decorations
-from viz.decorations import DASH_ON_SHARE, merged_polyline, styled_segments
+from viz.decorations import DASH_ON_SHARE, STYLE_PERIOD_SHARE, merged_polyline, styled_segments
 
 L_SHAPE = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.5, 0.0]])  # 1.5 m along, a corner at 1 m
 
@@ -36,7 +36,8 @@ def test_a_solid_path_s_nearly_collinear_vertices_are_merged_and_its_corners_kep
 
 @pytest.mark.parametrize("style", ["dashed", "dotted"])
 def test_dashes_start_every_period_and_cover_their_share_of_it(style):
-    pieces = styled_segments(L_SHAPE, style, 0.5)
+    period = 0.5 / STYLE_PERIOD_SHARE[style]  # the style's own period is 0.5 m
+    pieces = styled_segments(L_SHAPE, style, period)
     assert len(pieces) == 3  # starts at 0, 0.5, 1.0 m along
     np.testing.assert_allclose([a for a, _ in pieces], [[0, 0, 0], [0.5, 0, 0], [1.0, 0, 0]], atol=1e-12)
     on = DASH_ON_SHARE[style] * 0.5
@@ -44,6 +45,11 @@ def test_dashes_start_every_period_and_cover_their_share_of_it(style):
     np.testing.assert_allclose(pieces[2][1], [1.0, on, 0], atol=1e-12)  # the third runs up the second leg
     drawn = sum(np.linalg.norm(b - a) for a, b in pieces)
     assert drawn == pytest.approx(3 * on)
+
+
+def test_dots_come_at_half_the_dashes_pitch():
+    dashes, dots = (styled_segments(L_SHAPE, style, 0.5) for style in ("dashed", "dotted"))
+    assert len(dots) == 2 * len(dashes)
 
 
 def test_neighbouring_teams_differ_in_line_style_and_unknown_styles_are_refused():
