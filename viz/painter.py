@@ -37,6 +37,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 SAVE_DPI = 110
+ROBOT_LINE_STYLES = ("-", "--", ":")  # per robot, each after the palette's colours ran out
 LEGEND_MAX_ROBOTS = 12  # per-robot panels name their lines up to this many robots
 LEFT, RIGHT = 0.11, 0.98  # the axes' edges, as fractions of the page's width
 LABEL_OFFSET_IN = 0.55  # a panel's title (its y label) from the axes' left edge
@@ -193,7 +194,10 @@ def build_page(layout: tuple[PanelLayout, ...], robot_names: tuple[str, ...] | N
             lines.append(ax.plot([], [], lw=1.2, drawstyle=drawstyle))
         else:
             names = robot_names if robot_names is not None else [f"robot {i}" for i in range(n_lines)]
-            lines.append([ax.plot([], [], lw=1.0, label=names[i], drawstyle=drawstyle)[0] for i in range(n_lines)])
+            # Past the palette's colours the robots differ by their line too (robot 8 was robot 0's twin).
+            lines.append([ax.plot([], [], lw=1.0, label=names[i], drawstyle=drawstyle,
+                                  ls=ROBOT_LINE_STYLES[(i // len(SERIES)) % len(ROBOT_LINE_STYLES)])[0]
+                          for i in range(n_lines)])
             if legend and robot_names is not None and n_lines <= LEGEND_MAX_ROBOTS:
                 ax.legend(fontsize=6, ncol=min(n_lines, 6), loc="upper right")
             legend = False
