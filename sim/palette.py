@@ -69,6 +69,9 @@ METHOD = {
 PAPER = hex_rgba(OKABE_ITO["black"])  # a paper's reference values beside ours
 SERIES = [hex_rgba(code) for code in ("#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9",
                                       "#000000", "#F0E442")]  # plots' per-robot lines, cycled
+# The tuning page's live plots: one light neutral on its dark page. Each plot has its title, and a plot of
+# the prime travelers drawn in the connector's sky blue beside the legend said the wrong thing.
+PLOT_LINE_ON_DARK = hex_rgba("#D8DCE6")
 
 
 def team(index: int) -> np.ndarray:

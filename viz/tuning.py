@@ -46,7 +46,7 @@ from urllib.parse import parse_qs, urlparse
 import numpy as np
 
 from sim.config import MAX_NESTING, ConfigError, build, check_nesting, field_comments, to_table, unit_from_name
-from sim.palette import SERIES, hex_code
+from sim.palette import PLOT_LINE_ON_DARK, hex_code
 from sim.radio.config import RadioConfig
 from sim.loop import Simulation
 from sim.observers import Frame, tracking_errors
@@ -456,7 +456,7 @@ class TuningSession:
                 "legend": list(self.legend),
                 "overlay": self.overlay,
                 "labels": {**{name: axis_label(name) for name in self.figures}, **FIGURE_LABELS},
-                "series_colors": [hex_code(c) for c in SERIES],
+                "plot_color": hex_code(PLOT_LINE_ON_DARK),
                 "last_seq": self._seq,
                 "series": series,
                 "frame_seq": self.frame_seq,
