@@ -182,7 +182,9 @@ def default_camera(cam, bounds, fovy_deg: float, aspect: float) -> None:
     visible_width = visible_depth * aspect
     cam.type = mujoco.mjtCamera.mjCAMERA_FREE
     cam.lookat[:] = (lo[0] + visible_width / 2 - (VIEW_MARGIN - 1) * width / 2, (lo[1] + hi[1]) / 2, lo[2])
-    cam.distance = visible_depth / (2 * tan)
+    # Framed at the scene's top, not its floor: the tops of the outer walls, nearer the camera, reach
+    # farther out in the picture than the floor does (they ran off the window's edges).
+    cam.distance = visible_depth / (2 * tan) + max(float(hi[2] - lo[2]), 0.0)
     cam.elevation, cam.azimuth = -90.0, 90.0
 
 
