@@ -39,6 +39,7 @@ import numpy as np
 SAVE_DPI = 110
 ROBOT_LINE_STYLES = ("-", "--", ":")  # per robot, each after the palette's colours ran out
 LEGEND_MAX_ROBOTS = 12  # per-robot panels name their lines up to this many robots
+LEVELS_LEGEND_ROOM = 1.4  # a levels panel with the robots' legend reaches this far above its top level
 LEFT, RIGHT = 0.11, 0.98  # the axes' edges, as fractions of the page's width
 LABEL_OFFSET_IN = 0.55  # a panel's title (its y label) from the axes' left edge
 LABEL_WRAP_CHARS = 28  # a panel's title wraps onto a second line beyond this many characters
@@ -194,17 +195,19 @@ def build_page(layout: tuple[PanelLayout, ...], robot_names: tuple[str, ...] | N
             lines.append(ax.plot([], [], lw=1.2, drawstyle=drawstyle))
         else:
             names = robot_names if robot_names is not None else [f"robot {i}" for i in range(n_lines)]
+            named = legend and robot_names is not None and n_lines <= LEGEND_MAX_ROBOTS
             # Past the palette's colours the robots differ by their line too (robot 8 was robot 0's twin).
             lines.append([ax.plot([], [], lw=1.0, label=names[i], drawstyle=drawstyle,
                                   ls=ROBOT_LINE_STYLES[(i // len(SERIES)) % len(ROBOT_LINE_STYLES)])[0]
                           for i in range(n_lines)])
-            if legend and robot_names is not None and n_lines <= LEGEND_MAX_ROBOTS:
+            if named:
                 ax.legend(fontsize=6, ncol=min(n_lines, 6), loc="upper right")
             legend = False
             if levels:  # codes (e.g. roles): name each level on the axis
                 # One word a line: "secondary traveler" on one line ran past the page's left edge.
                 ax.set_yticks([v for v, _ in levels], [label.replace(" ", "\n") for _, label in levels], fontsize=7)
-                ax.set_ylim(levels[0][0] - 0.5, levels[-1][0] + 0.5)
+                # Room above the top level for the robots' legend, which covered that level's lines.
+                ax.set_ylim(levels[0][0] - 0.5, levels[-1][0] + (LEVELS_LEGEND_ROOM if named else 0.5))
         if not levels:  # counts: whole-number ticks only, one if that is all there is room for
             ax.yaxis.set_major_locator(MaxNLocator(nbins=4, steps=[1, 2, 5, 10], integer=integer,
                                                    min_n_ticks=1 if integer else 2))
