@@ -192,6 +192,7 @@ def _figure(png: Path, keys: list[str], cells: list[tuple[tuple, dict]], metrics
     from matplotlib.ticker import MaxNLocator
 
     from sim.palette import SERIES
+    from viz.painter import axis_from_zero
     from viz.plots import axis_label
 
     fig, axes = plt.subplots(1, len(chosen), figsize=(4.2 * len(chosen), 3.9), squeeze=False)
@@ -215,10 +216,8 @@ def _figure(png: Path, keys: list[str], cells: list[tuple[tuple, dict]], metrics
         label = METRIC_LABELS.get(metric) or axis_label(metric)
         if label.endswith("(count)") or (means and all(float(m).is_integer() for m in means) and "(" not in label):
             ax.yaxis.set_major_locator(MaxNLocator(integer=True, min_n_ticks=1))
-        low, high = ax.get_ylim()
-        if means and min(means) >= 0 and low < 0:  # a never-negative figure: the axis starts at 0
-            high = max(high, 1.0) if max(means) == 0 else high
-            ax.set_ylim(-0.03 * high, high)
+        if means:
+            axis_from_zero(ax, min(means), max(means))
         ax.set_xlabel(keys[0] if keys else "", fontsize=10)
         ax.set_ylabel(label, fontsize=10)
         ax.tick_params(labelsize=9)

@@ -249,10 +249,18 @@ def fill_page(page: Page, panels: list[Panel], title: str) -> None:
             ax.set_ylim(low - pad, high + pad)
         elif panel[0].endswith("(ratio)") and shown.min() >= 0 and shown.max() <= 1:  # a share: 0 to 1
             ax.set_ylim(-0.03, 1.03)
-        elif shown.min() >= 0 and ax.get_ylim()[0] < 0:  # never negative: the axis does not pretend it could be
-            high = ax.get_ylim()[1]
-            ax.set_ylim(-0.03 * high, high)
+        else:
+            axis_from_zero(ax, shown.min(), shown.max())
     page.title.set_text(title)
+
+
+def axis_from_zero(ax, lowest: float, highest: float) -> None:
+    """A never-negative quantity's value axis (``lowest`` >= 0 of what is drawn) starts at 0: it does not
+    pretend the value could be negative (matplotlib pads a flat line by +-0.5, or 5 % below its lowest)."""
+    low, high = ax.get_ylim()
+    if lowest >= 0 and low < 0:
+        high = max(high, 1.0) if highest == 0 else high
+        ax.set_ylim(-0.03 * high, high)
 
 
 def save_page(page: Page, path: str) -> str:

@@ -248,6 +248,8 @@ class LagHolds:
             return False
         self.longest_s = max(self.longest_s, waited)
         return True
+
+
 WALL_KEEP_M = 0.06  # separation never moves a reference closer than this to a wall, m
 SEPARATION_M = 0.12  # bodies (0.072 m across) closer than this push their references apart, m
 SEPARATION_GAIN = 3.0  # reference offset per metre of intrusion, -
