@@ -54,6 +54,7 @@ REFERENCE = hex_rgba(OKABE_ITO["black"], 0.8)
 # The meeting methods: one colour per team (cycled), white for a robot with no meeting planned.
 TEAMS = np.stack([hex_rgba(code) for code in TOL_MUTED.values()])
 IDLE = hex_rgba("#FFFFFF")
+DROPPED = IDLE  # continuous connectivity: a robot its team dropped as silent (no role, no links): white too
 # Link quality ramp: value 0 (about to break / never delivered) to 1 (strong / always delivered).
 LINK_WEAK = hex_rgba("#BBBBBB")
 LINK_STRONG = hex_rgba("#333333")

@@ -260,3 +260,18 @@ def test_a_drop_is_blamed_for_a_split_only_when_the_team_with_it_is_connected():
         sim.tick()
     sim.tick()
     assert sim.strategy._split_by_drops()  # robot 5 was the only link of robots 7 and 9
+
+
+def test_a_dropped_robot_is_drawn_white_and_named_in_the_legend_only_while_it_is_out():
+    from sim import palette
+
+    sim = build_simulation(load("connected-office", [f'faults=[{{kind="robot_failure", robot={EXPLORER}, at_s=0.2}}]'],
+                                duration_s=0.5))
+    legends, colors = [], []
+    for _ in range(50):
+        frame, _ = sim.tick()
+        legends.append([label for label, _ in frame.commands.decorations.legend])
+        colors.append(frame.commands.decorations.robot_colors[EXPLORER])
+    name = "dropped from the team (not heard)"
+    assert name not in legends[0] and name in legends[-1]
+    np.testing.assert_array_equal(colors[-1], palette.DROPPED)

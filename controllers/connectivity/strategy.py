@@ -164,6 +164,8 @@ TARGET_RGBA = palette.GOAL * np.array([1, 1, 1, 0.9], dtype=np.float32)
 _LEGEND_LABELS = {Role.PRIME_TRAVELER: "prime traveler, its path", Role.SECONDARY_TRAVELER: "secondary traveler, its path"}
 LEGEND = Decorations(legend=(*((_LEGEND_LABELS.get(r, ROLE_NAMES[r]), ROLE_COLORS[r]) for r in Role),
                              ("traveler's target point", palette.GOAL))).legend  # read-only once, not every tick
+# While the team has dropped a robot, the legend names its colour too (drawn only then).
+LEGEND_WITH_DROPPED = (*LEGEND, ("dropped from the team (not heard)", palette.DROPPED))
 ROLE_LEVELS = {float(r): ROLE_NAMES[r] for r in Role}
 # Spacing of the points that draw a planned path, as a fraction of R_grid.
 _PATH_DRAW_SPACING = 2.0
@@ -666,6 +668,7 @@ class ConnectedStrategy(Strategy):
         if estimate is not None:
             robot_scalars["lambda2_estimate"] = np.asarray(estimate.lambda2, dtype=float)
         colors = np.array([ROLE_COLORS[Role(int(r))] for r in roles])
+        colors[~self.in_team] = palette.DROPPED
         paths = [(self._path_points(path, self.q[i]), PRIME_PATH_RGBA if i == out.prime else SECONDARY_PATH_RGBA)
                  for i, path in enumerate(out.paths) if path is not None]
         current = {id(path) for path in out.paths if path is not None}
@@ -676,7 +679,7 @@ class ConnectedStrategy(Strategy):
         decorations = Decorations(
             robot_scalars=robot_scalars,
             robot_scalar_levels={"role": ROLE_LEVELS},
-            legend=LEGEND,
+            legend=LEGEND if self.in_team.all() else LEGEND_WITH_DROPPED,
             link_weights=state.weights if len(state.weights) == len(roles) else _scatter_square(state.weights,
                                                                                                 self.in_team),
             robot_colors=colors,
