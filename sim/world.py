@@ -81,7 +81,8 @@ def add_default_light(spec: mujoco.MjSpec, bounds) -> None:
     """A scene that sets no light gets a default one (docs/models.md): a soft headlight and a
     directional sun straight down from above the scene, summing to about full light on a floor
     seen from above, so its colours show as set (MuJoCo's own default washes a pale floor out
-    to white). Pictures only: lights change no physics, sensing or radio."""
+    to white). Neither has a specular highlight, so colours show as set everywhere in the picture.
+    Pictures only: lights change no physics, sensing or radio."""
     headlight = spec.visual.headlight
     headlight.ambient, headlight.diffuse, headlight.specular = (DEFAULT_HEADLIGHT[k]
                                                                  for k in ("ambient", "diffuse", "specular"))
@@ -89,7 +90,7 @@ def add_default_light(spec: mujoco.MjSpec, bounds) -> None:
     centre = (lo + hi) / 2
     spec.worldbody.add_light(name="tether_default_sun", pos=(centre[0], centre[1], hi[2] + float(np.ptp((lo, hi), axis=0).max())),
                              dir=(0.0, 0.0, -1.0), type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, castshadow=False,
-                             diffuse=DEFAULT_SUN_DIFFUSE)
+                             diffuse=DEFAULT_SUN_DIFFUSE, specular=(0.0, 0.0, 0.0))
 
 
 def load_scene_spec(scene_path: Path) -> mujoco.MjSpec:

@@ -272,6 +272,6 @@ def test_a_dropped_robot_is_drawn_white_and_named_in_the_legend_only_while_it_is
         frame, _ = sim.tick()
         legends.append([label for label, _ in frame.commands.decorations.legend])
         colors.append(frame.commands.decorations.robot_colors[EXPLORER])
-    name = "dropped from the team (not heard)"
+    name = "robot dropped from the team (not heard)"
     assert name not in legends[0] and name in legends[-1]
     np.testing.assert_array_equal(colors[-1], palette.DROPPED)

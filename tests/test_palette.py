@@ -10,12 +10,14 @@ from sim import palette
 from sim.scenario import load
 from tether.runner import build_simulation
 from viz.decorations import frame_legend
+from viz.scenery import scenery_legend
 from viz.video import draw_decorations
 
 # (scenario, overrides, ticks): every strategy a built-in runs, and a lossy radio's link scale.
 CASES = {
     "hover": ("hover", [], 5),
     "connected": ("connected-office", [], 40),
+    "connected-town": ("connected-town", [], 5),
     "connected-radio": ("connected-office", ['radio.preset="ieee802154"', "robots.0.count=6"], 5),
     "intermittent": ("intermittent-8", [], 30),
     "all_time": ("intermittent-8", ['strategy.kind="all_time"'], 30),
@@ -50,7 +52,7 @@ def drawn(request):
     for _ in range(ticks):
         frame, healthy = simulation.tick(decorations_wanted=True)
         assert healthy
-    legend = frame_legend(frame, simulation.world.robot_kinds)
+    legend = frame_legend(frame, simulation.world.robot_kinds, scenery_legend(simulation.world.model))
     canvas = Canvas(simulation.world)
     draw_decorations(canvas, frame)
     return request.param, legend, canvas.colours

@@ -191,6 +191,56 @@ def test_a_user_scene_without_a_light_gets_a_default_light_that_does_not_wash_it
     assert lit_view.world.model.nlight == 1 and lit_view.world.model.light(0).name != "tether_default_sun"
 
 
+def _pixels_near(image: np.ndarray, rgba, delta_e: float = 3.0) -> int:
+    """How many pixels of ``image`` (H, W, 3; 0..255) are within ``delta_e`` of ``rgba`` (0..1)."""
+    from sim import palette
+
+    colours, counts = np.unique(image.reshape(-1, 3), axis=0, return_counts=True)
+    return int(sum(n for c, n in zip(colours, counts) if palette.distance(c / 255.0, rgba) <= delta_e))
+
+
+@pytest.mark.parametrize("lit", [True, False], ids=["scene's light", "default light"])
+def test_the_scene_s_obstacles_are_in_the_legend_in_the_colour_they_are_drawn(tmp_path, lit):
+    """The legend's obstacle swatch is the colour the walls' tops show under the scene's lights, and
+    the decorations are divided by the same gain: in a user scene under the default light they showed
+    about a third darker than their swatches (the gain of the built-in scenes' lights was assumed)."""
+    from viz.decorations import frame_legend
+    from viz.scenery import scenery_legend, top_light_gain
+
+    scene = ROOM if lit else ROOM.replace('    <light pos="5 5 8" dir="0 0 -1" directional="true"/>\n', "")
+    write_scene(tmp_path, scene)
+    frame, view, image = _render(load(str(write_scenario(tmp_path, ROOM_SCENARIO.format(width=800, height=480)))))
+    model = view.world.model
+    # By hand: MuJoCo's default headlight (ambient 0.1, diffuse 0.4) and a light of diffuse 0.7 straight
+    # down; tether's default light: headlight 0.3 + 0.3, sun 0.35.
+    np.testing.assert_allclose(top_light_gain(model), [1.2] * 3 if lit else [0.95] * 3, atol=1e-6)
+    ((label, swatch),) = scenery_legend(model)
+    assert label == "obstacle"  # geoms coloured without a material
+    # By hand: grey 0.5 lit, plus (scene's light) a geom's default specular 0.5 times the headlight's 0.5 and
+    # the light's 0.3 seen straight from above; tether's default light has no specular.
+    np.testing.assert_allclose(swatch[:3], min(1.0, 0.5 * 1.2 + 0.5 * 0.8) if lit else 0.5 * 0.95, atol=1e-6)
+    assert (label, tuple(swatch)) in [(name, tuple(c)) for name, c in frame_legend(frame, (), view.scenery)]
+    scene_part = image[:, : view.scene_width]
+    # The four walls' tops, 0.2 m wide: exactly the swatch's colour without a highlight; with one, the
+    # perspective camera sees the walls at the frame's edges off the highlight's axis, a little darker.
+    assert _pixels_near(scene_part, swatch, 3.0 if not lit else 8.0) > 2000
+    # A decoration's colour, divided by the gain and lit, comes back as the palette's.
+    from viz.video import _lit
+
+    colour = np.array([0.0, 0.62, 0.45, 1.0])
+    np.testing.assert_allclose(np.minimum(1.0, _lit(colour, top_light_gain(model))[:3] * top_light_gain(model)),
+                               colour[:3], atol=1e-6)
+
+
+def test_the_office_s_walls_are_named_and_drawn_in_their_swatch():
+    from viz.scenery import scenery_legend
+
+    frame, view, image = _render(load("connected-office", duration_s=0.1))
+    ((label, swatch),) = scenery_legend(view.world.model)
+    assert label == "wall"
+    assert _pixels_near(image[:, : view.scene_width], swatch) > 3000  # the interior walls' and the block's tops
+
+
 def test_the_panel_drawn_from_its_cached_legend_is_the_panel_drawn_afresh():
     from viz import video
 

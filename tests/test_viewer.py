@@ -59,6 +59,14 @@ def display():
     server.wait(timeout=10)
 
 
+def _swatches_shown(image) -> bool:
+    """The legend's swatches of the hover robots' kinds, in the palette's colours (the panel is not lit)."""
+    from sim import palette
+
+    return all((np.abs(image - np.asarray(palette.rgb8(palette.KIND[kind]))).max(axis=2) <= 2).sum() > 50
+               for kind in ("quadrotor", "ground"))
+
+
 def test_tether_view_draws_the_running_simulation_with_its_links(display, tmp_path):
     from PIL import ImageGrab
 
@@ -78,8 +86,14 @@ def test_tether_view_draws_the_running_simulation_with_its_links(display, tmp_pa
                 break
         stderr = proc.stderr.read() if proc.poll() is not None else ""
         assert any(line.startswith("completed: hover, t = 0.05 s") for line in lines), (lines, stderr)
-        time.sleep(1.0)  # a few more frames of the viewer's render loop
-        image = np.asarray(ImageGrab.grab(xdisplay=display).convert("RGB"), dtype=int)
+        # A few more frames of the viewer's render loop: the window takes the screen's size, and the
+        # legend is drawn again for it.
+        wait_until = time.monotonic() + 15
+        while True:
+            time.sleep(0.5)
+            image = np.asarray(ImageGrab.grab(xdisplay=display).convert("RGB"), dtype=int)
+            if _swatches_shown(image[:, int(0.6 * SCREEN[0]):]) or time.monotonic() > wait_until:
+                break
         ImageGrab.grab(xdisplay=display).save(tmp_path / "viewer.png")
         assert proc.poll() is None  # still open until the window is closed
     finally:
@@ -100,7 +114,9 @@ def test_tether_view_draws_the_running_simulation_with_its_links(display, tmp_pa
     # the floor reaches below two thirds of its height, and the legend its right third.
     bottom = image[int(0.8 * SCREEN[1]):int(0.85 * SCREEN[1]), : SCREEN[0] // 2].sum(axis=2)
     assert (bottom > 60).mean() > 0.5
-    assert (image[:, int(0.7 * SCREEN[0]):].sum(axis=2) > 300).sum() > 200  # the legend's white text
+    legend = image[:, int(0.6 * SCREEN[0]):]  # the window right of the floor (FLOOR_SHARE)
+    assert (legend.sum(axis=2) > 300).sum() > 200  # the legend's white text
+    assert _swatches_shown(legend)  # ... and its swatches
 
 
 def test_bad_input_and_no_display_exit_2_with_one_line(monkeypatch, capsys):
@@ -133,10 +149,11 @@ def test_the_default_camera_looks_down_on_the_floor_and_leaves_the_right_to_the_
     assert pace_text(1.0, 1.0) == "x1.00 of real time"
 
 
-def test_the_viewer_legend_names_every_role_and_team_colour_distinctly():
+def test_the_text_legends_name_every_role_and_team_colour_distinctly():
+    """The recording's legend is text: each colour is named, and no two roles or teams by one name."""
     from controllers.connectivity.strategy import LEGEND
     from controllers.intermittent.runtime import TEAM_COLORS
-    from viz.viewer import colour_name
+    from sim.palette import colour_name
 
     roles = [colour_name(rgba) for _, rgba in LEGEND[:4]]
     assert roles == ["vermillion", "blue", "reddish purple", "sky blue"]
@@ -170,6 +187,9 @@ def test_the_viewer_s_walls_are_translucent_and_still_block_line_of_sight():
     before = mujoco.mj_ray(model, data, start, across, np.array([1, 0, 0, 0, 0, 0], np.uint8), 1, -1, geomid)
     assert see_through_walls(model) >= 4
     wall = model.geom("wall_mid_west").id
-    assert model.geom_rgba[wall, 3] == WALL_ALPHA and model.geom_matid[wall] == -1
+    assert model.geom_rgba[wall, 3] == WALL_ALPHA
+    from viz.scenery import scenery_legend
+
+    assert [label for label, _ in scenery_legend(model)] == ["wall"]  # the material still names it
     after = mujoco.mj_ray(model, data, start, across, np.array([1, 0, 0, 0, 0, 0], np.uint8), 1, -1, geomid)
     assert after == before and geomid[0] == wall  # the sensing's rays see the same wall

@@ -107,11 +107,12 @@ def link_delivery_legend() -> list[tuple[str, np.ndarray]]:
     return [(f"link delivery {v:g}", palette.link_rgba(v)) for v in palette.LINK_SCALE[::-1]]
 
 
-def frame_legend(frame, robot_kinds=()) -> list[tuple[str, np.ndarray]]:
+def frame_legend(frame, robot_kinds=(), scenery=()) -> list[tuple[str, np.ndarray]]:
     """What the colours of ``frame``'s picture mean, every kind of thing drawn: the
     strategy's ``legend`` (roles, teams, paths), the robots' kinds when the strategy
     colours none (``robot_kinds``: the world's, in robot order), the references, the
-    links' scale, then the true targets and their estimates when shown."""
+    links' scale, the scene's obstacles (``scenery``: :func:`viz.scenery.scenery_legend`),
+    then the true targets and their estimates when shown."""
     decorations = frame.commands.decorations
     legend = list(decorations.legend)
     if decorations.robot_colors is None:
@@ -119,6 +120,7 @@ def frame_legend(frame, robot_kinds=()) -> list[tuple[str, np.ndarray]]:
     if len(frame.commands.position):
         legend.append(("reference (point steered to)", palette.REFERENCE))
     legend += link_legend(frame)
+    legend += list(scenery)
     if len(frame.target_positions):
         legend.append(("target (true)", TARGET_RGBA))
     estimate = frame.commands.estimate

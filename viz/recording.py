@@ -77,6 +77,7 @@ KIND_COLORS = {kind: palette.rgb8(rgba) for kind, rgba in palette.KIND.items()}
 ROBOT_RADIUS_M = 0.08
 TARGET_COLOR = palette.rgb8(palette.TARGET_TRUE)
 LINK_COLOR = palette.rgb8(palette.link_rgba(1.0))
+OBSTACLE_RGB = (150, 160, 175)  # the scene's static boxes, translucent: the robots inside show through
 REFERENCE_COLOR = palette.rgb8(palette.REFERENCE)
 FILE_FLUSH_PERIOD = datetime.timedelta(seconds=2)  # run.rrd: rows are batched this long (wall time)
 FILE_FLUSH_BYTES = 8 * 1024 * 1024  # ... or up to this many bytes
@@ -383,7 +384,7 @@ class RerunRecorder(Observer):
         quats = [_quat_xyzw(r) for r in boxes.rotations]
         self.rec.log(
             "world/obstacles",
-            rr.Boxes3D(centers=centers, half_sizes=halves, quaternions=quats, colors=(150, 160, 175, 90),
+            rr.Boxes3D(centers=centers, half_sizes=halves, quaternions=quats, colors=(*OBSTACLE_RGB, 90),
                        fill_mode="solid"),
             static=True,
         )
@@ -455,6 +456,7 @@ class RerunRecorder(Observer):
         """What the colours of ``frame`` mean, as Markdown: the pictures' one legend
         (:func:`viz.decorations.frame_legend`) with each colour's name and code."""
         entries = [(label, palette.rgb8(rgba)) for label, rgba in frame_legend(frame, self.world.robot_kinds)]
+        entries.append(("the scene's obstacles (see-through boxes)", OBSTACLE_RGB))
         lines = [f"- **{colour_name(rgb)}** `#{rgb[0]:02x}{rgb[1]:02x}{rgb[2]:02x}`: {label}" for label, rgb in entries]
         if self._radio_map_note:
             lines.append(f"- {self._radio_map_note}")

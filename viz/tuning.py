@@ -400,10 +400,12 @@ class TuningSession:
         for name, value in frame.scalars.items():
             values[str(name)] = float(value)
         from viz.decorations import frame_legend
+        from viz.scenery import scenery_legend
         from viz.video import overlay_text
 
         self.legend = [{"label": str(label), "color": _css_color(rgba)}
-                       for label, rgba in frame_legend(frame, self.sim.world.robot_kinds)]
+                       for label, rgba in frame_legend(frame, self.sim.world.robot_kinds,
+                                                       scenery_legend(self.sim.world.model))]
         self.overlay = overlay_text(frame)
         self._seq += 1
         self._series.append((self._seq, t, values))

@@ -51,6 +51,7 @@ from sim.types import Decorations, TargetEstimate
 from sim.scenario import VideoConfig
 from sim.world import World
 from sim import palette
+from viz.scenery import scenery_legend, top_light_gain
 from viz.decorations import draw_video_decorations, frame_legend, halo_color, link_values, observation_radio
 
 LINK_RGBA = palette.link_rgba(1.0)  # a link with no weight (and an ideal radio)
@@ -301,15 +302,11 @@ def _panel_layout(draw, size, width, height, lines, legend, columns, clip=False)
     return font, items
 
 
-# The scenes' lights (headlight and sun) sum to about 1.6 on a surface facing up: a decoration's colour is
-# scaled by its inverse, so what the picture shows is the palette's colour the legend names, not a lighter one
-# (the palette's blue rendered as sky blue, the connectors' colour, before).
-LIT_GAIN = 1.6
-
-
-def _lit(rgba) -> np.ndarray:
+def _lit(rgba, gain) -> np.ndarray:
+    """``rgba`` with its colour divided by the scene's light ``gain`` (:func:`viz.scenery.top_light_gain`),
+    so that, lit, it shows the palette's colour the legend names, not a lighter or darker one."""
     out = np.array(rgba, dtype=np.float32)
-    out[:3] /= LIT_GAIN
+    out[:3] /= gain
     return out
 
 
@@ -328,22 +325,27 @@ def coarse_planes(model: mujoco.MjModel):
         model.geom_size[planes, 2] = spacing
 
 
-def add_capsule(scene: mujoco.MjvScene, a: np.ndarray, b: np.ndarray, width: float, rgba: np.ndarray) -> None:
-    """One capsule from ``a`` to ``b`` appended to ``scene`` (nothing when it is full)."""
+def add_capsule(scene: mujoco.MjvScene, a: np.ndarray, b: np.ndarray, width: float, rgba: np.ndarray,
+                gain: np.ndarray) -> None:
+    """One capsule from ``a`` to ``b`` appended to ``scene`` (nothing when it is full), in ``rgba``
+    as seen under the scene's light ``gain``."""
     if scene.ngeom >= scene.maxgeom:
         return
     geom = scene.geoms[scene.ngeom]
-    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, np.zeros(3), np.zeros(3), np.zeros(9), _lit(rgba))
+    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, np.zeros(3), np.zeros(3), np.zeros(9), _lit(rgba, gain))
+    geom.specular = 0.0  # no highlight: lit, the colour is the palette's
     mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, width, a, b)
     scene.ngeom += 1
 
 
-def add_sphere(scene: mujoco.MjvScene, p: np.ndarray, radius: float, rgba: np.ndarray) -> None:
-    """One sphere appended to ``scene`` (nothing when it is full)."""
+def add_sphere(scene: mujoco.MjvScene, p: np.ndarray, radius: float, rgba: np.ndarray, gain: np.ndarray) -> None:
+    """One sphere appended to ``scene`` (nothing when it is full), in ``rgba`` as seen under the
+    scene's light ``gain``."""
     if scene.ngeom >= scene.maxgeom:
         return
     geom = scene.geoms[scene.ngeom]
-    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_SPHERE, np.full(3, radius), p, np.eye(3).ravel(), _lit(rgba))
+    mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_SPHERE, np.full(3, radius), p, np.eye(3).ravel(), _lit(rgba, gain))
+    geom.specular = 0.0
     scene.ngeom += 1
 
 
@@ -385,6 +387,8 @@ class FrameRenderer:
         self.world = world
         self.config = config
         model = world.model
+        self.light_gain = top_light_gain(model)
+        self.scenery = scenery_legend(model)  # the scene's obstacles, for the legend
         # The scene fills the frame's height at the floor's aspect; the legend panel takes the rest.
         self.scene_width = scene_width(world.bounds, config.width, config.height)
         # The offscreen buffer must be at least the scene's size.
@@ -483,10 +487,10 @@ class FrameRenderer:
         return cam
 
     def _add_capsule(self, a: np.ndarray, b: np.ndarray, width: float, rgba: np.ndarray) -> None:
-        add_capsule(self.renderer.scene, a, b, width, rgba)
+        add_capsule(self.renderer.scene, a, b, width, rgba, self.light_gain)
 
     def _add_sphere(self, p: np.ndarray, radius: float, rgba: np.ndarray) -> None:
-        add_sphere(self.renderer.scene, p, radius, rgba)
+        add_sphere(self.renderer.scene, p, radius, rgba, self.light_gain)
 
     def render_scene(self, frame: Frame) -> np.ndarray:
         """``frame``'s MuJoCo state (``frame.state``; ``world.data`` for a frame
@@ -503,7 +507,7 @@ class FrameRenderer:
         image = np.empty((height, width, 3), dtype=np.uint8)
         image[:, : self.scene_width] = scene
         image[:, self.scene_width:] = side_panel(height, width - self.scene_width, overlay_lines(frame),
-                                                 frame_legend(frame, self.world.robot_kinds))
+                                                 frame_legend(frame, self.world.robot_kinds, self.scenery))
         return image
 
     def close(self) -> None:

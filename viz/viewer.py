@@ -39,13 +39,13 @@ from typing import Callable
 import mujoco
 import numpy as np
 
-from sim import palette
 from sim.loop import Simulation, end_of_run
 from sim.observers import Frame
 from sim.scenario import Scenario
 from sim.strategy import Status
 from viz.decorations import frame_legend
-from viz.video import TOP_MARGIN, add_capsule, add_sphere, draw_decorations, overlay_text
+from viz.scenery import scenery_legend, top_light_gain
+from viz.video import TOP_MARGIN, add_capsule, add_sphere, draw_decorations, overlay_text, side_panel
 
 KEY_SPACE = 32  # GLFW key codes, as MuJoCo's viewer hands them to key_callback
 KEY_RIGHT = 262
@@ -91,6 +91,7 @@ class UserScene:
     def __init__(self, world, scene: mujoco.MjvScene):
         self.world = world
         self.scene = scene
+        self.light_gain = top_light_gain(world.model)
         lo, hi = world.bounds
         self.metres_per_px = TOP_MARGIN * float(max(hi[0] - lo[0], hi[1] - lo[1])) / VIEW_PIXELS
 
@@ -98,24 +99,29 @@ class UserScene:
         return max(size_m, pixels * self.metres_per_px)
 
     def _add_capsule(self, a, b, width, rgba) -> None:
-        add_capsule(self.scene, a, b, width, rgba)
+        add_capsule(self.scene, a, b, width, rgba, self.light_gain)
 
     def _add_sphere(self, p, radius, rgba) -> None:
-        add_sphere(self.scene, p, radius, rgba)
+        add_sphere(self.scene, p, radius, rgba, self.light_gain)
 
     def draw(self, frame: Frame) -> None:
         self.scene.ngeom = 0
         draw_decorations(self, frame)
 
 
-def _legend_text(frame: Frame, robot_kinds=()) -> str:
-    items = frame_legend(frame, robot_kinds)
-    return "\n".join(f"{label}: {colour_name(rgba)}" for label, rgba in items)
+LEGEND_HEIGHT_SHARE = 0.8  # the legend panel: the window's right part beside the floor, this share of its height
 
 
-def colour_name(rgba) -> str:
-    """The palette's name of ``rgba`` (0..1): the viewer's text is one colour, so the legend names each."""
-    return palette.colour_name(rgba)
+def legend_panel(frame: Frame, robot_kinds, scenery, viewport) -> tuple | None:
+    """(MjrRect, image) of the legend beside the floor, at the window's right below the band: the
+    pictures' one legend (:func:`viz.decorations.frame_legend`), a swatch and a label an entry, drawn
+    as the video's side panel is; None while the window is too small to hold it."""
+    width = int(viewport.width * (1.0 - FLOOR_SHARE))
+    height = int(viewport.height * LEGEND_HEIGHT_SHARE)
+    if width < 80 or height < 120:
+        return None
+    image = side_panel(height, width, [], frame_legend(frame, robot_kinds, scenery))
+    return mujoco.MjrRect(viewport.left + viewport.width - width, viewport.bottom, width, height), image
 
 
 def pace_text(real_time_factor: float | None, speed: float) -> str:
@@ -132,11 +138,24 @@ def _texts(frame: Frame, status: str, control: ViewerControl, robot_kinds=(), re
            speed: float = 1.0) -> list:
     state = status or ("paused (Space resumes, Right arrow steps)" if control.paused else
                        f"running at {pace_text(real_time_factor, speed)} (Space pauses)")
-    texts = [(mujoco.mjtFontScale.mjFONTSCALE_150, mujoco.mjtGridPos.mjGRID_TOPLEFT, overlay_text(frame), state)]
-    legend = _legend_text(frame, robot_kinds)
-    if legend:  # at the right, beside the floor (default_camera leaves that part of the window to it), below the band
-        texts.append((mujoco.mjtFontScale.mjFONTSCALE_150, mujoco.mjtGridPos.mjGRID_BOTTOMRIGHT, "colours", legend))
-    return texts
+    return [(mujoco.mjtFontScale.mjFONTSCALE_150, mujoco.mjtGridPos.mjGRID_TOPLEFT, overlay_text(frame), state)]
+
+
+def _show_legend(handle, frame: Frame, robot_kinds, scenery, shown):
+    """Overlay the legend panel when it or the window's size changed since ``shown`` (its key);
+    returns the key now shown."""
+    viewport = getattr(handle, "viewport", None)
+    if viewport is None or not hasattr(handle, "set_images"):
+        return shown
+    legend = frame_legend(frame, robot_kinds, scenery)
+    key = (viewport.width, viewport.height, tuple(label for label, _ in legend))
+    if key != shown:
+        panel = legend_panel(frame, robot_kinds, scenery, viewport)
+        if panel is None:
+            handle.clear_images()
+        else:
+            handle.set_images(panel)
+    return key
 
 
 def _aspect(handle) -> float:
@@ -165,8 +184,7 @@ def see_through_walls(model: mujoco.MjModel) -> int:
         if rgba[3] <= 0:  # invisible (a ceiling): stays so
             continue
         rgba[3] = min(rgba[3], WALL_ALPHA)
-        model.geom_rgba[g] = rgba
-        model.geom_matid[g] = -1
+        model.geom_rgba[g] = rgba  # an explicit rgba wins over the material's, which keeps naming the legend's entry
     return len(walls)
 
 
@@ -310,6 +328,7 @@ def view(scenario: Scenario, make_simulation: Callable[[Scenario], Simulation], 
     # far less (the free camera's fovy is a picture setting; physics, sensing and radio never read it).
     sim.world.model.vis.global_.fovy = VIEW_FOVY_DEG
     see_through_walls(sim.world.model)
+    scenery = scenery_legend(sim.world.model)
     control = control or ViewerControl()
     own_window = launch is None
     launch = launch or mujoco.viewer.launch_passive
@@ -330,12 +349,14 @@ def view(scenario: Scenario, make_simulation: Callable[[Scenario], Simulation], 
         rtf = None
         scene = UserScene(sim.world, handle.user_scn)
         frame = None
+        shown_legend = None
         anchor_wall, anchor_sim = time.perf_counter(), sim.time_s
         while handle.is_running() and not status:
             if not control.take_tick():
                 anchor_wall, anchor_sim = time.perf_counter(), sim.time_s
                 if frame is not None:
                     handle.set_texts(_texts(frame, status, control, kinds, None, speed))
+                    shown_legend = _show_legend(handle, frame, kinds, scenery, shown_legend)
                 pace.clear()
                 handle.sync()
                 time.sleep(0.02)
@@ -360,6 +381,7 @@ def view(scenario: Scenario, make_simulation: Callable[[Scenario], Simulation], 
                 rtf = (pace[-1][1] - pace[0][1]) / (now - pace[0][0])
             handle.set_texts(_texts(frame, f"{status}: close the window to quit" if status else "", control, kinds,
                                     rtf, speed))
+            shown_legend = _show_legend(handle, frame, kinds, scenery, shown_legend)
             handle.sync()
             if on_tick is not None:
                 on_tick(sim, frame)
@@ -372,6 +394,8 @@ def view(scenario: Scenario, make_simulation: Callable[[Scenario], Simulation], 
         if status:
             print(f"{status}: {scenario.name}, t = {sim.time_s:.2f} s; close the viewer window to quit", flush=True)
         while keep_open and handle.is_running():
+            if frame is not None:  # the window may be resized while it stays open
+                shown_legend = _show_legend(handle, frame, kinds, scenery, shown_legend)
             handle.sync()
             time.sleep(0.05)
     finally:

@@ -225,7 +225,7 @@ class AllTimeStrategy(Strategy):
         decorations = Decorations(
             overlay=f"all_time: formation of {len(self.offsets)}, {len(self.plan_times)} paths planned",
             robot_colors=np.broadcast_to(team_color(0), (len(self.offsets), 4)).copy(),
-            legend=(("formation", team_color(0)),),
+            legend=(("robots in formation, their path", team_color(0)),),
             paths=self._paths_visual,
             meeting_points=self._goal_visual,  # the end of the formation's current path
             meeting_point_colors=(team_color(0) * (1, 1, 1, 0.5))[None],

@@ -161,11 +161,14 @@ SECONDARY_PATH_RGBA = palette.SECONDARY_TRAVELER * np.array([1, 1, 1, 0.85], dty
 TARGET_RGBA = palette.GOAL * np.array([1, 1, 1, 0.9], dtype=np.float32)
 # What the colours mean (``Decorations.legend``: video, tuning page, viewer, recording) and the role
 # codes' names (plots).
-_LEGEND_LABELS = {Role.PRIME_TRAVELER: "prime traveler, its path", Role.SECONDARY_TRAVELER: "secondary traveler, its path"}
+# Each names a robot (its mark on top) so that a picture reads without the README.
+_LEGEND_LABELS = {Role.PRIME_TRAVELER: "robot: prime traveler, its path",
+                  Role.SECONDARY_TRAVELER: "robot: secondary traveler, its path",
+                  Role.ANCHOR: "robot: anchor", Role.CONNECTOR: "robot: connector"}
 LEGEND = Decorations(legend=(*((_LEGEND_LABELS.get(r, ROLE_NAMES[r]), ROLE_COLORS[r]) for r in Role),
                              ("traveler's target point", palette.GOAL))).legend  # read-only once, not every tick
 # While the team has dropped a robot, the legend names its colour too (drawn only then).
-LEGEND_WITH_DROPPED = (*LEGEND, ("dropped from the team (not heard)", palette.DROPPED))
+LEGEND_WITH_DROPPED = (*LEGEND, ("robot dropped from the team (not heard)", palette.DROPPED))
 ROLE_LEVELS = {float(r): ROLE_NAMES[r] for r in Role}
 # Spacing of the points that draw a planned path, as a fraction of R_grid.
 _PATH_DRAW_SPACING = 2.0

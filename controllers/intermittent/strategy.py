@@ -706,8 +706,9 @@ class MeetingStrategy(Strategy):
                 points.append(lifted(p))
                 point_colors.append(rgba)
         self._visual = Decorations(
-            legend=(*((f"team {k} ({team_path_style(k)} path)", team_color(k)) for k in range(len(self.teams.members))),
-                    ("no meeting planned", IDLE_COLOR)),
+            legend=(*((f"team {k} robots, {team_path_style(k)} path", team_color(k))
+                      for k in range(len(self.teams.members))),
+                    ("robot with no meeting planned", IDLE_COLOR)),
             robot_colors=np.array(colors),
             paths=paths,
             path_styles=tuple(styles),
