@@ -249,3 +249,40 @@ def test_the_panel_drawn_from_its_cached_legend_is_the_panel_drawn_afresh():
     cached = side_panel(540, 420, ["t = 2.0 s", "links 8"], legend)
     video._PANELS.clear()
     np.testing.assert_array_equal(cached, side_panel(540, 420, ["t = 2.0 s", "links 8"], legend))
+
+
+def test_a_close_up_is_drawn_while_the_robots_are_too_close_to_tell_apart():
+    from viz.video import CLOSEUP_BELOW_PX, CLOSEUP_MIN_HALF_M, closeup_view, emptiest_corner
+
+    # By hand: a 4 x 2 grid 0.12 m apart seen at 0.02 m a pixel is 6 px apart: a close-up of its extent.
+    grid = np.array([(x, y) for y in (0.0, 0.12) for x in (0.0, 0.12, 0.24, 0.36)])
+    centre, half, spacing = closeup_view(grid, 0.02)
+    np.testing.assert_allclose(centre, (0.18, 0.06))
+    assert half == pytest.approx(max(1.6 * 0.36 / 2, CLOSEUP_MIN_HALF_M)) and spacing == pytest.approx(0.12)
+    assert closeup_view(grid * 2, 0.02) is None  # 12 px apart: told apart, no close-up
+    assert closeup_view(grid, 0.12 / CLOSEUP_BELOW_PX) is None  # exactly at the threshold
+    assert closeup_view(grid[:1], 0.02) is None
+    # The corner holding the fewest points; bottom-right among equals.
+    points = np.array([[5, 5], [95, 95], [95, 5], [96, 6]])
+    assert emptiest_corner(points, 100, 100, 20) == (80, 0)  # bottom-left: empty
+    assert emptiest_corner(np.zeros((0, 2)), 100, 100, 20) == (80, 80)
+
+
+def test_the_intermittent_start_cluster_gets_a_close_up_and_the_office_s_quadrotors_none():
+    from viz.video import CLOSEUP_BORDER_RGB, CLOSEUP_SIDE_SHARE
+
+    for name, expected in (("intermittent-8", True), ("connected-office", False)):
+        frame, view, image = _render(load(name, duration_s=0.1))
+        assert (view._closeup is not None) == expected, name
+        side = int(view.config.height * CLOSEUP_SIDE_SHARE) // 2 * 2
+        scene = image[:, : view.scene_width]
+        corners = [scene[r:r + side, c:c + side] for r in (0, scene.shape[0] - side)
+                   for c in (0, scene.shape[1] - side)]
+        # The close-up's light border runs along one corner square's edges.
+        bordered = [bool(np.all(corner[:, 0] == CLOSEUP_BORDER_RGB) and np.all(corner[0, :] == CLOSEUP_BORDER_RGB))
+                    for corner in corners]
+        assert any(bordered) == expected, name
+        if expected:  # ... and inside it the robots, large: each one's team colour (its halo, lit) over many pixels
+            inset = corners[bordered.index(True)]
+            for colour in np.unique(frame.commands.decorations.robot_colors, axis=0):
+                assert _pixels_near(inset, colour, 15.0) > 100, colour

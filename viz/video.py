@@ -349,12 +349,13 @@ def add_sphere(scene: mujoco.MjvScene, p: np.ndarray, radius: float, rgba: np.nd
     scene.ngeom += 1
 
 
-def draw_decorations(canvas, frame: Frame) -> None:
+def draw_decorations(canvas, frame: Frame, halo_radius_m: float = GROUND_HALO_RADIUS_M) -> None:
     """Links coloured by weight, references, robot halos (role / team
     colours) and the strategy's decorations (paths, meeting points, target
     estimates, markers) into ``canvas``: a :class:`FrameRenderer`, or
     anything with its ``world``, ``metres_per_px``, ``at_least``,
-    ``_add_capsule`` and ``_add_sphere`` (MuJoCo's viewer, viz.viewer)."""
+    ``_add_capsule`` and ``_add_sphere`` (MuJoCo's viewer, viz.viewer). ``halo_radius_m``: a
+    ground robot's halo (a close-up, where the robots are large, draws a smaller one)."""
     positions = frame.observation.position
     link_width = canvas.at_least(LINK_WIDTH_M, LINK_MIN_PX)
     values = link_values(frame)  # delivery (non-ideal radio) or weight; None: every link at full value
@@ -369,13 +370,104 @@ def draw_decorations(canvas, frame: Frame) -> None:
     # Ground robots are 7 cm across: a translucent halo keeps them visible; quadrotors get one too
     # once the scene is so large that their bodies shrink below a few pixels.
     world = canvas.world
-    halo = canvas.at_least(GROUND_HALO_RADIUS_M, ROBOT_MIN_PX)
+    halo = canvas.at_least(halo_radius_m, ROBOT_MIN_PX)
     for i in world.kind_index["ground"]:
         canvas._add_sphere(positions[i], halo, halo_color(frame.commands.decorations, i, GROUND_HALO_RGBA))
     if QUAD_HALO_FROM_PX * canvas.metres_per_px > QUADROTOR_SPAN_M:
         for i in world.kind_index["quadrotor"]:
             canvas._add_sphere(positions[i], halo, halo_color(frame.commands.decorations, i, GROUND_HALO_RGBA))
     draw_video_decorations(canvas, frame)  # paths, meeting points, target estimates, markers
+
+
+# A start cluster (the intermittent scenarios' robots 0.12 m apart: 6 px in a 540 px view of the office) is a
+# blob in a view of the whole floor: while the robots' median nearest-neighbour distance is below
+# CLOSEUP_BELOW_PX px of the frame, a close-up of them is drawn into the scene's emptiest corner.
+CLOSEUP_BELOW_PX = 10.0
+CLOSEUP_SIDE_SHARE = 0.35  # the close-up's side, as a share of the frame's height
+CLOSEUP_MARGIN = 1.6  # it shows the robots' extent times this ...
+CLOSEUP_MIN_HALF_M = 0.25  # ... and at least this much around their centre
+CLOSEUP_BORDER_RGB = (236, 236, 236)
+CLOSEUP_HALO_SHARE = 0.45  # a ground robot's halo in the close-up: this share of the nearest spacing
+
+
+def closeup_view(xy: np.ndarray, metres_per_px: float) -> tuple[np.ndarray, float, float] | None:
+    """(centre (2,), half side m, nearest spacing m) of a close-up of the robots at ``xy`` (N, 2), m,
+    in a view of ``metres_per_px``; None when they are few or far enough apart to tell apart."""
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    if len(xy) < 2:
+        return None
+    gaps = np.linalg.norm(xy[:, None, :] - xy[None, :, :], axis=2)
+    np.fill_diagonal(gaps, np.inf)
+    nearest = gaps.min(axis=1)
+    if np.median(nearest) / metres_per_px >= CLOSEUP_BELOW_PX:
+        return None
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    half = max(CLOSEUP_MARGIN * float(np.max(hi - lo)) / 2, CLOSEUP_MIN_HALF_M)
+    return (lo + hi) / 2, half, float(nearest.min())
+
+
+def emptiest_corner(points_px: np.ndarray, width: int, height: int, side: int) -> tuple[int, int]:
+    """(row, column) of the top-left of the ``side`` px square, in one of the four corners of a
+    ``width`` x ``height`` image, that holds the fewest of ``points_px`` (K, 2: column, row);
+    bottom-right first among equals."""
+    corners = [(height - side, width - side), (height - side, 0), (0, width - side), (0, 0)]
+    points = np.asarray(points_px, dtype=float).reshape(-1, 2)
+
+    def count(corner):
+        row, column = corner
+        inside = ((points[:, 0] >= column) & (points[:, 0] < column + side)
+                  & (points[:, 1] >= row) & (points[:, 1] < row + side))
+        return int(inside.sum())
+
+    return min(corners, key=count)
+
+
+class _CloseUp:
+    """A second, small renderer looking straight down (orthographic) on a close-up of the
+    robots: the canvas of :func:`draw_decorations` at its own scale."""
+
+    def __init__(self, world: World, side: int, light_gain: np.ndarray):
+        self.world = world
+        self.side = side
+        self.light_gain = light_gain
+        with coarse_planes(world.model):
+            self.renderer = mujoco.Renderer(world.model, side, side)
+        self.options = mujoco.MjvOption()
+        self.options.geomgroup[:] = (1, 0, 1, 1, 0, 0)
+        self.options.sitegroup[:] = 0
+        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+        self.camera = mujoco.MjvCamera()
+        self.camera.orthographic = 1
+        self.camera.elevation, self.camera.azimuth = -90.0, 90.0
+        self.metres_per_px = 1.0
+
+    def at_least(self, size_m: float, pixels: float) -> float:
+        return max(size_m, pixels * self.metres_per_px)
+
+    def _add_capsule(self, a, b, width, rgba) -> None:
+        add_capsule(self.renderer.scene, a, b, width, rgba, self.light_gain)
+
+    def _add_sphere(self, p, radius, rgba) -> None:
+        add_sphere(self.renderer.scene, p, radius, rgba, self.light_gain)
+
+    def render(self, data: mujoco.MjData, frame: Frame, centre: np.ndarray, half_m: float,
+               spacing_m: float) -> np.ndarray:
+        lo, hi = (np.asarray(b, dtype=float) for b in self.world.bounds)
+        self.metres_per_px = 2.0 * half_m / self.side
+        self.camera.lookat[:] = (centre[0], centre[1], lo[2])
+        self.camera.distance = 2.0 * float(np.linalg.norm(hi - lo))
+        vis = self.world.model.vis.global_
+        fovy, vis.fovy = vis.fovy, 2.0 * half_m  # an orthographic free camera's view height (m)
+        try:
+            self.renderer.update_scene(data, self.camera, self.options)
+        finally:
+            vis.fovy = fovy
+        draw_decorations(self, frame, halo_radius_m=min(GROUND_HALO_RADIUS_M, CLOSEUP_HALO_SHARE * spacing_m))
+        return self.renderer.render()
+
+    def close(self) -> None:
+        self.renderer.close()
 
 
 class FrameRenderer:
@@ -414,6 +506,7 @@ class FrameRenderer:
         self.metres_per_px = TOP_MARGIN * max((hi[0] - lo[0]) / self.scene_width, (hi[1] - lo[1]) / config.height)
         self._ortho_height_m: float | None = None
         self._data: mujoco.MjData | None = None  # frame.state's, drawn (made on first use)
+        self._closeup: _CloseUp | None = None  # the close-up's renderer (made on first use)
         self.set_camera(config.camera)
 
     def set_camera(self, name: str) -> None:
@@ -495,9 +588,47 @@ class FrameRenderer:
     def render_scene(self, frame: Frame) -> np.ndarray:
         """``frame``'s MuJoCo state (``frame.state``; ``world.data`` for a frame
         without one) with its decorations: (height, scene_width, 3) uint8."""
-        self._update_scene(self._data_of(frame))
+        data = self._data_of(frame)
+        self._update_scene(data)
         draw_decorations(self, frame)
-        return self.renderer.render()
+        image = self.renderer.render()
+        self._draw_closeup(image, data, frame)
+        return image
+
+    def _draw_closeup(self, image: np.ndarray, data: mujoco.MjData, frame: Frame) -> None:
+        """A close-up of the robots in the scene's emptiest corner while they are too close to
+        tell apart (a view straight down on the whole scene only)."""
+        camera = self.renderer.scene.camera[0]
+        if not camera.orthographic or camera.forward[2] > -0.999:
+            return
+        positions = np.asarray(frame.observation.position, dtype=float)
+        height = self.config.height
+        metres_per_px = float(camera.frustum_top - camera.frustum_bottom) / height
+        view = closeup_view(positions[:, :2], metres_per_px)
+        if view is None:
+            return
+        centre, half_m, spacing_m = view
+        side = int(height * CLOSEUP_SIDE_SHARE) // 2 * 2
+        if self._closeup is None:
+            self._closeup = _CloseUp(self.world, side, self.light_gain)
+        inset = self._closeup.render(data, frame, centre, half_m, spacing_m)
+        right = np.cross(camera.forward, camera.up)
+        up = np.asarray(camera.up, dtype=float)
+        middle = (camera.frustum_top + camera.frustum_bottom) / 2
+        decorations = frame.commands.decorations
+        busy = np.concatenate([positions, np.asarray(frame.target_positions, dtype=float).reshape(-1, 3),
+                               *(np.asarray(points, dtype=float).reshape(-1, 3) for points, _ in (decorations.paths or ())),
+                               np.asarray(decorations.meeting_points if decorations.meeting_points is not None
+                                          else (), dtype=float).reshape(-1, 3)])
+        offset = busy - np.asarray(camera.pos, dtype=float)  # the view straight down: world -> (column, row)
+        points_px = np.stack([image.shape[1] / 2 + offset @ right / metres_per_px,
+                              height / 2 - (offset @ up - middle) / metres_per_px], axis=1)
+        row, column = emptiest_corner(points_px, image.shape[1], height, side)
+        image[row:row + side, column:column + side] = inset
+        image[row:row + side, [column, column + side - 1]] = CLOSEUP_BORDER_RGB
+        image[[row, row + side - 1], column:column + side] = CLOSEUP_BORDER_RGB
+        _label(image, (column + 2, row + 2), f"close-up x{metres_per_px / self._closeup.metres_per_px:.0f}",
+               min_font_px(height))
 
     def render(self, frame: Frame) -> np.ndarray:
         """The full (height, width, 3) frame: the scene at the left, beside it the panel with
@@ -512,6 +643,21 @@ class FrameRenderer:
 
     def close(self) -> None:
         self.renderer.close()
+        if self._closeup is not None:
+            self._closeup.close()
+
+
+def _label(image: np.ndarray, xy, text: str, size: int) -> None:
+    """``text`` at ``xy`` (column, row) of ``image`` in the panel's colours, on a band of the panel's background."""
+    from PIL import Image, ImageDraw
+
+    font = _font(max(size, 8))
+    _, _, right, bottom = ImageDraw.Draw(Image.new("RGB", (1, 1))).textbbox((0, 0), text, font=font)
+    band = Image.new("RGB", (int(right) + 6, int(bottom) + 4), PANEL_RGB)
+    ImageDraw.Draw(band).text((3, 1), text, fill=PANEL_TEXT_RGB, font=font)
+    x, y = xy
+    pixels = np.asarray(band)[: image.shape[0] - y, : image.shape[1] - x]
+    image[y:y + pixels.shape[0], x:x + pixels.shape[1]] = pixels
 
 
 @dataclass(frozen=True)
