@@ -156,9 +156,11 @@ ROLE_COLORS = {
 }
 ROLE_NAMES = {Role.PRIME_TRAVELER: "prime traveler", Role.SECONDARY_TRAVELER: "secondary traveler",
               Role.ANCHOR: "anchor", Role.CONNECTOR: "connector"}
-PRIME_PATH_RGBA = palette.PRIME_TRAVELER * np.array([1, 1, 1, 0.9], dtype=np.float32)
-SECONDARY_PATH_RGBA = palette.SECONDARY_TRAVELER * np.array([1, 1, 1, 0.85], dtype=np.float32)  # fainter reads as sky blue
-TARGET_RGBA = palette.GOAL * np.array([1, 1, 1, 0.9], dtype=np.float32)
+# Opaque: software GL draws a translucent geom in a second, sorted pass (a frame of connected-office took
+# about a quarter longer with its paths at alpha 0.85-0.9), and translucent paths darkened where they crossed.
+PRIME_PATH_RGBA = palette.PRIME_TRAVELER
+SECONDARY_PATH_RGBA = palette.SECONDARY_TRAVELER
+TARGET_RGBA = palette.GOAL
 # What the colours mean (``Decorations.legend``: video, tuning page, viewer, recording) and the role
 # codes' names (plots).
 # Each names a robot (its mark on top) so that a picture reads without the README.

@@ -694,9 +694,7 @@ class MeetingStrategy(Strategy):
             colors.append(team_color(queue[0].meeting.team) if queue else IDLE_COLOR)
             # Only the path to the next meeting: later ones of eight teams crossed the middle in a tangle.
             if queue:
-                rgba = team_color(queue[0].meeting.team).copy()
-                rgba[3] = 0.9
-                paths.append((lifted(queue[0].timed.path.positions), rgba))
+                paths.append((lifted(queue[0].timed.path.positions), team_color(queue[0].meeting.team)))  # opaque: cheaper
                 styles.append(team_path_style(queue[0].meeting.team))
         pending = {id(s.meeting): s.meeting for q in self.queues for s in q}
         for meeting in pending.values():
