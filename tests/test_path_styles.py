@@ -82,4 +82,4 @@ def test_the_intermittent_legend_names_each_team_s_line_style_as_drawn():
     for (points, rgba), style in zip(decorations.paths, decorations.path_styles):
         named = [label for label, colour in legend.items()
                  if label.startswith("team ") and np.allclose(colour[:3], np.asarray(rgba)[:3])]
-        assert named and all(label.endswith(f"({style} path)") for label in named), (named, style)
+        assert named and all(label.endswith(f", {style} path") for label in named), (named, style)
