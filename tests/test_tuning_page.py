@@ -123,13 +123,14 @@ def test_the_strategy_legend_reaches_the_page_status():
     frame = dataclasses.replace(frame, commands=dataclasses.replace(frame.commands, decorations=legend))
     session._sample(frame)
     # The pictures' one legend: the strategy's entries, the robots' kinds (hover flies and drives; the strategy colours none),
-    # the references, the links, then the true targets (hover has 8), in the palette's colours.
+    # the references, the links, the scene's walls, then the true targets (hover has 8), in the palette's colours.
     assert session.status()["legend"] == [{"label": "anchor", "color": "#ff991a"},
                                           {"label": "team 0", "color": "#3366ff"},
                                           {"label": "quadrotor robot", "color": palette.hex_code(palette.KIND["quadrotor"])},
                                           {"label": "ground robot", "color": palette.hex_code(palette.KIND["ground"])},
                                           {"label": "reference (point steered to)", "color": "#000000"},
                                           {"label": "communication link", "color": palette.hex_code(palette.LINK_STRONG)},
+                                          {"label": "wall", "color": "#b28257"},  # the office's walls as drawn
                                           {"label": "target (true)", "color": palette.hex_code(palette.TARGET_TRUE)}]
     assert session.status()["overlay"].startswith("t = ")
 
