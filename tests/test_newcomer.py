@@ -194,6 +194,26 @@ def test_cell_statistics_by_hand():
     assert cells == [(("b",), {"m": (2.0, 2.0 ** 0.5, 2)}), (("a",), {"m": (5.0, 0.0, 1)})]
 
 
+def test_a_zip_group_is_named_by_its_first_key_in_the_grid_report(tmp_path):
+    """The keys zipped with another move with it: the figure's legend and the table's header name
+    a cell by the group's first key (the paradigms sweep's list of start positions ran off the figure)."""
+    from tether.grid_report import grid_section, naming_keys
+
+    starts = [[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], [[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]]
+    manifest = {"definition": {"grid": {"strategy.kind": ["a", "b"]},
+                               "zip": [{"sensing.comm_range_m": [0.5, 1.0], "robots.0.starts": starts}]}}
+    keys = ["strategy.kind", "sensing.comm_range_m", "robots.0.starts"]
+    assert naming_keys(keys, manifest) == {"strategy.kind", "sensing.comm_range_m"}
+    assert naming_keys(keys, None) == set(keys)
+    rows = [{"status": "completed", "seed": seed, "strategy.kind": kind, "sensing.comm_range_m": r,
+             "robots.0.starts": json.dumps(start), "e_g_mean_m": 1.0 + seed + r}  # the results table's text
+            for kind in ("a", "b") for r, start in zip((0.5, 1.0), starts) for seed in (0, 1)]
+    lines, files = grid_section(rows, manifest, tmp_path)
+    header = next(line for line in lines if line.startswith("| metric |"))
+    assert "strategy.kind=a, sensing.comm_range_m=0.5 |" in header and "starts" not in header
+    assert (tmp_path / "grid.png").is_file() and (tmp_path / "grid.csv").read_text().startswith(",".join(keys))
+
+
 def test_connected_tracking_checks_its_invariant(tmp_path):
     """The issue's command: it loses lambda2 within two seconds and ends diverged, saying so."""
     out = tmp_path / "out"

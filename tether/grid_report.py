@@ -121,8 +121,15 @@ def cell_statistics(rows: list[dict], keys: list[str], metrics: list[str],
     return out
 
 
-def _cell_name(keys: list[str], values: tuple) -> str:
-    return ", ".join(f"{k}={_text(v)}" for k, v in zip(keys, values)) or "all trials"
+def naming_keys(keys: list[str], manifest: dict | None) -> set[str]:
+    """The swept keys that name a cell: every grid key and the first of each zip group (the rest
+    of a group move with it, and a list of start positions made labels run off the figure)."""
+    followers = {k for group in ((manifest or {}).get("definition") or {}).get("zip") or [] for k in list(group)[1:]}
+    return {k for k in keys if k not in followers}
+
+
+def _cell_name(keys: list[str], values: tuple, named: set[str] | None = None) -> str:
+    return ", ".join(f"{k}={_text(v)}" for k, v in zip(keys, values) if named is None or k in named) or "all trials"
 
 
 def grid_section(rows: list[dict], manifest: dict | None, out: Path) -> tuple[list[str], list[Path]]:
@@ -138,11 +145,12 @@ def grid_section(rows: list[dict], manifest: dict | None, out: Path) -> tuple[li
     lines += [f"Swept: {swept}. Each cell: mean ± std over its finished trials (seeds), and n. "
               "Every figure also in `grid.csv`.", ""]
     files = [_write_csv(out / "grid.csv", keys, cells)]
-    png = _figure(out / "grid.png", keys, cells, metrics)
+    named = naming_keys(keys, manifest)
+    png = _figure(out / "grid.png", keys, cells, metrics, named)
     if png is not None:
         lines += [f"![main metrics against {keys[0] if keys else 'the cells'}]({png.name})", ""]
         files.append(png)
-    names = [_cell_name(keys, values) for values, _ in cells]
+    names = [_cell_name(keys, values, named) for values, _ in cells]
     lines += ["| metric | " + " | ".join(n.replace("|", "/") for n in names) + " |",
               "| --- |" + " --- |" * len(names)]
     for m in metrics:
@@ -173,7 +181,8 @@ def main_metrics(metrics: list[str]) -> list[str]:
     return chosen or metrics[:FIGURE_PANELS]
 
 
-def _figure(png: Path, keys: list[str], cells: list[tuple[tuple, dict]], metrics: list[str]) -> Path | None:
+def _figure(png: Path, keys: list[str], cells: list[tuple[tuple, dict]], metrics: list[str],
+            named: set[str] | None = None) -> Path | None:
     """Each main metric against the first swept key: mean +- std per cell, one line per
     value of the second key (cells differing in further keys are drawn as separate lines too)."""
     chosen = main_metrics(metrics)
@@ -206,7 +215,7 @@ def _figure(png: Path, keys: list[str], cells: list[tuple[tuple, dict]], metrics
             # Categories side by side, unjoined (a line between two methods means nothing).
             shift = 0.0 if numeric else (index - (len(lines) - 1) / 2) * 0.08
             pos = [(float(x) if numeric else xs.index(x)) + shift for x, _ in points]
-            label = _cell_name(keys[1:], rest) if rest else None
+            label = _cell_name(keys[1:], rest, named) if rest else None
             ax.errorbar(pos, [s[0] for _, s in points], yerr=[s[1] for _, s in points], marker="o", ms=5,
                         capsize=3, label=label, color=colors[rest], ls="-" if numeric else "none")
             means += [s[0] for _, s in points]
