@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from tether.sweep import FINISHED
+from viz.painter import REPORT_DPI
 
 # Columns that describe a trial rather than measure it.
 BOOKKEEPING = frozenset({"trial_id", "trial_index", "seed", "attempt", "duration_s", "overrides", "status", "error",
@@ -236,6 +237,6 @@ def _figure(png: Path, keys: list[str], cells: list[tuple[tuple, dict]], metrics
         fig.legend(handles, labels, fontsize=9, loc="lower center", ncol=min(len(labels), 4))
     fig.suptitle("mean ± std over seeds per grid cell", fontsize=10)
     fig.tight_layout(rect=(0, 0.1 if labels else 0, 1, 1))
-    fig.savefig(png, dpi=120)
+    fig.savefig(png, dpi=REPORT_DPI)
     plt.close(fig)
     return png

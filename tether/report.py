@@ -37,6 +37,7 @@ import numpy as np
 
 from sim.config import ConfigError
 from sim.palette import METHOD, PAPER, hex_code
+from viz.painter import REPORT_DPI
 from tether.sweep import FINISHED
 
 # Nestmeyer et al. 2017, Fig. 9: rows (column, axis label).
@@ -224,7 +225,7 @@ def fig9_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
                  fontsize=9)
     fig.tight_layout()
     png = out / "fig9.png"
-    fig.savefig(png, dpi=110)
+    fig.savefig(png, dpi=REPORT_DPI)
     plt.close(fig)
 
     lines = ["## Nestmeyer et al. 2017, Fig. 9 (connected)", "",
@@ -401,7 +402,7 @@ def table1_section(rows: list[dict], out: Path) -> tuple[list[str], list[Path]]:
 
 def _with_figure(lines: list[str], fig, png: Path, alt: str) -> tuple[list[str], list[Path]]:
     """Save ``fig`` as ``png`` and place it under the section's heading (the first two lines)."""
-    fig.savefig(png, dpi=110)
+    fig.savefig(png, dpi=REPORT_DPI)
     _plt().close(fig)
     return [*lines[:2], f"![{alt}]({png.name})", "", *lines[2:]], [png]
 
@@ -556,7 +557,7 @@ def generic_section(rows: list[dict], out: Path, x: str, y: str, hue: str | None
     fig.tight_layout()
     safe = "".join(ch if ch.isalnum() or ch in "_-" else "_" for ch in f"{y}_vs_{x}" + (f"_by_{hue}" if hue else ""))
     png = out / f"plot_{safe}.png"
-    fig.savefig(png, dpi=110)
+    fig.savefig(png, dpi=REPORT_DPI)
     plt.close(fig)
     lines += [f"![{y} against {x}]({png.name})", "", f"| {hue or ''} | {x} | n | median | 25 % | 75 % |",
               "| --- | --- | --- | --- | --- | --- |"]

@@ -26,6 +26,7 @@ import numpy as np
 
 from sim.palette import METHOD, SERIES, hex_code
 from sim.strategy import Status
+from viz.painter import REPORT_DPI
 from tether.sweep import FINISHED
 
 DIVERGED = Status.DIVERGED.value
@@ -343,6 +344,6 @@ def _figure(png: Path, drawn, rungs, names, series, cells, breaks, scenarios, sw
                  "(line: median; bands: 25-75 % and 10-90 % over seeds)", fontsize=11)
     legend_rows = math.ceil(len(labels) / 3)
     fig.tight_layout(rect=(0, 0.04 + 0.035 * legend_rows / rows_n, 1, 0.97))
-    fig.savefig(png, dpi=110)
+    fig.savefig(png, dpi=REPORT_DPI)
     plt.close(fig)
     return png

@@ -37,6 +37,9 @@ from typing import Any, NamedTuple
 import numpy as np
 
 SAVE_DPI = 110
+# Reports' figures (table1.png, paradigms.png, grid.png, the study's): a slide shows them at half their
+# size or less, so they are saved at twice a screen's dpi (at 110, 10-point text was 7 px at 50 %).
+REPORT_DPI = 200
 ROBOT_LINE_STYLES = ("-", "--", ":")  # per robot, each after the palette's colours ran out
 LEGEND_MAX_ROBOTS = 12  # per-robot panels name their lines up to this many robots
 LEVELS_LEGEND_ROOM = 1.4  # a levels panel with the robots' legend reaches this far above its top level
