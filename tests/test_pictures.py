@@ -219,11 +219,16 @@ def test_the_scene_s_obstacles_are_in_the_legend_in_the_colour_they_are_drawn(tm
     # By hand: grey 0.5 lit, plus (scene's light) a geom's default specular 0.5 times the headlight's 0.5 and
     # the light's 0.3 seen straight from above; tether's default light has no specular.
     np.testing.assert_allclose(swatch[:3], min(1.0, 0.5 * 1.2 + 0.5 * 0.8) if lit else 0.5 * 0.95, atol=1e-6)
-    assert (label, tuple(swatch)) in [(name, tuple(c)) for name, c in frame_legend(frame, (), view.scenery)]
+    # The video's swatch: the highlight as its camera sees it at the centre of the first wall's top (MuJoCo's
+    # viewer is local: a highlight fades towards the picture's edges); without a highlight, the same.
+    ((_, seen),) = view.scenery
+    assert (label, tuple(seen)) in [(name, tuple(c)) for name, c in frame_legend(frame, (), view.scenery)]
+    if not lit:
+        np.testing.assert_allclose(seen, swatch)
     scene_part = image[:, : view.scene_width]
-    # The four walls' tops, 0.2 m wide: exactly the swatch's colour without a highlight; with one, the
-    # perspective camera sees the walls at the frame's edges off the highlight's axis, a little darker.
-    assert _pixels_near(scene_part, swatch, 3.0 if not lit else 8.0) > 2000
+    # The four walls' tops, 0.2 m wide, all in the swatch's colour without a highlight; with one, around
+    # the centre of the first wall's top.
+    assert _pixels_near(scene_part, seen, 3.0) > (2000 if not lit else 300)
     # A decoration's colour, divided by the gain and lit, comes back as the palette's.
     from viz.video import _lit
 

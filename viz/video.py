@@ -480,7 +480,7 @@ class FrameRenderer:
         self.config = config
         model = world.model
         self.light_gain = top_light_gain(model)
-        self.scenery = scenery_legend(model)  # the scene's obstacles, for the legend
+        self.scenery: list | None = None  # the scene's obstacles for the legend, as the camera sees them (first frame)
         # The scene fills the frame's height at the floor's aspect; the legend panel takes the rest.
         self.scene_width = scene_width(world.bounds, config.width, config.height)
         # The offscreen buffer must be at least the scene's size.
@@ -634,6 +634,10 @@ class FrameRenderer:
         """The full (height, width, 3) frame: the scene at the left, beside it the panel with
         the overlay's lines and the legend of everything drawn (never over the scene)."""
         scene = self.render_scene(frame)
+        if self.scenery is None:
+            camera = self.renderer.scene.camera[0]
+            self.scenery = scenery_legend(self.world.model, np.array(camera.pos, dtype=float),
+                                          np.array(camera.forward, dtype=float))
         height, width = self.config.height, self.config.width
         image = np.empty((height, width, 3), dtype=np.uint8)
         image[:, : self.scene_width] = scene
