@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from sim.radio.bus import (BusParameters, Message, MessageBus, ReferenceMessageBus, _arrivals_of, broadcasts,
                            link_conditions, link_from_pairs)
-from sim.radio.presets import IEEE802154, NRF24, WIFI
+from sim.radio.presets import IDEAL, IEEE802154, NRF24, WIFI
 
 PRESETS = {"ieee802154": IEEE802154, "nrf24": NRF24, "wifi": WIFI}
 # (model, Rician K): every branch of the per-receiver fading draw.
@@ -257,3 +257,30 @@ def test_latest_only_broadcasts_over_a_saturated_medium_match_the_reference():
     summaries = [bus.summary() for bus in buses]
     assert summaries[0]["radio_state_packets_superseded"] > 100
     assert all(_same(summaries[0][key], summaries[1][key]) for key in summaries[0])
+
+
+def test_retuning_between_ideal_and_real_moves_the_queues_as_the_reference_keeps_them():
+    """A retune to 'ideal' and back moves the frame table's queues, in-flight receivers and counters into
+    the deques and back (``MessageBus``); the reference keeps deques throughout: the same figures."""
+    n, period_s = 6, 0.01
+    buses, link = one_medium_both_buses(n, 4.0, 3, period_s)
+    ideal = BusParameters.from_preset(IDEAL)
+    for tick in range(30):
+        if tick in (10, 20):
+            for bus in buses:
+                real = bus.params
+                bus.params = ideal
+                bus.params = real
+        for bus in buses:
+            for robot in range(n):
+                bus.send(Message("state", robot, None, float(robot), 40, latest_only=True, as_arrays=True),
+                         tick * period_s)
+            if tick % 4 == 0:
+                bus.send(Message("records", tick % n, ((tick + 1) % n,), None, 300), tick * period_s)
+        fast, reference = (bus.step(tick * period_s, link) for bus in buses)
+        assert [[(d.message.sequence, d.arrival_s) for d in row] for row in fast] == \
+               [[(d.message.sequence, d.arrival_s) for d in row] for row in reference]
+        assert buses[0].queued() == buses[1].queued()
+    summaries = [bus.summary() for bus in buses]
+    assert all(_same(summaries[0][key], summaries[1][key]) for key in summaries[0])
+    assert summaries[0].keys() == summaries[1].keys()
