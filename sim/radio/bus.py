@@ -1,6 +1,7 @@
 """The message bus: every message a robot sends, with its real size, over a shared, lossy medium.
 
-numpy and one compiled kernel (the medium's scheduling, ``_schedule_frames``;
+numpy and, under a real preset, a compiled frame table (``sim.radio.medium``:
+the queues, one compiled call per send batch and per period;
 ``ReferenceMessageBus`` keeps the plain loop it replaces), no MuJoCo. Time
 advances in control periods: the
 caller ``send``s messages during a tick and calls ``step(time_s, link)``
