@@ -152,6 +152,63 @@ def broadcasts(kind: str, values: Any, size_bytes: int, latest_only: bool = Fals
 _BROADCAST_FIELDS: dict[tuple, dict[str, Any]] = {}  # broadcasts' checked fields per (kind, size, flags)
 
 
+class Broadcasts:
+    """Many robots' broadcasts of one number each as ONE outbox item: robot ``senders[i]`` sends ``values[i]``,
+    latest_only or not, always ``as_arrays``. The bus treats it as ``messages()``, in order at its place in
+    the outbox (the same sequences, frames, draws and arrivals); the frame table takes it without a
+    ``Message`` per robot. ``senders`` None: robots 0 .. len(values) - 1."""
+
+    __slots__ = ("kind", "values", "size_bytes", "latest_only", "senders")
+    receivers = None  # every one is a broadcast
+
+    def __init__(self, kind: str, values: Any, size_bytes: int, latest_only: bool = False,
+                 senders: Any = None) -> None:
+        values = np.array(values, dtype=float).reshape(-1)  # a copy: the caller may overwrite its array
+        if not isinstance(size_bytes, (int, np.integer)) or size_bytes <= 0:
+            raise ValueError(f"size_bytes must be a positive integer, got {size_bytes!r}")
+        if senders is not None:
+            senders = np.array(senders, dtype=np.int64).reshape(-1)
+            if senders.shape != values.shape:
+                raise ValueError(f"{len(senders)} senders for {len(values)} values")
+            if len(np.unique(senders)) != len(senders):
+                raise ValueError("senders must not repeat")
+        self.kind, self.values, self.size_bytes = kind, values, int(size_bytes)
+        self.latest_only, self.senders = bool(latest_only), senders
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+    def sender_indices(self) -> np.ndarray:
+        """(M,) int64: who sends each value."""
+        return np.arange(len(self.values)) if self.senders is None else self.senders
+
+    def messages(self) -> tuple[Message, ...]:
+        """The same broadcasts as ``Message``s, one per sender in order (``broadcasts``')."""
+        made = broadcasts(self.kind, self.values, self.size_bytes, self.latest_only, as_arrays=True)
+        if self.senders is not None:
+            for message, sender in zip(made, self.senders.tolist()):
+                message.__dict__["sender"] = sender
+        return made
+
+    def kept(self, keep: np.ndarray) -> Broadcasts:
+        """Only the broadcasts of the senders where ``keep`` ((N,) bool over the robots) is True."""
+        senders = self.sender_indices()
+        chosen = np.asarray(keep, dtype=bool)[senders]
+        return Broadcasts(self.kind, self.values[chosen], self.size_bytes, self.latest_only, senders[chosen])
+
+    def __repr__(self) -> str:
+        return f"Broadcasts({self.kind!r}, {len(self)} senders, {self.size_bytes} B)"
+
+
+def each_message(outbox: Any) -> Any:
+    """The ``Message``s of an outbox in order, each ``Broadcasts`` item as its ``messages()``."""
+    for item in outbox:
+        if type(item) is Broadcasts:
+            yield from item.messages()
+        else:
+            yield item
+
+
 def _stamped(message: Message, sequence: int, sent_s: float) -> Message:
     """``message`` with the bus's stamps: ``dataclasses.replace`` without re-running the checks it passed."""
     stamped = object.__new__(type(message))
@@ -585,7 +642,7 @@ class _QueueBus:
         sequence = self._sequence
         added = 0  # to self._waiting_total (which _supersede may lower meanwhile)
         try:
-            for message in messages:
+            for message in each_message(messages):
                 sender = message.sender
                 receivers = message.receivers
                 if robots is not None and (not 0 <= sender < robots or (
@@ -897,7 +954,7 @@ class ReferenceMessageBus(_QueueBus):
     (tests/test_radio_bus_fast.py), frame by frame and draw by draw."""
 
     def send_all(self, messages: Any, time_s: float) -> None:
-        for message in messages:
+        for message in each_message(messages):
             self.send(message, time_s)
 
     def _supersede(self, queue: deque[_Frame], newer: Message) -> None:
@@ -993,6 +1050,7 @@ class MessageBus(_QueueBus):
         self._params = params
         self._frames_of_size = {}
         self._flat_frames: dict[int, tuple[float, ...]] = {}  # ``_frames``' numbers of a size, flat
+        self._batch_templates: dict[tuple, tuple] = {}  # ``_batch_rows``' rows and frames per batch shape
         self._medium_constants: tuple | None = None  # ``_constants_of_medium``, made at the next period
         if not hasattr(self, "_kinds"):  # still in __init__
             return
@@ -1208,6 +1266,9 @@ class MessageBus(_QueueBus):
         top = -1  # the highest robot named
         try:
             for message in messages:
+                if type(message) is Broadcasts:
+                    sequence, top = self._batch_rows(message, sequence, time_s, rows, numbers, spec, top)
+                    continue
                 sender = message.sender
                 receivers = message.receivers
                 if robots is not None and (not 0 <= sender < robots or (
@@ -1247,6 +1308,47 @@ class MessageBus(_QueueBus):
             self._sequence = sequence
             if rows:
                 self._enqueue(rows, numbers, listed, spec, max(top, max(listed, default=-1)))
+
+    def _batch_rows(self, batch: Broadcasts, sequence: int, time_s: float, rows: array, numbers: array,
+                    spec: array, top: int) -> tuple[int, int]:
+        """``send_all``'s rows of a ``Broadcasts`` item, made with numpy: its messages' rows as the loop would
+        make them one by one. Returns the next sequence and the highest robot named."""
+        count = len(batch)
+        if not count:
+            return sequence, top
+        senders = batch.senders
+        key = (batch.kind, batch.size_bytes, batch.latest_only, count if senders is None else -1)
+        template = self._batch_templates.get(key)
+        if template is None:
+            frames = self._flat_frames.get(batch.size_bytes)
+            if frames is None:
+                frames = self._flat_frames[batch.size_bytes] = tuple(chain.from_iterable(
+                    self._frames(batch.size_bytes)))
+            flags = medium.AS_ARRAYS | (medium.LATEST_ONLY if batch.latest_only else 0)
+            # sender, sequence (from 0), kind, flags, size, frames, audience (-1: a broadcast)
+            block = np.array([(0, 0, self._kind(batch.kind), flags, batch.size_bytes, len(frames) // 3, -1)],
+                             dtype=np.int64).repeat(count, axis=0)
+            block[:, 0] = np.arange(count)
+            block[:, 1] = np.arange(count)
+            template = (block, np.tile(np.array(frames, dtype=float), count).tobytes())
+            if senders is None:  # a filtered batch's senders vary: its template is not kept
+                self._batch_templates[key] = template
+        block, frame_bytes = template
+        block = block.copy()
+        if senders is not None:
+            block[:, 0] = senders
+        highest = int(block[-1, 0]) if senders is None else int(senders.max())
+        robots = self._n
+        if robots is not None and (highest >= robots or (senders is not None and senders.min() < 0)):
+            raise ValueError(f"message {batch.kind!r} names a robot outside 0..{robots - 1}")
+        block[:, 1] += sequence
+        rows.frombytes(block.tobytes())
+        sent = np.empty((count, 2))
+        sent[:, 0] = time_s
+        sent[:, 1] = batch.values
+        numbers.frombytes(sent.tobytes())
+        spec.frombytes(frame_bytes)
+        return sequence + count, max(top, highest)
 
     def _enqueue(self, rows: array, numbers: array, listed: array, spec: array, top: int) -> None:
         messages = len(rows) // 7
