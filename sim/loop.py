@@ -399,6 +399,9 @@ class Simulation:
             return link_conditions(np.where(adjacency, np.inf, -np.inf), adjacency)
         radio = observation.radio
         channel = radio.channel_pairs
+        made = channel.get("link_matrices")  # the channel's own, made with its figures (RadioChannel.state)
+        if made is not None:
+            return LinkConditions(*made)
         return link_from_pairs(len(radio.distance), radio.pairs, channel["snr_db"], channel["rx_power_dbm"],
                                self.scenario.radio.carrier_sense_dbm)
 
