@@ -305,7 +305,7 @@ def batch_cases(draw):
 @given(batch_cases())
 def test_broadcasts_items_enter_the_table_as_their_messages_into_the_reference(case):
     """A ``Broadcasts`` item in an outbox is its ``messages()`` at its place: the frame table's rows made
-    with numpy (``MessageBus._batch_rows``) give the reference's sequences, draws, arrivals and counters."""
+    kept per shape (``MessageBus._batch_template``) give the reference's sequences, draws, arrivals and counters."""
     from sim.radio.bus import Broadcasts
 
     preset, n, period_s, level, ticks, seed = case

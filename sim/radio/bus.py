@@ -150,6 +150,7 @@ def broadcasts(kind: str, values: Any, size_bytes: int, latest_only: bool = Fals
 
 
 _BROADCAST_FIELDS: dict[tuple, dict[str, Any]] = {}  # broadcasts' checked fields per (kind, size, flags)
+_NO_ROBOTS = np.empty(0, dtype=np.int64)  # no receivers listed
 
 
 class Broadcasts:
@@ -1050,7 +1051,7 @@ class MessageBus(_QueueBus):
         self._params = params
         self._frames_of_size = {}
         self._flat_frames: dict[int, tuple[float, ...]] = {}  # ``_frames``' numbers of a size, flat
-        self._batch_templates: dict[tuple, tuple] = {}  # ``_batch_rows``' rows and frames per batch shape
+        self._batch_templates: dict[tuple, tuple] = {}  # ``_batch_template``'s per batch shape
         self._medium_constants: tuple | None = None  # ``_constants_of_medium``, made at the next period
         if not hasattr(self, "_kinds"):  # still in __init__
             return
@@ -1257,17 +1258,32 @@ class MessageBus(_QueueBus):
         compiled call."""
         if not self._tabled:
             return super().send_all(messages, time_s)
-        robots = self._n
         time_s = float(time_s)
+        if type(messages) is tuple and len(messages) == 1 and type(messages[0]) is Broadcasts:
+            # the consensus alone (most ticks): its kept rows go in as they are
+            batch = messages[0]
+            rows, frames, top = self._batch_template(batch)
+            if len(batch):
+                self._enqueue(rows, batch.values, _NO_ROBOTS, frames, top, time_s)
+            return
+        robots = self._n
         kind_ids, objects = self._kind_ids, self._objects
-        sequence = self._sequence
-        # the rows of _enqueue's arrays, flat (array.array extends from a tuple without a Python loop)
-        rows, numbers, listed, spec = array("q"), array("d"), array("q"), array("d")
+        start = sequence = self._sequence
+        # the rows of _enqueue's arrays, flat (array.array extends from a tuple without a Python loop); each
+        # message's sequence from the first one's
+        rows, values, listed, spec = array("q"), array("d"), array("q"), array("d")
         top = -1  # the highest robot named
         try:
             for message in messages:
                 if type(message) is Broadcasts:
-                    sequence, top = self._batch_rows(message, sequence, time_s, rows, numbers, spec, top)
+                    block, frames, highest = self._batch_template(message)
+                    block = block.reshape(-1, 7).copy()
+                    block[:, 1] += sequence - start
+                    rows.frombytes(block.tobytes())
+                    values.frombytes(message.values.tobytes())
+                    spec.frombytes(frames.tobytes())
+                    sequence += len(message)
+                    top = max(top, highest)
                     continue
                 sender = message.sender
                 receivers = message.receivers
@@ -1284,14 +1300,14 @@ class MessageBus(_QueueBus):
                 fields = message.__dict__
                 if fields["as_arrays"]:
                     flags = medium.AS_ARRAYS
-                    numbers.extend((time_s, fields["payload"]))
+                    values.append(fields["payload"])
                 else:
                     stamped = objects[sequence] = _new_object(type(message))
                     stamped.__dict__.update(fields)
                     stamped.__dict__["sequence"] = sequence
                     stamped.__dict__["sent_s"] = time_s
                     flags = 0
-                    numbers.extend((time_s, 0.0))
+                    values.append(0.0)
                 if fields["latest_only"]:
                     flags |= medium.LATEST_ONLY
                 if receivers is None:
@@ -1301,25 +1317,26 @@ class MessageBus(_QueueBus):
                     listed.extend(receivers)
                 if sender > top:
                     top = sender
-                rows.extend((sender, sequence, kind, flags, message.size_bytes, len(frames) // 3, audience))
+                rows.extend((sender, sequence - start, kind, flags, message.size_bytes, len(frames) // 3, audience))
                 spec.extend(frames)
                 sequence += 1
         finally:
-            self._sequence = sequence
             if rows:
-                self._enqueue(rows, numbers, listed, spec, max(top, max(listed, default=-1)))
+                self._enqueue(np.frombuffer(rows, dtype=np.int64), np.frombuffer(values),
+                              np.frombuffer(listed, dtype=np.int64), np.frombuffer(spec),
+                              max(top, max(listed, default=-1)), time_s, start)
+            else:
+                self._sequence = sequence
 
-    def _batch_rows(self, batch: Broadcasts, sequence: int, time_s: float, rows: array, numbers: array,
-                    spec: array, top: int) -> tuple[int, int]:
-        """``send_all``'s rows of a ``Broadcasts`` item, made with numpy: its messages' rows as the loop would
-        make them one by one. Returns the next sequence and the highest robot named."""
-        count = len(batch)
-        if not count:
-            return sequence, top
+    def _batch_template(self, batch: Broadcasts) -> tuple[np.ndarray, np.ndarray, int]:
+        """A ``Broadcasts`` item's rows for ``_enqueue`` (flat; sequences from 0), its frames' rows (flat), and
+        the highest robot it names: what ``send_all`` makes of its messages one by one. Kept per kind, size,
+        flags and count when every robot sends (the consensus, every tick)."""
         senders = batch.senders
-        key = (batch.kind, batch.size_bytes, batch.latest_only, count if senders is None else -1)
+        key = (batch.kind, batch.size_bytes, batch.latest_only, len(batch)) if senders is None else None
         template = self._batch_templates.get(key)
         if template is None:
+            count = len(batch)
             frames = self._flat_frames.get(batch.size_bytes)
             if frames is None:
                 frames = self._flat_frames[batch.size_bytes] = tuple(chain.from_iterable(
@@ -1328,38 +1345,33 @@ class MessageBus(_QueueBus):
             # sender, sequence (from 0), kind, flags, size, frames, audience (-1: a broadcast)
             block = np.array([(0, 0, self._kind(batch.kind), flags, batch.size_bytes, len(frames) // 3, -1)],
                              dtype=np.int64).repeat(count, axis=0)
-            block[:, 0] = np.arange(count)
+            block[:, 0] = batch.sender_indices()
             block[:, 1] = np.arange(count)
-            template = (block, np.tile(np.array(frames, dtype=float), count).tobytes())
-            if senders is None:  # a filtered batch's senders vary: its template is not kept
+            highest = int(block[:, 0].max(initial=-1))
+            template = (block.reshape(-1), np.tile(np.array(frames, dtype=float), count), highest)
+            if key is not None:
                 self._batch_templates[key] = template
-        block, frame_bytes = template
-        block = block.copy()
-        if senders is not None:
-            block[:, 0] = senders
-        highest = int(block[-1, 0]) if senders is None else int(senders.max())
         robots = self._n
-        if robots is not None and (highest >= robots or (senders is not None and senders.min() < 0)):
+        if robots is not None and (template[2] >= robots or (senders is not None and len(senders)
+                                                             and senders.min() < 0)):
             raise ValueError(f"message {batch.kind!r} names a robot outside 0..{robots - 1}")
-        block[:, 1] += sequence
-        rows.frombytes(block.tobytes())
-        sent = np.empty((count, 2))
-        sent[:, 0] = time_s
-        sent[:, 1] = batch.values
-        numbers.frombytes(sent.tobytes())
-        spec.frombytes(frame_bytes)
-        return sequence + count, max(top, highest)
+        return template
 
-    def _enqueue(self, rows: array, numbers: array, listed: array, spec: array, top: int) -> None:
-        messages = len(rows) // 7
+    def _enqueue(self, rows: np.ndarray, values: np.ndarray, listed: np.ndarray, spec: np.ndarray, top: int,
+                 time_s: float, first_sequence: int | None = None) -> None:
+        """``medium._enqueue`` of these rows sent at ``time_s``, their sequences from ``first_sequence`` (the
+        next one when None), the table made large enough first."""
+        if first_sequence is None:
+            first_sequence = self._sequence
+        messages = len(values)
+        self._sequence = first_sequence + messages
         self._hold_robots(top + 1)
         self._hold_slots(len(spec) // 3)
         if len(self._dropped) < self._counts[medium.T_WAITING] + messages:
             self._dropped = np.empty(2 * (self._counts[medium.T_WAITING] + messages), dtype=np.int64)
         dropped = _enqueue_entry(self._ints, self._floats, self._listed, self._queue_rows, self._free,
-                                 self._counts, self._kind_rows, np.frombuffer(rows, dtype=np.int64),
-                                 np.frombuffer(numbers), np.frombuffer(listed, dtype=np.int64),
-                                 np.frombuffer(spec), self._dropped)
+                                 self._counts, self._kind_rows, rows, values, listed, spec, first_sequence, time_s,
+                                 self._dropped)
         if dropped and self._objects:
             for sequence in self._dropped[:dropped].tolist():
                 self._objects.pop(sequence, None)

@@ -209,17 +209,17 @@ def _made(kinds, counts, kind):
 
 
 @kernel
-def _enqueue(ints, floats, listed, queues, free, counts, kinds, message_ints, message_floats, message_listed,
-             frame_spec, dropped):
-    """Queue messages at their senders, in order, each superseding first when it is latest_only (what
-    ``ReferenceMessageBus.send`` does). ``message_ints`` rows: sender, sequence, kind, flags (AS_ARRAYS,
-    LATEST_ONLY), size, frames, audience count (-1: a broadcast); ``message_floats`` rows: send time, value;
-    ``message_listed``: the receivers of those that list theirs, in order; ``frame_spec`` rows, each message's
-    frames in order: payload bytes, airtime, error bits. Every argument is one flat array of its rows (quicker
-    to build). The caller leaves enough free slots. Returns how many superseded messages' sequences it wrote
-    to ``dropped``."""
+def _enqueue(ints, floats, listed, queues, free, counts, kinds, message_ints, message_values, message_listed,
+             frame_spec, first_sequence, sent_s, dropped):
+    """Queue messages sent at ``sent_s`` at their senders, in order, each superseding first when it is
+    latest_only (what ``ReferenceMessageBus.send`` does). ``message_ints`` rows: sender, sequence (from
+    ``first_sequence``), kind, flags (AS_ARRAYS, LATEST_ONLY), size, frames, audience count (-1: a broadcast);
+    ``message_values``: each message's value (as_arrays); ``message_listed``: the receivers of those that list
+    theirs, in order; ``frame_spec`` rows, each message's frames in order: payload bytes, airtime, error bits.
+    Every argument is one flat array of its rows (quicker to build; a batch's rows are kept and passed again).
+    The caller leaves enough free slots. Returns how many superseded messages' sequences it wrote to
+    ``dropped``."""
     message_ints = message_ints.reshape((-1, 7))
-    message_floats = message_floats.reshape((-1, 2))
     frame_spec = frame_spec.reshape((-1, 3))
     spec = 0
     listed_at = 0
@@ -264,17 +264,17 @@ def _enqueue(ints, floats, listed, queues, free, counts, kinds, message_ints, me
             counts[T_FREE] -= 1
             slot = free[counts[T_FREE]]
             ints[slot, I_SENDER] = sender
-            ints[slot, I_SEQUENCE] = message_ints[m, 1]
+            ints[slot, I_SEQUENCE] = first_sequence + message_ints[m, 1]
             ints[slot, I_KIND] = kind
             ints[slot, I_FLAGS] = flags | LAST if k == frames - 1 else flags
             ints[slot, I_NEXT] = -1
             ints[slot, I_SIZE] = message_ints[m, 4]
             ints[slot, I_PAYLOAD_BYTES] = int(frame_spec[spec, 0])
-            floats[slot, F_SENT] = message_floats[m, 0]
+            floats[slot, F_SENT] = sent_s
             floats[slot, F_AIRTIME] = frame_spec[spec, 1]
             floats[slot, F_BITS] = frame_spec[spec, 2]
             floats[slot, F_AUDIENCE] = audience
-            floats[slot, F_VALUE] = message_floats[m, 1]
+            floats[slot, F_VALUE] = message_values[m]
             for r in range(audience):
                 listed[slot, r] = message_listed[listed_at + r]
             tail = queues[sender, Q_TAIL]
