@@ -1053,6 +1053,7 @@ class MessageBus(_QueueBus):
         self._flat_frames: dict[int, tuple[float, ...]] = {}  # ``_frames``' numbers of a size, flat
         self._batch_templates: dict[tuple, tuple] = {}  # ``_batch_template``'s per batch shape
         self._medium_constants: tuple | None = None  # ``_constants_of_medium``, made at the next period
+        self._per_sender = (-1, 0)  # (frame sizes known, frames a period can take per sender) for ``_period``
         if not hasattr(self, "_kinds"):  # still in __init__
             return
         if params.is_ideal and self._tabled:
@@ -1453,8 +1454,13 @@ class MessageBus(_QueueBus):
             constants = self._medium_constants = self._constants_of_medium()
         # Scratch for the frames a period can gather: per sender those whose airtime before them fits, and one
         reach_s = self.control_period_s + 1e-6
-        shortest = self._shortest_airtime_s
-        per_sender = int(reach_s / shortest) + 2 if shortest > 0 else self._slots
+        sizes, per_sender = self._per_sender
+        if sizes != len(self._frames_of_size):  # a new frame size since: its airtime may be the shortest
+            shortest = self._shortest_airtime_s
+            per_sender = int(reach_s / shortest) + 2 if shortest > 0 else -1
+            self._per_sender = (len(self._frames_of_size), per_sender)
+        if per_sender < 0:
+            per_sender = self._slots
         gathered = min(self._slots - int(self._counts[medium.T_FREE]), n * per_sender)
         width = max(4 * gathered, gathered * n, n) + 1
         held = self._scratch_rows
