@@ -43,6 +43,7 @@ class RadioChannel:
         self._shadowing_time = -np.inf
         self._step: tuple[float, float, float] = (np.nan, 0.0, 0.0)  # dt, rho, innovation std of the last step
         self._rng_pointers: tuple | None = None  # (rng, sim.compiled.generator_pointers of it)
+        self._figure_constants: tuple | None = None  # ``_walls_and_figures``' arguments that never change
         if not config.is_ideal:
             self._certain = self._certain_snr_db()
 
@@ -148,7 +149,6 @@ class RadioChannel:
         the bus's matrices of them (``"link_matrices"``: the SNR (N, N), NaN on the diagonal, and carrier sense,
         mean received power >= ``carrier_sense_dbm``, as ``sim.radio.bus.link_from_pairs`` makes them), in one
         compiled call: the same values, without three calls' arguments and arrays each tick."""
-        config, walls = self.config, self.walls
         n, pairs = len(positions), len(first)
         log_ratio = np.maximum(distance[first, second], 1.0)  # (pair_figures': the logarithm with numpy)
         np.log10(log_ratio, out=log_ratio)
@@ -157,12 +157,15 @@ class RadioChannel:
         uncertain = np.empty(pairs, dtype=np.bool_)
         snr_matrix = np.empty((n, n))
         sense = np.empty((n, n), dtype=np.bool_)
-        below, above = self._certain
-        some = _walls_and_pair_figures(
-            positions, first, second, walls.centers, walls.halves, walls.rotations, walls.extents, walls.losses,
-            log_ratio, shadowing_db, 10.0 * config.path_loss_exponent, float(config.reference_loss_db),
-            float(config.tx_power_dbm), float(config.noise_floor_dbm), below, above, float(config.carrier_sense_dbm),
-            count, wall_loss, rx, snr, delivery, uncertain, snr_matrix, sense)
+        constants = self._figure_constants
+        if constants is None:  # the scene's boxes and the formulas' figures: the same every tick
+            config, walls, (below, above) = self.config, self.walls, self._certain
+            constants = self._figure_constants = (
+                walls.centers, walls.halves, walls.rotations, walls.extents, walls.losses,
+                10.0 * config.path_loss_exponent, float(config.reference_loss_db), float(config.tx_power_dbm),
+                float(config.noise_floor_dbm), below, above, float(config.carrier_sense_dbm))
+        some = _walls_and_pair_figures(positions, first, second, log_ratio, shadowing_db, *constants, count, wall_loss,
+                                       rx, snr, delivery, uncertain, snr_matrix, sense)
         if some:
             delivery[uncertain] = self.delivery_at_snr(snr[uncertain])
         computed["walls"] = {"count": count, "loss_db": wall_loss}
@@ -241,8 +244,8 @@ def _pair_figures(log_ratio, wall_loss_db, shadowing_db, distance_coefficient, r
 
 
 @kernel
-def _walls_and_pair_figures(positions, first, second, centers, halves, rotations, extents, losses, log_ratio,
-                            shadowing_db, distance_coefficient, reference_loss_db, tx_power_dbm, noise_floor_dbm,
+def _walls_and_pair_figures(positions, first, second, log_ratio, shadowing_db, centers, halves, rotations, extents,
+                            losses, distance_coefficient, reference_loss_db, tx_power_dbm, noise_floor_dbm,
                             below, above, carrier_sense_dbm, count, wall_loss_db, rx, snr, delivery, uncertain,
                             snr_matrix, sense):
     """``walls._pair_crossings`` (into ``count`` and ``wall_loss_db``, zeroed here), ``_pair_figures`` over
