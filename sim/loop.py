@@ -19,6 +19,7 @@ import copy
 import dataclasses
 import gc
 import math
+import operator
 import signal
 import threading
 import time
@@ -33,7 +34,7 @@ import numpy as np
 from sim.config import ConfigError
 from sim.faults import FaultState
 from sim.observers import EstimationError, Frame, Observer, PhysicsState, estimation_error
-from sim.radio.bus import LinkConditions, MessageBus, link_conditions, link_from_pairs
+from sim.radio.bus import Broadcasts, LinkConditions, Message, MessageBus, link_conditions, link_from_pairs
 from sim.radio.config import RadioConfig
 from sim.radio.link import RadioChannel
 from sim.scenario import Scenario, StrategyConfig
@@ -302,9 +303,10 @@ class Simulation:
         """``commands`` with the failed robots' part overridden: a stopped robot holds its place, and no
         failed robot sends anything (the drifting ones' actuators are frozen after the low-level control)."""
         failed = self.faults.failed
-        outbox = tuple(m for m in commands.outbox if not failed[m.sender])
+        outbox = tuple(_sent_by_working(commands.outbox, failed))
         if not self._hold:
-            return dataclasses.replace(commands, outbox=outbox) if len(outbox) != len(commands.outbox) else commands
+            unchanged = len(outbox) == len(commands.outbox) and all(map(operator.is_, outbox, commands.outbox))
+            return commands if unchanged else dataclasses.replace(commands, outbox=outbox)
         position, velocity = np.array(commands.position), np.array(commands.velocity)
         acceleration, yaw = np.array(commands.acceleration), np.array(commands.yaw)
         for robot, (held, held_yaw) in self._hold.items():
@@ -397,6 +399,9 @@ class Simulation:
             return link_conditions(np.where(adjacency, np.inf, -np.inf), adjacency)
         radio = observation.radio
         channel = radio.channel_pairs
+        made = channel.get("link_matrices")  # the channel's own, made with its figures (RadioChannel.state)
+        if made is not None:
+            return LinkConditions(*made)
         return link_from_pairs(len(radio.distance), radio.pairs, channel["snr_db"], channel["rx_power_dbm"],
                                self.scenario.radio.carrier_sense_dbm)
 
@@ -445,6 +450,20 @@ class Simulation:
         if reason:
             return reason
         return self.strategy.violation(commands) or ""
+
+
+def _sent_by_working(outbox: Sequence[Message | Broadcasts], failed: np.ndarray):
+    """The outbox's items without what the ``failed`` robots ((N,) bool) send: a message of theirs is left
+    out, a ``Broadcasts`` item keeps the others' (and is left out when none is left)."""
+    for item in outbox:
+        if type(item) is Broadcasts:
+            senders = item.sender_indices()
+            if failed[senders].any():
+                item = item.kept(~np.asarray(failed, dtype=bool))
+            if len(item):
+                yield item
+        elif not failed[item.sender]:
+            yield item
 
 
 def _robot_actuators(world: World) -> list[np.ndarray]:

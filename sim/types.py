@@ -353,8 +353,9 @@ class Commands(_PicklableMappings):
     estimate: TargetEstimate | None = None
     # What it draws; may be empty when ``Observation.decorations_wanted`` was False.
     decorations: Decorations = NO_DECORATIONS
-    # The messages the team sends this tick (sim.radio.bus.Message, each with its sender and real size):
-    # the loop hands them to the message bus at the tick's time; they arrive in a later Observation.inbox.
+    # The messages the team sends this tick (sim.radio.bus.Message, each with its sender and real size, or a
+    # sim.radio.bus.Broadcasts item: many robots' numbers at once): the loop hands them to the message bus at
+    # the tick's time; they arrive in a later Observation.inbox.
     outbox: tuple[Message, ...] = ()
 
     def __post_init__(self):

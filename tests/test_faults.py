@@ -21,7 +21,7 @@ from sim.config import ConfigError
 from sim.faults import IDEAL_BLACKOUT_CUT_DB, FaultState, PositionNoise
 from sim.loop import Simulation
 from sim.radio.bus import Delivery, Message
-from sim.radio.protocols import HeartbeatMonitor, _quiet_pairs
+from sim.radio.protocols import HeartbeatMonitor, _hear_columns_then_quiet_pairs, _quiet_pairs
 from sim.scenario import load
 from sim.strategy import Strategy, build_strategy
 from sim.types import Commands
@@ -315,6 +315,13 @@ def test_the_heartbeats_compiled_quiet_pairs_are_numpys(case, before_s):
     got = _quiet_pairs(last, silent, before_s)
     assert got.shape == (2, len(expected[0]))
     assert got[0].tolist() == expected[0].tolist() and got[1].tolist() == expected[1].tolist()
+    # the monitor's own pass, reading no columns, writes the same pairs into its scratch
+    quiet = np.full((2, n * n), -1, dtype=np.int64)
+    empty = np.empty(0, dtype=np.int64)
+    heard_again, found = _hear_columns_then_quiet_pairs(empty, empty, np.empty(0), last.copy(), silent.copy(),
+                                                        empty, before_s, quiet)
+    assert heard_again == 0 and found == len(expected[0])
+    assert quiet[0, :found].tolist() == expected[0].tolist() and quiet[1, :found].tolist() == expected[1].tolist()
 
 
 @pytest.mark.slow

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from sim.radio.bus import (BusParameters, Message, MessageBus, ReferenceMessageBus, _arrivals_of, broadcasts,
                            link_conditions, link_from_pairs)
-from sim.radio.presets import IEEE802154, NRF24, WIFI
+from sim.radio.presets import IDEAL, IEEE802154, NRF24, WIFI
 
 PRESETS = {"ieee802154": IEEE802154, "nrf24": NRF24, "wifi": WIFI}
 # (model, Rician K): every branch of the per-receiver fading draw.
@@ -257,3 +257,94 @@ def test_latest_only_broadcasts_over_a_saturated_medium_match_the_reference():
     summaries = [bus.summary() for bus in buses]
     assert summaries[0]["radio_state_packets_superseded"] > 100
     assert all(_same(summaries[0][key], summaries[1][key]) for key in summaries[0])
+
+
+def test_retuning_between_ideal_and_real_moves_the_queues_as_the_reference_keeps_them():
+    """A retune to 'ideal' and back moves the frame table's queues, in-flight receivers and counters into
+    the deques and back (``MessageBus``); the reference keeps deques throughout: the same figures."""
+    n, period_s = 6, 0.01
+    buses, link = one_medium_both_buses(n, 4.0, 3, period_s)
+    ideal = BusParameters.from_preset(IDEAL)
+    for tick in range(30):
+        if tick in (10, 20):
+            for bus in buses:
+                real = bus.params
+                bus.params = ideal
+                bus.params = real
+        for bus in buses:
+            for robot in range(n):
+                bus.send(Message("state", robot, None, float(robot), 40, latest_only=True, as_arrays=True),
+                         tick * period_s)
+            if tick % 4 == 0:
+                bus.send(Message("records", tick % n, ((tick + 1) % n,), None, 300), tick * period_s)
+        fast, reference = (bus.step(tick * period_s, link) for bus in buses)
+        assert [[(d.message.sequence, d.arrival_s) for d in row] for row in fast] == \
+               [[(d.message.sequence, d.arrival_s) for d in row] for row in reference]
+        assert buses[0].queued() == buses[1].queued()
+    summaries = [bus.summary() for bus in buses]
+    assert all(_same(summaries[0][key], summaries[1][key]) for key in summaries[0])
+    assert summaries[0].keys() == summaries[1].keys()
+
+
+@st.composite
+def batch_cases(draw):
+    """Outboxes mixing ``Broadcasts`` items (all robots or some, latest_only or not) with single messages."""
+    n = draw(st.integers(1, 9))
+    preset = draw(st.sampled_from(sorted(PRESETS)))
+    period_s = draw(st.sampled_from([0.005, 0.01]))
+    robot = st.integers(0, n - 1)
+    single = st.tuples(st.just("message"), robot, st.integers(1, 300), st.booleans())
+    batch = st.tuples(st.just("batch"), st.one_of(st.none(), st.sets(robot, min_size=1)),
+                      st.sampled_from([8, 8, 40, 150]), st.booleans())
+    ticks = draw(st.lists(st.lists(st.one_of(single, batch), max_size=4), min_size=1, max_size=8))
+    snr = draw(st.sampled_from([3.0, 6.0, 30.0]))
+    return PRESETS[preset], n, period_s, snr, ticks, draw(st.integers(0, 2**32 - 1))
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(batch_cases())
+def test_broadcasts_items_enter_the_table_as_their_messages_into_the_reference(case):
+    """A ``Broadcasts`` item in an outbox is its ``messages()`` at its place: the frame table's rows made
+    kept per shape (``MessageBus._batch_template``) give the reference's sequences, draws, arrivals and counters."""
+    from sim.radio.bus import Broadcasts
+
+    preset, n, period_s, level, ticks, seed = case
+    params = BusParameters.from_preset(preset)
+    snr = np.full((n, n), level)
+    np.fill_diagonal(snr, np.nan)
+    link = link_conditions(snr, True)
+    buses = [cls(params, np.random.default_rng(seed), period_s, robot_count=n)
+             for cls in (MessageBus, ReferenceMessageBus)]
+    for tick, items in enumerate(ticks + [[]] * 4):
+        outbox = []
+        for what, who, size, flag in items:
+            if what == "message":
+                outbox.append(Message("one", who, None, float(tick), size, latest_only=flag, as_arrays=True))
+            else:
+                senders = None if who is None else sorted(who)
+                count = n if senders is None else len(senders)
+                outbox.append(Broadcasts(f"state{size}", np.arange(count) + 0.5 * tick, size, flag, senders))
+        for bus in buses:
+            bus.send_all(tuple(outbox), tick * period_s)
+        for bus in buses:
+            bus.step(tick * period_s, link)
+        arrivals = [bus.arrivals for bus in buses]
+        assert arrivals[0].keys() == arrivals[1].keys()
+        for kind, columns in arrivals[0].items():
+            assert all(np.array_equal(a, b) for a, b in zip(vars(columns).values(), vars(arrivals[1][kind]).values()))
+        assert buses[0].rng.bit_generator.state == buses[1].rng.bit_generator.state
+        assert [buses[0].queued(s) for s in range(n)] == [buses[1].queued(s) for s in range(n)]
+    summaries = [bus.summary() for bus in buses]
+    assert summaries[0].keys() == summaries[1].keys()
+    assert all(_same(summaries[0][key], summaries[1][key]) for key in summaries[0])
+
+
+def test_broadcasts_item_is_its_messages_and_keeps_the_working_senders():
+    from sim.radio.bus import Broadcasts, each_message
+
+    batch = Broadcasts("consensus", np.array([0.5, 0.25, 1.0]), 8, latest_only=True)
+    assert batch.messages() == broadcasts("consensus", [0.5, 0.25, 1.0], 8, latest_only=True, as_arrays=True)
+    kept = batch.kept(np.array([True, False, True]))
+    assert [(m.sender, m.payload) for m in kept.messages()] == [(0, 0.5), (2, 1.0)]
+    single = Message("election", 1, None, 3, 4)
+    assert list(each_message((single, kept))) == [single, *kept.messages()]

@@ -354,3 +354,34 @@ def test_the_compiled_shadowing_step_is_numpys(seed, pairs, steps):
         assert compiled.rng.bit_generator.state == plain.rng.bit_generator.state
     assert compiled._rng_pointers[1] is not None or getattr(_shadowing_step_at, "overloads", None) is None
 
+
+
+@settings(max_examples=60, deadline=None)
+@given(_boxes(), st.integers(2, 9), st.integers(0, 2**32 - 1), st.sampled_from(["ieee802154", "nrf24", "wifi"]),
+       st.floats(-100.0, -60.0))
+def test_the_walls_and_figures_in_one_call_are_the_separate_passes(boxes, n, seed, preset, carrier_sense_dbm):
+    """``RadioChannel._walls_and_figures``' one compiled call gives what ``SceneWalls.crossed_pairs``,
+    ``pair_figures`` and ``sim.radio.bus.link_from_pairs`` give one after the other, bit for bit."""
+    from sim.radio.bus import link_from_pairs
+
+    config = build(RadioConfig, {"preset": preset, "carrier_sense_dbm": carrier_sense_dbm}, "radio")
+    channel = RadioChannel(config, boxes, None, 10.0, np.random.default_rng(0))
+    rng = np.random.default_rng(seed)
+    positions = rng.uniform(-4.0, 4.0, (n, 3))
+    positions[0] = positions[1]  # two robots at one place: a distance below the reference's 1 m
+    distance = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
+    first, second = channel.pairs(n)
+    shadowing = rng.normal(0.0, 8.0, len(first))
+    computed: dict = {}
+    got = channel._walls_and_figures(positions, first, second, distance, shadowing, computed)
+    walls = channel.walls.crossed_pairs(positions, first, second)
+    np.testing.assert_array_equal(computed["walls"]["count"], walls.count)
+    np.testing.assert_array_equal(computed["walls"]["loss_db"], walls.loss_db)
+    expected = channel.pair_figures(distance[first, second], walls.loss_db, shadowing)
+    for key in ("rx_power_dbm", "snr_db", "shadowing_db", "delivery"):
+        np.testing.assert_array_equal(got[key], expected[key])
+    link = link_from_pairs(n, (first, second), expected["snr_db"], expected["rx_power_dbm"], carrier_sense_dbm)
+    snr, sense = got["link_matrices"]
+    np.testing.assert_array_equal(snr, link.snr_db)
+    np.testing.assert_array_equal(sense, link.carrier_sense)
+    assert not snr.flags.writeable and sense.dtype == bool

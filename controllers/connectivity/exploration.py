@@ -80,7 +80,7 @@ from controllers.connectivity.travel import (
     row_norm,
 )
 from sim.compiled import kernel
-from sim.radio.bus import FLOAT64_BYTES, Message, broadcasts
+from sim.radio.bus import FLOAT64_BYTES, Broadcasts, Message
 
 # Floor of the reference speed, as a fraction of cruise, when scaling the efficiency error.
 _MIN_REFERENCE_FRACTION = 0.1
@@ -352,8 +352,8 @@ class ExplorationController:
         self.estimates = estimates
         outbox = ()
         if self.over_bus:
-            outbox = (*self.role_machine.outbox,
-                      *broadcasts(CONSENSUS_KIND, estimates, FLOAT64_BYTES, latest_only=True, as_arrays=True))
+            # every robot's estimate as one outbox item (the bus takes it without a Message per robot)
+            outbox = (*self.role_machine.outbox, Broadcasts(CONSENSUS_KIND, estimates, FLOAT64_BYTES, latest_only=True))
 
         self.tick += 1
         self.last_time = float(time)

@@ -1,6 +1,7 @@
 """The message bus: every message a robot sends, with its real size, over a shared, lossy medium.
 
-numpy and one compiled kernel (the medium's scheduling, ``_schedule_frames``;
+numpy and, under a real preset, a compiled frame table (``sim.radio.medium``:
+the queues, one compiled call per send batch and per period;
 ``ReferenceMessageBus`` keeps the plain loop it replaces), no MuJoCo. Time
 advances in control periods: the
 caller ``send``s messages during a tick and calls ``step(time_s, link)``
@@ -53,6 +54,7 @@ from __future__ import annotations
 
 import copy
 import math
+from array import array
 from collections import deque
 from itertools import chain
 from dataclasses import dataclass, field
@@ -60,8 +62,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from sim.compiled import generator_at, generator_pointers, kernel
-from sim.radio import channel
+from sim.compiled import generator_pointers, kernel
+from sim.radio import channel, medium
+from sim.radio.medium import _NO_DRAW, _EXPONENTIAL, _NONCENTRAL_CHISQUARE, _ZERO_BER_SNR_DB, _per_802154  # noqa: F401
 from sim.radio.presets import IdealDisk, RadioPreset
 
 FLOAT64_BYTES = 8
@@ -147,6 +150,64 @@ def broadcasts(kind: str, values: Any, size_bytes: int, latest_only: bool = Fals
 
 
 _BROADCAST_FIELDS: dict[tuple, dict[str, Any]] = {}  # broadcasts' checked fields per (kind, size, flags)
+_NO_ROBOTS = np.empty(0, dtype=np.int64)  # no receivers listed
+
+
+class Broadcasts:
+    """Many robots' broadcasts of one number each as ONE outbox item: robot ``senders[i]`` sends ``values[i]``,
+    latest_only or not, always ``as_arrays``. The bus treats it as ``messages()``, in order at its place in
+    the outbox (the same sequences, frames, draws and arrivals); the frame table takes it without a
+    ``Message`` per robot. ``senders`` None: robots 0 .. len(values) - 1."""
+
+    __slots__ = ("kind", "values", "size_bytes", "latest_only", "senders")
+    receivers = None  # every one is a broadcast
+
+    def __init__(self, kind: str, values: Any, size_bytes: int, latest_only: bool = False,
+                 senders: Any = None) -> None:
+        values = np.array(values, dtype=float).reshape(-1)  # a copy: the caller may overwrite its array
+        if not isinstance(size_bytes, (int, np.integer)) or size_bytes <= 0:
+            raise ValueError(f"size_bytes must be a positive integer, got {size_bytes!r}")
+        if senders is not None:
+            senders = np.array(senders, dtype=np.int64).reshape(-1)
+            if senders.shape != values.shape:
+                raise ValueError(f"{len(senders)} senders for {len(values)} values")
+            if len(np.unique(senders)) != len(senders):
+                raise ValueError("senders must not repeat")
+        self.kind, self.values, self.size_bytes = kind, values, int(size_bytes)
+        self.latest_only, self.senders = bool(latest_only), senders
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+    def sender_indices(self) -> np.ndarray:
+        """(M,) int64: who sends each value."""
+        return np.arange(len(self.values)) if self.senders is None else self.senders
+
+    def messages(self) -> tuple[Message, ...]:
+        """The same broadcasts as ``Message``s, one per sender in order (``broadcasts``')."""
+        made = broadcasts(self.kind, self.values, self.size_bytes, self.latest_only, as_arrays=True)
+        if self.senders is not None:
+            for message, sender in zip(made, self.senders.tolist()):
+                message.__dict__["sender"] = sender
+        return made
+
+    def kept(self, keep: np.ndarray) -> Broadcasts:
+        """Only the broadcasts of the senders where ``keep`` ((N,) bool over the robots) is True."""
+        senders = self.sender_indices()
+        chosen = np.asarray(keep, dtype=bool)[senders]
+        return Broadcasts(self.kind, self.values[chosen], self.size_bytes, self.latest_only, senders[chosen])
+
+    def __repr__(self) -> str:
+        return f"Broadcasts({self.kind!r}, {len(self)} senders, {self.size_bytes} B)"
+
+
+def each_message(outbox: Any) -> Any:
+    """The ``Message``s of an outbox in order, each ``Broadcasts`` item as its ``messages()``."""
+    for item in outbox:
+        if type(item) is Broadcasts:
+            yield from item.messages()
+        else:
+            yield item
 
 
 def _stamped(message: Message, sequence: int, sent_s: float) -> Message:
@@ -457,216 +518,6 @@ class TickStats:
     queued: int  # messages still waiting at their senders after the period
 
 
-# How ``_schedule_frames`` draws each receiver's fading gain: none, Exp(1) (Rayleigh, Rician K = 0), or a
-# noncentral chi-square with 2 degrees of freedom over 2 (K + 1) (Rician), as ``channel.fading_gain_db`` does.
-_NO_DRAW, _EXPONENTIAL, _NONCENTRAL_CHISQUARE = 0, 1, 2
-# SNR (dB) from which a modulation's BER is exactly 0 in floating point, so a frame's PER is 0: for the
-# 802.15.4 curve every term exp(20 SINR (1/k - 1)) underflows to 0 once 10 SINR > 746 (the k = 2 term;
-# SINR > 18.7 dB); 19.5 dB leaves a margin (tests/test_radio_bus_fast.py checks the curve is 0 from it on).
-_ZERO_BER_SNR_DB = {"oqpsk_dsss_802154": 19.5}
-
-
-# The 802.15.4 curve's terms (channel.ber_oqpsk_dsss_802154): exponent factors 1/k - 1 and signed
-# binomials (-1)^k C(16, k), k = 2..16, and the scale 8/15 * 1/16.
-_OQPSK_FACTORS = channel._OQPSK_EXPONENT_FACTORS.copy()
-_OQPSK_BINOMIALS = channel._SIGNED_BINOMIALS_802154.copy()
-_OQPSK_SCALE = float(channel._OQPSK_SCALE)
-
-
-@kernel
-def _per_802154(snr_db, bits):
-    """PER of a ``bits``-bit frame at ``snr_db`` on the 802.15.4 curve, and a bound on its distance from
-    ``channel.packet_error_rate_at_snr``'s (numpy's exp, log1p and expm1 may round differently from these):
-    each term's error within (|exponent| + 10) 1e-13 of it (exp's argument carries the power's relative
-    error times the exponent; the sum's rounding over 15 terms is below 1e-14 of the terms' magnitude),
-    the BER's then at most the terms' magnitudes' sum times that, and dPER/dBER = L (1 - PER) / (1 - BER)
-    <= 2 L for BER <= 0.5; 1e-12 more for the PER's own operations."""
-    sinr = 10.0 ** (snr_db / 10.0)
-    total = 0.0
-    error = 0.0
-    for k in range(_OQPSK_FACTORS.shape[0]):
-        exponent = 20.0 * sinr * _OQPSK_FACTORS[k]
-        term = np.exp(exponent) * _OQPSK_BINOMIALS[k]
-        total += term
-        error += abs(term) * (abs(exponent) + 10.0) * 1e-13
-    ber = min(max(total * _OQPSK_SCALE, 0.0), 0.5)
-    error *= _OQPSK_SCALE
-    per = min(max(-np.expm1(bits * np.log1p(-ber)), 0.0), 1.0)
-    return per, 2.0 * bits * error + 1e-12
-
-
-@kernel
-def _schedule_frames(start_s, end_s, eps, sense, snr, queued, numbers, listed, fading_code,
-                     noncentrality, gain_scale, sure_snr_db, decide, rng, popped, sent_frame, sent_finish, sent_draws,
-                     draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally):
-    """One period of the shared medium (``ReferenceMessageBus._step_medium``'s loop, step for step).
-
-    Sender s offers frames first[s] .. first[s] + count[s] - 1 in order (``queued``'s rows: first, count);
-    frame f's send time, airtime, error bits and audience count are ``numbers[4 f:4 f + 4]`` (one flat
-    array: quicker to build). Each round, every sender whose next frame is ready starts at max(ready, the
-    end of the latest frame of anyone it senses); the earliest go, a tie broken by ``rng.integers``; a
-    frame that would end after the period stops its sender. A frame that goes draws, per receiver of its
-    audience (its audience count's receivers, listed in ``listed`` after the earlier frames', or every
-    other robot when the count is -1), its fading gain and then, for all of them, a uniform: the reference's
-    draws in its order. Fills ``popped`` (frames gone per sender), the frames gone in order with their end
-    and the range of their draws (each with its receiver, mean SNR as ``numpy.nan_to_num(nan=-inf)`` gives
-    it, frame bits, fading gain and uniform), and returns how many went. ``sense`` counts as True on the
-    diagonal. ``draw_unsure`` marks the draws whose SNR with fading may lie below ``sure_snr_db``, where
-    the PER may differ from 0 (judged here with 0.5 dB to spare, the exact PER is numpy's).
-
-    With ``decide`` (the 802.15.4 curve), each such draw's PER is computed here too, with a bound on how far
-    it can lie from numpy's (``_per_802154``): a uniform outside PER +- bound decides the frame
-    (``draw_alive``) and the draw is no longer unsure; only a uniform within the bound, which numpy's exact
-    PER must decide, stays unsure. Without it every draw is alive here and numpy decides the unsure ones.
-    ``tally`` gets (unsure draws, draws lost here).
-    """
-    n = sense.shape[0]
-    first, count = queued[0], queued[1]
-    frames = numbers.reshape((-1, 4))
-    sent_s, airtime_s, error_bits = frames[:, 0], frames[:, 1], frames[:, 2]
-    audience_count = np.empty(frames.shape[0], dtype=np.int64)
-    audience_start = np.empty(frames.shape[0], dtype=np.int64)  # where each frame's receivers are listed
-    at = 0
-    for f in range(frames.shape[0]):
-        audience_count[f] = int(frames[f, 3])
-        audience_start[f] = at
-        at += max(audience_count[f], 0)
-    largest = 1.7976931348623157e308  # numpy.finfo(float).max, what nan_to_num puts for +inf
-    on_air_until = np.full(n, -np.inf)
-    medium_free = np.full(n, -np.inf)  # per sender: the latest end of a frame of anyone it senses
-    done = np.zeros(n, dtype=np.bool_)
-    ready = np.full(n, np.inf)
-    start = np.empty(n)
-    tied = np.empty(n, dtype=np.int64)
-    for s in range(n):
-        if count[s] > 0 and sent_s[first[s]] < end_s - eps:
-            ready[s] = max(start_s, sent_s[first[s]])
-    sent = 0
-    draws = 0
-    unsure = 0
-    lost = 0
-    sent_draws[0] = 0
-    while True:
-        earliest = np.inf
-        for s in range(n):
-            start[s] = max(ready[s], medium_free[s])
-            if start[s] < earliest:
-                earliest = start[s]
-        if earliest == np.inf:
-            tally[0] = unsure
-            tally[1] = lost
-            return sent
-        ties = 0
-        for s in range(n):
-            if start[s] <= earliest + eps:
-                tied[ties] = s
-                ties += 1
-        sender = tied[rng.integers(0, ties)] if ties > 1 else tied[0]
-        frame = first[sender] + popped[sender]
-        finish = earliest + airtime_s[frame]
-        if finish > end_s + eps:
-            done[sender] = True
-            ready[sender] = np.inf
-            continue
-        popped[sender] += 1
-        on_air_until[sender] = finish
-        for s in range(n):
-            if (s == sender or sense[s, sender]) and finish > medium_free[s]:
-                medium_free[s] = finish
-        ready[sender] = np.inf
-        if popped[sender] < count[sender]:
-            following = first[sender] + popped[sender]
-            if sent_s[following] < end_s - eps:
-                ready[sender] = max(start_s, sent_s[following])
-        sent_frame[sent] = frame
-        sent_finish[sent] = finish
-        size = audience_count[frame]
-        first_draw = draws
-        if size < 0:
-            for receiver in range(n):
-                if receiver != sender:
-                    draw_receiver[draws] = receiver
-                    draws += 1
-        else:
-            for k in range(size):
-                draw_receiver[draws] = listed[audience_start[frame] + k]
-                draws += 1
-        for d in range(first_draw, draws):
-            level = snr[sender, draw_receiver[d]]
-            if np.isnan(level):
-                level = -np.inf
-            elif level == np.inf:
-                level = largest
-            elif level == -np.inf:
-                level = -largest
-            draw_snr[d] = level
-            draw_bits[d] = error_bits[frame]
-            if fading_code == 1:
-                gain = rng.standard_exponential()
-            elif fading_code == 2:
-                gain = rng.noncentral_chisquare(2.0, noncentrality) / gain_scale
-            else:
-                gain = 1.0
-            draw_gain[d] = gain
-            draw_unsure[d] = not level + 10.0 * np.log10(max(gain, 1e-300)) >= sure_snr_db + 0.5
-        for d in range(first_draw, draws):
-            draw_uniform[d] = rng.random()
-        for d in range(first_draw, draws):
-            draw_alive[d] = True
-            if draw_unsure[d] and decide:
-                level = draw_snr[d]
-                if fading_code != 0:
-                    level = level + 10.0 * np.log10(max(draw_gain[d], 2.2250738585072014e-308))
-                per, bound = _per_802154(level, draw_bits[d])
-                if draw_uniform[d] >= per + bound:
-                    draw_unsure[d] = False
-                elif draw_uniform[d] < per - bound:
-                    draw_unsure[d] = False
-                    draw_alive[d] = False
-                    lost += 1
-            if draw_unsure[d]:
-                unsure += 1
-        sent += 1
-        sent_draws[sent] = draws
-
-
-@kernel
-def _schedule_frames_at(state_address, state, next_uint64, next_uint32, next_double, start_s, end_s, eps, sense,
-                        snr, queued, numbers, listed, fading_code, noncentrality, gain_scale,
-                        sure_snr_db, decide, popped, sent_frame, sent_finish, sent_draws, draw_receiver, draw_snr,
-                        draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally):
-    """``_schedule_frames`` drawing from the Generator of these ``sim.compiled.generator_pointers``."""
-    rng = generator_at(state_address, state, next_uint64, next_uint32, next_double)
-    return _schedule_frames(start_s, end_s, eps, sense, snr, queued, numbers, listed, fading_code,
-                            noncentrality, gain_scale, sure_snr_db, decide, rng, popped, sent_frame, sent_finish,
-                            sent_draws, draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure,
-                            draw_alive, tally)
-
-
-# The kernel's compiled entry per (whether snr and carrier sense are writeable): calling it skips the
-# dispatcher's typing of every argument each period.
-_SCHEDULE_ENTRIES: dict[tuple, Any] = {}
-
-
-def _schedule(arguments: tuple, pointers: tuple[int, ...] | None) -> int:
-    """``_schedule_frames(*arguments)``: with compiled kernels, through ``_schedule_frames_at`` with the
-    Generator's ``pointers`` (numba's unboxing of the Generator itself costs about 15 us a call) and its
-    compiled entry point once the dispatcher has compiled it. ``_step_medium`` passes every array
-    C-contiguous and every scalar as a Python float, int or bool, so one signature per key."""
-    if pointers is None or getattr(_schedule_frames_at, "overloads", None) is None:  # numba's JIT disabled
-        return _schedule_frames(*arguments)
-    unpacked = pointers + arguments[:13] + arguments[14:]  # all but the Generator
-    key = (arguments[3].flags.writeable, arguments[4].flags.writeable)
-    entry = _SCHEDULE_ENTRIES.get(key)
-    if entry is not None:
-        return entry(*unpacked)
-    sent = _schedule_frames_at(*unpacked)
-    signature = tuple(_schedule_frames_at.typeof_pyval(argument) for argument in unpacked)
-    if signature in _schedule_frames_at.overloads:
-        _SCHEDULE_ENTRIES[key] = _schedule_frames_at.overloads[signature].entry_point
-    return sent
-
-
 def _rows_to_records(deliveries: list[list[Delivery]], records: dict[str, _ArrivalTable]) -> None:
     """Move the rows' deliveries of ``as_arrays`` messages into ``records`` (what the compiled period does
     as it goes; the ideal bus and the reference make them as rows)."""
@@ -713,8 +564,9 @@ def _delivery(message: Message, receiver: int, arrival_s: float) -> Delivery:
     return delivery
 
 
-class MessageBus:
-    """Queues, airtime, loss and latency of every message. See the module docstring."""
+class _QueueBus:
+    """The bus with its queues as deques of ``_Frame``s, stepped in Python: ``MessageBus`` under 'ideal' and
+    ``ReferenceMessageBus``. See the module docstring."""
 
     def __init__(self, params: BusParameters, rng: np.random.Generator | None, control_period_s: float,
                  robot_count: int | None = None) -> None:
@@ -733,13 +585,7 @@ class MessageBus:
         self._frames_of_size: dict[int, tuple[tuple[int, float], ...]] = {}  # (payload, airtime) of each frame
         self._broadcast_audiences: dict[tuple[int, int], tuple[int, ...]] = {}  # (sender, robots): every other
         self._broadcast_audience_lists: dict[int, list[tuple[int, ...]]] = {}  # robots: ``_audience`` per sender
-        self._scratch_arrays: tuple[np.ndarray, ...] | None = None  # _schedule_frames' outputs, reused
-        self._rng_pointers: tuple[Any, tuple[int, ...] | None] | None = None  # (rng, its pointers)
-        self._tally = np.zeros(2, dtype=np.int64)  # _schedule_frames' (unsure draws, draws lost in it)
         self._in_flight: dict[int, _InFlight] = {}
-        # Set by a period whose frames all ended at distinct, increasing instants: each receiver's deliveries,
-        # made in that order, are already by (arrival, sequence)
-        self._arrivals_in_order = False
         self._arrays_sent = False  # some message went as_arrays: the rows' such deliveries move to columns
         self._array_records: dict[str, _ArrivalTable] = {}  # this period's, per kind
         self._arrivals: dict[str, Arrivals] = {}
@@ -757,7 +603,6 @@ class MessageBus:
         """New parameters (the tuning page's retuning) drop the frames' airtimes computed under the old."""
         self._params = params
         self._frames_of_size = {}
-        self._medium_constants: tuple | None = None  # ``_constants_of_medium``, made at the next period
 
     # --- sending ---------------------------------------------------------------------------------
 
@@ -798,7 +643,7 @@ class MessageBus:
         sequence = self._sequence
         added = 0  # to self._waiting_total (which _supersede may lower meanwhile)
         try:
-            for message in messages:
+            for message in each_message(messages):
                 sender = message.sender
                 receivers = message.receivers
                 if robots is not None and (not 0 <= sender < robots or (
@@ -931,8 +776,7 @@ class MessageBus:
             n = self._robot_count(link) if link is not None else self._n or 0
             return [[] for _ in range(n)]
         n = self._robot_count(link)
-        counted = self._medium_counts_its_period and not self.params.is_ideal
-        before = None if counted else self._totals()
+        before = self._totals()
         deliveries: list[list[Delivery]] = [[] for _ in range(n)]
         records = self._array_records = {}
         if self.params.is_ideal:
@@ -942,17 +786,12 @@ class MessageBus:
                 raise ValueError(f"the {self.params.name!r} bus needs this tick's link state")
             self._step_medium(float(time_s), link, n, deliveries)
         self._elapsed_s += self.control_period_s
-        if not self._arrivals_in_order:
-            for row in deliveries:
-                if len(row) > 1:
-                    row.sort(key=_arrival_order)
-        self._arrivals_in_order = False
-        if self._arrays_sent and (self.params.is_ideal or not self._medium_makes_columns):
+        for row in deliveries:
+            if len(row) > 1:
+                row.sort(key=_arrival_order)
+        if self._arrays_sent:
             _rows_to_records(deliveries, records)
-        if counted:
-            sent, addressed, delivered = self._period_counts
-        else:
-            sent, addressed, delivered = (a - b for a, b in zip(self._totals(), before))
+        sent, addressed, delivered = (a - b for a, b in zip(self._totals(), before))
         latencies = [d.arrival_s - d.message.sent_s for row in deliveries for d in row]  # each one's latency_s
         if records:
             self._arrivals = {kind: table.columns(n) for kind, table in records.items()}
@@ -1034,230 +873,6 @@ class MessageBus:
 
     # Tolerance on instants: airtimes are sums of microseconds; 1 ns never changes an order.
     _EPS_S = 1e-9
-    _medium_makes_columns = True  # _step_medium puts as_arrays messages' arrivals in the columns, not the rows
-    # _step_medium counts its period's packets sent, (message, receiver) pairs addressed and deliveries
-    # (``_period_counts``), so ``step`` need not sum every kind's counters before and after
-    _medium_counts_its_period = True
-
-    def _step_medium(self, start_s: float, link: LinkState, n: int, deliveries: list[list[Delivery]]) -> None:
-        """The medium's period, scheduled by the compiled ``_schedule_frames``: the same frames, instants and
-        random draws, in the same order, as ``ReferenceMessageBus``'s loop (tests/test_radio_bus_fast.py)."""
-        self._period_counts = (0, 0, 0)  # (packets sent, pairs addressed, deliveries) of the period
-        end_s = start_s + self.control_period_s
-        sense = np.ascontiguousarray(link.carrier_sense, dtype=bool)
-        snr = np.ascontiguousarray(link.snr_db, dtype=float)
-        if sense.shape != (n, n) or snr.shape != (n, n):
-            raise ValueError(f"the link's arrays must be ({n}, {n})")
-        # The head of each queue that can go out in this period: frames while the airtime before them fits,
-        # and one more, which cannot (the loop must meet it to stop that sender, drawing as it does).
-        reach_s = self.control_period_s + 1e-6
-        frames: list[_Frame] = []
-        first = [0] * n
-        count = [0] * n
-        for sender, queue in self._queues.items():
-            if not queue:
-                continue
-            first[sender] = start = len(frames)
-            before_s = 0.0
-            for frame in queue:
-                frames.append(frame)
-                before_s += frame.airtime_s
-                if before_s > reach_s:
-                    break
-            count[sender] = len(frames) - start
-        total = len(frames)
-        if total == 0:
-            return
-        # The frames' numbers (``_Frame.numbers``) as one flat array, and the receivers the frames list. A
-        # frame's audience is its message's (``_audience``: the robot count does not change within a run).
-        numbers = np.fromiter(chain.from_iterable([frame.numbers for frame in frames]), float, 4 * total)
-        listed = [robot for frame in frames if frame.message.receivers is not None
-                  for robot in frame.message.receivers]
-        constants = self._medium_constants
-        if constants is None:
-            constants = self._medium_constants = self._constants_of_medium()
-        fading_code = constants[0]
-        out = self._scratch(total, total * max(n - 1, 0))
-        popped = np.zeros(n, dtype=np.int64)
-        arguments = (start_s, end_s, self._EPS_S, sense, snr, np.array([first, count], dtype=np.int64), numbers,
-                     np.array(listed, dtype=np.int64), *constants, self.rng, popped, *out, self._tally)
-        sent = _schedule(arguments, self._pointers())
-        if sent == 0:
-            return
-        (sent_frame, sent_finish, sent_draws, _receivers, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure,
-         draw_alive) = out
-        draws = int(sent_draws[sent])
-        # Per-packet fading and loss of every (frame, receiver) tried, with the reference formulas: a frame
-        # whose SNR with fading is above the modulation's zero-BER SNR has PER exactly 0 and always arrives;
-        # the kernel decided the others whose uniform lies clear of the PER, numpy decides the rest.
-        unsure_count, lost_count = int(self._tally[0]), int(self._tally[1])
-        if unsure_count:
-            unsure = np.flatnonzero(draw_unsure[:draws])
-            survived = draw_alive[:draws].copy()
-            level = draw_snr[unsure]
-            if fading_code != _NO_DRAW or self.params.fading_model != "none":
-                fading_db = np.maximum(draw_gain[unsure], np.finfo(float).tiny)
-                np.log10(fading_db, out=fading_db)
-                fading_db *= 10.0
-                level = level + fading_db
-            per = channel.packet_error_rate_at_snr(self.params.modulation, level, self.params.bandwidth_hz,
-                                                   self.params.bitrate_bps, draw_bits[unsure])
-            survived[unsure] = draw_uniform[unsure] >= per
-            survived_list = survived.tolist()
-        elif lost_count:
-            survived_list = draw_alive[:draws].tolist()
-        else:
-            survived_list = None  # every draw survived
-        bounds = sent_draws[:sent + 1].tolist() if survived_list is not None else None
-        finishes = sent_finish[:sent].tolist()
-        kinds = self._kinds
-        in_flight = self._in_flight
-        records = self._array_records
-        queues, waiting = self._queues, self._waiting
-        everyone = n - 1
-        broadcast_audiences = self._everyone_but(n)
-        finished = 0  # messages whose last frame went (self._waiting_total's decrease)
-        # The current run of one kind's frames (a period's frames come in runs, the consensus's mostly): its
-        # counters, arrival table, and its counts and latencies, added to the counters when the run ends.
-        kind = counters = table = None
-        frames_sent = packets_sent = bytes_sent = addressed = delivered = 0
-        latencies: list[float] = []
-        period_packets = period_addressed = period_delivered = 0  # the runs' before the current one
-        rows_made = False
-        for k, index in enumerate(sent_frame[:sent].tolist()):
-            frame = frames[index]
-            message = frame.message
-            sender = message.sender
-            queues[sender].popleft()  # the head of its queue: a sender's frames go in order
-            if frame.last:
-                waiting[sender] -= 1
-                finished += 1
-            if message.kind != kind:
-                if counters is not None:
-                    self._add_run(counters, frames_sent, packets_sent, bytes_sent, addressed, delivered, latencies)
-                    period_packets += packets_sent
-                    period_addressed += addressed
-                    period_delivered += delivered
-                    frames_sent = packets_sent = bytes_sent = addressed = delivered = 0
-                    latencies = []
-                kind = message.kind
-                counters = kinds.get(kind)
-                if counters is None or len(counters.airtime_s) < n:
-                    counters = self._counters(kind, n)
-                table = records.get(kind)
-            frames_sent += 1
-            counters.airtime_s[sender] += frame.airtime_s
-            flight = in_flight.get(message.sequence) if in_flight else None
-            if flight is None:
-                audience = broadcast_audiences[sender] if message.receivers is None else message.receivers
-                if not frame.last:  # one alive flag per receiver of its audience, one draw each
-                    in_flight[message.sequence] = _InFlight(
-                        audience, [True] * len(audience) if survived_list is None
-                        else survived_list[bounds[k]:bounds[k + 1]])
-                    continue
-                reached = audience if survived_list is None else [
-                    receiver for receiver, got in zip(audience, survived_list[bounds[k]:bounds[k + 1]]) if got]
-            else:
-                audience = flight.audience
-                if survived_list is not None:
-                    flight.alive = [a and b for a, b in zip(flight.alive, survived_list[bounds[k]:bounds[k + 1]])]
-                if not frame.last:
-                    continue
-                del in_flight[message.sequence]
-                reached = [receiver for receiver, got in zip(audience, flight.alive) if got]
-            packets_sent += 1
-            bytes_sent += message.size_bytes
-            addressed += len(audience)
-            if reached:
-                finish_s = finishes[k]
-                delivered += len(reached)
-                latencies += [finish_s - message.sent_s] * len(reached)
-                if message.as_arrays:  # _ArrivalTable.add, inline
-                    if table is None:
-                        table = records[kind] = _ArrivalTable()
-                    if message.receivers is None and len(reached) == everyone:
-                        table.rows.append((sender, finish_s, message.sent_s, message.sequence, message.payload, -1))
-                    else:
-                        table.rows.append((sender, finish_s, message.sent_s, message.sequence, message.payload,
-                                           len(reached)))
-                        table.receivers.extend(reached)
-                else:
-                    rows_made = True
-                    for receiver in reached:
-                        deliveries[receiver].append(_delivery(message, receiver, finish_s))
-        if counters is not None:
-            period_packets += packets_sent
-            period_addressed += addressed
-            period_delivered += delivered
-            self._add_run(counters, frames_sent, packets_sent, bytes_sent, addressed, delivered, latencies)
-        self._waiting_total -= finished
-        self._period_counts = (period_packets, period_addressed, period_delivered)
-        # Rows made: in order if the frames ended at distinct increasing instants; none: nothing to sort
-        self._arrivals_in_order = not rows_made or all(
-            earlier < later for earlier, later in zip(finishes, finishes[1:]))
-
-    @staticmethod
-    def _add_run(counters: _KindCounters, frames_sent: int, packets_sent: int, bytes_sent: int, addressed: int,
-                 delivered: int, latencies: list[float]) -> None:
-        """A run of one kind's frames of a period into its counters (its latencies in the frames' order)."""
-        counters.frames_sent += frames_sent
-        counters.packets_sent += packets_sent
-        counters.bytes_sent += bytes_sent
-        counters.addressed += addressed
-        counters.delivered += delivered
-        counters.latencies_s += latencies
-
-    def _everyone_but(self, n: int) -> list[tuple[int, ...]]:
-        """Per sender, the audience of its broadcast among ``n`` robots: every other robot (``_audience``)."""
-        audiences = self._broadcast_audience_lists.get(n)
-        if audiences is None:
-            audiences = self._broadcast_audience_lists[n] = [
-                self._broadcast_audiences.setdefault((sender, n), tuple(j for j in range(n) if j != sender))
-                for sender in range(n)]
-        return audiences
-
-    def _constants_of_medium(self) -> tuple[int, float, float, float, bool]:
-        """The scheduling kernel's arguments that only the parameters set: how it draws the fading gain, the
-        Rician noncentrality and the gain's divisor, the zero-BER SNR and whether it computes 802.15.4 PERs."""
-        fading_code, gain_scale = self._fading_draw
-        modulation = self.params.modulation
-        return (int(fading_code), float(2.0 * self.params.rician_k), float(gain_scale),
-                float(_ZERO_BER_SNR_DB.get(modulation, np.inf)), modulation == "oqpsk_dsss_802154")
-
-    def _pointers(self) -> tuple[int, ...] | None:
-        """``sim.compiled.generator_pointers`` of ``self.rng`` (None for a generator that is not numpy's),
-        kept with the generator they belong to."""
-        held = self._rng_pointers
-        if held is None or held[0] is not self.rng:
-            pointers = generator_pointers(self.rng) if isinstance(self.rng, np.random.Generator) else None
-            held = self._rng_pointers = (self.rng, pointers)
-        return held[1]
-
-    @property
-    def _fading_draw(self) -> tuple[int, float]:
-        """How ``_schedule_frames`` draws the fading gain of this bus's model, and the gain's divisor."""
-        fading, rician_k = self.params.fading_model, self.params.rician_k
-        if fading == "none" or (fading == "rician" and math.isinf(rician_k)):
-            return _NO_DRAW, 1.0
-        if fading == "rayleigh" or (fading == "rician" and rician_k == 0):
-            return _EXPONENTIAL, 1.0
-        if fading == "rician":
-            if rician_k < 0:
-                raise ValueError("the Rician K-factor must be >= 0")
-            return _NONCENTRAL_CHISQUARE, 2.0 * (rician_k + 1.0)
-        raise ValueError(f"unknown fading model {fading!r}; known: {', '.join(channel.FADING_MODELS)}")
-
-    def _scratch(self, frames: int, draws: int) -> tuple[np.ndarray, ...]:
-        """Output arrays of ``_schedule_frames`` for up to ``frames`` frames and ``draws`` draws, kept between
-        periods (only the part the kernel fills is read)."""
-        held = self._scratch_arrays
-        if held is None or len(held[0]) < frames or len(held[3]) < draws:
-            frames, draws = max(frames, 64), max(draws, 512)
-            held = self._scratch_arrays = (
-                np.empty(frames, dtype=np.int64), np.empty(frames), np.empty(frames + 1, dtype=np.int64),
-                np.empty(draws, dtype=np.int64), np.empty(draws), np.empty(draws), np.empty(draws), np.empty(draws),
-                np.empty(draws, dtype=np.bool_), np.empty(draws, dtype=np.bool_))
-        return held
 
     # --- metrics ---------------------------------------------------------------------------------
 
@@ -1295,9 +910,13 @@ class MessageBus:
         airtime share is the busiest robot's time on the air over the time
         stepped. Ratios and latencies of nothing are nan.
         """
-        robots = max([self._n or 0] + [len(c.airtime_s) for c in self._kinds.values()])
+        return self._summary_of(self._kinds)
+
+    def _summary_of(self, kinds: dict[str, _KindCounters]) -> dict[str, float | int]:
+        """``summary`` of these counters (in the order their kinds' counters were made)."""
+        robots = max([self._n or 0] + [len(c.airtime_s) for c in kinds.values()])
         merged = _KindCounters(airtime_s=np.zeros(robots))
-        for counters in self._kinds.values():
+        for counters in kinds.values():
             merged.packets_sent += counters.packets_sent
             merged.frames_sent += counters.frames_sent
             merged.bytes_sent += counters.bytes_sent
@@ -1308,8 +927,8 @@ class MessageBus:
             merged.airtime_s[:len(counters.airtime_s)] += counters.airtime_s
         result = self._metrics("radio", merged)
         result["radio_packets_queued"] = self.queued()
-        for kind in sorted(self._kinds):
-            counters = self._kinds[kind]
+        for kind in sorted(kinds):
+            counters = kinds[kind]
             result.update(self._metrics(f"radio_{kind}", counters))
         return result
 
@@ -1330,16 +949,13 @@ class MessageBus:
         }
 
 
-class ReferenceMessageBus(MessageBus):
+class ReferenceMessageBus(_QueueBus):
     """The same bus, each period stepped by the plain loop that ``MessageBus``'s compiled scheduling replaces,
     and a superseding send's plain filter of the queue: the specification the fast bus is held to
     (tests/test_radio_bus_fast.py), frame by frame and draw by draw."""
 
-    _medium_makes_columns = False  # its rows hold every delivery; ``step`` moves the as_arrays ones out
-    _medium_counts_its_period = False  # ``step`` sums the counters before and after its period
-
     def send_all(self, messages: Any, time_s: float) -> None:
-        for message in messages:
+        for message in each_message(messages):
             self.send(message, time_s)
 
     def _supersede(self, queue: deque[_Frame], newer: Message) -> None:
@@ -1406,3 +1022,554 @@ class ReferenceMessageBus(MessageBus):
                 counters.latencies_s.append(finish_s - message.sent_s)
                 deliveries[receiver].append(Delivery(message, receiver, finish_s))
 
+
+class MessageBus(_QueueBus):
+    """Queues, airtime, loss and latency of every message. See the module docstring.
+
+    Under a real preset the queues are a frame table (``sim.radio.medium``): a tick's outbox enters it in one
+    compiled call (``_enqueue``) and a period is one compiled call (``_period``) that gathers, schedules,
+    pops and books the frames, keeps the counters and makes the arrivals, so no Python object is made or
+    touched per frame; only the messages not sent ``as_arrays`` are kept as objects, for their ``Delivery``s.
+    Under 'ideal' it is ``_QueueBus``. ``ReferenceMessageBus`` is the plain loop both are held to."""
+
+    def __init__(self, params: BusParameters, rng: np.random.Generator | None, control_period_s: float,
+                 robot_count: int | None = None) -> None:
+        self._tabled = False  # the queues are the frame table (a real preset), not _QueueBus's deques
+        super().__init__(params, rng, control_period_s, robot_count)
+        self._rng_pointers: tuple[Any, tuple[int, ...] | None] | None = None  # (rng, its pointers)
+        if not params.is_ideal:
+            self._enter_table()
+
+    @property
+    def params(self) -> BusParameters:
+        return self._params
+
+    @params.setter
+    def params(self, params: BusParameters) -> None:
+        """New parameters (the tuning page's retuning): as ``_QueueBus``'s, and the queues move between the
+        deques and the frame table when the preset turns ideal or real."""
+        self._params = params
+        self._frames_of_size = {}
+        self._flat_frames: dict[int, tuple[float, ...]] = {}  # ``_frames``' numbers of a size, flat
+        self._batch_templates: dict[tuple, tuple] = {}  # ``_batch_template``'s per batch shape
+        self._medium_constants: tuple | None = None  # ``_constants_of_medium``, made at the next period
+        self._per_sender = (-1, 0)  # (frame sizes known, frames a period can take per sender) for ``_period``
+        if not hasattr(self, "_kinds"):  # still in __init__
+            return
+        if params.is_ideal and self._tabled:
+            self._leave_table()
+        elif not params.is_ideal and not self._tabled:
+            self._enter_table()
+
+    # --- the frame table ---------------------------------------------------------------------------
+
+    def _enter_table(self) -> None:
+        """Make the frame table and move the deques' frames and the kinds' counters into it."""
+        robots = max([self._n or 1] + [s + 1 for s in self._queues] + [
+            max(f.message.receivers or (0,)) + 1 for q in self._queues.values() for f in q])
+        self._tabled = True
+        self._slots = 0
+        self._robots_held = 0
+        self._ints = np.empty((0, 7), dtype=np.int64)
+        self._floats = np.empty((0, 5))
+        self._listed = np.empty((0, 1), dtype=np.int64)
+        self._free = np.empty(0, dtype=np.int64)
+        self._counts = np.zeros(4, dtype=np.int64)
+        self._queue_rows = np.empty((0, 4), dtype=np.int64)
+        self._alive = np.zeros((0, 0), dtype=np.bool_)
+        self._kind_rows = np.empty((0, 7), dtype=np.int64)
+        self._kind_airtime = np.zeros((0, 1))
+        self._kind_ids: dict[str, int] = {}
+        self._kind_names: list[str] = []
+        self._log_latency = np.empty(1024)
+        self._log_kind = np.empty(1024, dtype=np.int64)
+        self._objects: dict[int, Message] = {}  # the queued messages not sent as_arrays, by sequence
+        self._dropped = np.empty(64, dtype=np.int64)
+        self._scratch_rows: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._tally = np.zeros(2, dtype=np.int64)  # _schedule_frames' (unsure draws, draws lost in it)
+        self._hold_robots(robots)
+        self._hold_slots(64)
+        for name, counters in self._kinds.items():  # in the order they were made
+            kind = self._kind(name)
+            self._kind_rows[kind, :medium.K_RANK + 1] = (
+                counters.packets_sent, counters.frames_sent, counters.bytes_sent, counters.addressed,
+                counters.delivered, counters.superseded, self._counts[medium.T_KINDS_MADE])
+            self._counts[medium.T_KINDS_MADE] += 1
+            self._kind_airtime[kind, :len(counters.airtime_s)] = counters.airtime_s
+            self._log(np.asarray(counters.latencies_s, dtype=float), kind)
+        for sender, queue in self._queues.items():
+            for frame in queue:
+                message = frame.message
+                self._hold_slots(1)
+                self._counts[medium.T_FREE] -= 1
+                slot = self._free[self._counts[medium.T_FREE]]
+                flags = ((medium.LAST if frame.last else 0) | (medium.AS_ARRAYS if message.as_arrays else 0)
+                         | (medium.LATEST_ONLY if message.latest_only else 0))
+                self._ints[slot] = (sender, message.sequence, self._kind(message.kind), flags, -1,
+                                    message.size_bytes, frame.payload_bytes)
+                audience = -1 if message.receivers is None else len(message.receivers)
+                self._floats[slot] = (message.sent_s, frame.airtime_s, frame.error_bits, audience,
+                                      float(message.payload) if message.as_arrays else 0.0)
+                if audience > 0:
+                    self._listed[slot, :audience] = message.receivers
+                tail = self._queue_rows[sender, medium.Q_TAIL]
+                if tail < 0:
+                    self._queue_rows[sender, medium.Q_HEAD] = slot
+                else:
+                    self._ints[tail, medium.I_NEXT] = slot
+                self._queue_rows[sender, medium.Q_TAIL] = slot
+                if not message.as_arrays:
+                    self._objects[message.sequence] = message
+                flight = self._in_flight.get(message.sequence)
+                if flight is not None:
+                    self._queue_rows[sender, medium.Q_FLYING] = message.sequence
+                    self._alive[sender, :len(flight.audience)] = flight.alive
+            self._queue_rows[sender, medium.Q_WAITING] = self._waiting.get(sender, 0)
+        self._counts[medium.T_WAITING] = self._waiting_total
+        # the frames moved in bound a period's frames per sender with their airtimes too (0 under 'ideal')
+        self._shortest_held_s = min([f.airtime_s for q in self._queues.values() for f in q], default=np.inf)
+        self._queues, self._waiting, self._waiting_total, self._in_flight, self._kinds = {}, {}, 0, {}, {}
+
+    def _leave_table(self) -> None:
+        """Move the frame table's frames and counters back into ``_QueueBus``'s deques and counters."""
+        self._kinds = self._table_counters()
+        n = self._robots_held
+        for sender in range(n):
+            slot = int(self._queue_rows[sender, medium.Q_HEAD])
+            queue: deque[_Frame] = deque()
+            while slot >= 0:
+                (_, sequence, kind, flags, following, size, payload_bytes) = self._ints[slot].tolist()
+                sent_s, airtime_s, error_bits, audience, value = self._floats[slot].tolist()
+                message = self._objects.get(sequence)
+                if message is None:  # sent as_arrays: its Message again, as it was stamped
+                    message = _new_object(Message)
+                    message.__dict__.update(
+                        kind=self._kind_names[kind], sender=sender,
+                        receivers=None if audience < 0 else tuple(self._listed[slot, :int(audience)].tolist()),
+                        payload=value, size_bytes=size, sequence=sequence, sent_s=sent_s,
+                        latest_only=bool(flags & medium.LATEST_ONLY), as_arrays=True)
+                queue.append(_Frame(message, payload_bytes, bool(flags & medium.LAST), airtime_s, error_bits))
+                if sequence == self._queue_rows[sender, medium.Q_FLYING]:
+                    audience_size = n - 1 if audience < 0 else int(audience)
+                    self._in_flight[sequence] = _InFlight(self._audience(message, n),
+                                                          self._alive[sender, :audience_size].tolist())
+                slot = following
+            if queue:
+                self._queues[sender] = queue
+            self._waiting[sender] = int(self._queue_rows[sender, medium.Q_WAITING])
+        self._waiting_total = int(self._counts[medium.T_WAITING])
+        self._tabled = False
+
+    def _table_counters(self) -> dict[str, _KindCounters]:
+        """The table's per-kind counters as ``_QueueBus`` keeps them, in the order they were made."""
+        logged = int(self._counts[medium.T_LOGGED])
+        latencies, latency_kinds = self._log_latency[:logged], self._log_kind[:logged]
+        made = [(int(self._kind_rows[kind, medium.K_RANK]), kind) for kind in range(len(self._kind_names))
+                if self._kind_rows[kind, medium.K_RANK] >= 0]
+        kinds = {}
+        for _, kind in sorted(made):
+            packets, frames, sent_bytes, addressed, delivered, superseded, _ = self._kind_rows[kind].tolist()
+            kinds[self._kind_names[kind]] = _KindCounters(
+                packets, frames, sent_bytes, addressed, delivered, latencies[latency_kinds == kind].tolist(),
+                self._kind_airtime[kind, :self._robots_held].tolist(), superseded)
+        return kinds
+
+    def _hold_slots(self, more: int) -> None:
+        """Room in the table for ``more`` frames."""
+        if self._counts[medium.T_FREE] >= more:
+            return
+        old = self._slots
+        slots = max(2 * old, old + more, 64)
+        self._ints = np.concatenate([self._ints, np.zeros((slots - old, 7), dtype=np.int64)])
+        self._floats = np.concatenate([self._floats, np.zeros((slots - old, 5))])
+        self._listed = np.concatenate([self._listed, np.zeros((slots - old, self._listed.shape[1]),
+                                                              dtype=np.int64)])
+        free = np.empty(slots, dtype=np.int64)
+        held = int(self._counts[medium.T_FREE])
+        free[:held] = self._free[:held]
+        free[held:held + slots - old] = np.arange(old, slots)
+        self._free = free
+        self._counts[medium.T_FREE] += slots - old
+        self._slots = slots
+
+    def _hold_robots(self, robots: int) -> None:
+        """Room for senders and receivers 0 .. robots - 1."""
+        old = self._robots_held
+        if robots <= old:
+            return
+        queue_rows = np.empty((robots, 4), dtype=np.int64)
+        queue_rows[:old] = self._queue_rows
+        queue_rows[old:] = (-1, -1, 0, -1)
+        self._queue_rows = queue_rows
+        alive = np.zeros((robots, robots), dtype=np.bool_)
+        alive[:old, :old] = self._alive
+        self._alive = alive
+        listed = np.zeros((self._listed.shape[0], robots), dtype=np.int64)
+        listed[:, :self._listed.shape[1]] = self._listed
+        self._listed = listed
+        airtime = np.zeros((self._kind_airtime.shape[0], robots))
+        airtime[:, :self._kind_airtime.shape[1]] = self._kind_airtime
+        self._kind_airtime = airtime
+        self._robots_held = robots
+
+    def _kind(self, name: str) -> int:
+        """The table's number of a message kind (its row of counters)."""
+        kind = self._kind_ids.get(name)
+        if kind is None:
+            kind = self._kind_ids[name] = len(self._kind_names)
+            self._kind_names.append(name)
+            if kind >= len(self._kind_rows):
+                rows = np.zeros((2 * kind + 2, 7), dtype=np.int64)
+                rows[:, medium.K_RANK] = -1
+                rows[:kind] = self._kind_rows
+                self._kind_rows = rows
+                airtime = np.zeros((len(rows), self._kind_airtime.shape[1]))
+                airtime[:kind] = self._kind_airtime
+                self._kind_airtime = airtime
+        return kind
+
+    def _log(self, latencies: np.ndarray, kind: int) -> None:
+        """Append latencies of one kind to the table's log (what ``book`` does as it goes)."""
+        logged = int(self._counts[medium.T_LOGGED])
+        self._hold_log(len(latencies))
+        self._log_latency[logged:logged + len(latencies)] = latencies
+        self._log_kind[logged:logged + len(latencies)] = kind
+        self._counts[medium.T_LOGGED] += len(latencies)
+
+    def _hold_log(self, more: int) -> None:
+        logged = int(self._counts[medium.T_LOGGED])
+        if logged + more > len(self._log_latency):
+            size = max(2 * len(self._log_latency), logged + more)
+            latency, kinds = np.empty(size), np.empty(size, dtype=np.int64)
+            latency[:logged] = self._log_latency[:logged]
+            kinds[:logged] = self._log_kind[:logged]
+            self._log_latency, self._log_kind = latency, kinds
+
+    # --- sending -----------------------------------------------------------------------------------
+
+    def send(self, message: Message, time_s: float) -> Message:
+        if not self._tabled:
+            return super().send(message, time_s)
+        sequence = self._sequence
+        self.send_all((message,), time_s)
+        return self._objects.get(sequence) or _stamped(message, sequence, float(time_s))
+
+    def send_all(self, messages: Any, time_s: float) -> None:
+        """``send`` each of ``messages`` at ``time_s``, in order (a tick's outbox), into the frame table in one
+        compiled call."""
+        if not self._tabled:
+            return super().send_all(messages, time_s)
+        time_s = float(time_s)
+        if type(messages) is tuple and len(messages) == 1 and type(messages[0]) is Broadcasts:
+            # the consensus alone (most ticks): its kept rows go in as they are
+            batch = messages[0]
+            rows, frames, top = self._batch_template(batch)
+            if len(batch):
+                self._enqueue(rows, batch.values, _NO_ROBOTS, frames, top, time_s)
+            return
+        robots = self._n
+        kind_ids, objects = self._kind_ids, self._objects
+        start = sequence = self._sequence
+        # the rows of _enqueue's arrays, flat (array.array extends from a tuple without a Python loop); each
+        # message's sequence from the first one's
+        rows, values, listed, spec = array("q"), array("d"), array("q"), array("d")
+        top = -1  # the highest robot named
+        try:
+            for message in messages:
+                if type(message) is Broadcasts:
+                    block, frames, highest = self._batch_template(message)
+                    block = block.reshape(-1, 7).copy()
+                    block[:, 1] += sequence - start
+                    rows.frombytes(block.tobytes())
+                    values.frombytes(message.values.tobytes())
+                    spec.frombytes(frames.tobytes())
+                    sequence += len(message)
+                    top = max(top, highest)
+                    continue
+                sender = message.sender
+                receivers = message.receivers
+                if robots is not None and (not 0 <= sender < robots or (
+                        receivers and any(not 0 <= r < robots for r in receivers))):
+                    raise ValueError(f"message {message.kind!r} names a robot outside 0..{robots - 1}")
+                frames = self._flat_frames.get(message.size_bytes)
+                if frames is None:
+                    frames = self._flat_frames[message.size_bytes] = tuple(chain.from_iterable(
+                        self._frames(message.size_bytes)))
+                kind = kind_ids.get(message.kind)
+                if kind is None:
+                    kind = self._kind(message.kind)
+                fields = message.__dict__
+                if fields["as_arrays"]:
+                    flags = medium.AS_ARRAYS
+                    values.append(fields["payload"])
+                else:
+                    stamped = objects[sequence] = _new_object(type(message))
+                    stamped.__dict__.update(fields)
+                    stamped.__dict__["sequence"] = sequence
+                    stamped.__dict__["sent_s"] = time_s
+                    flags = 0
+                    values.append(0.0)
+                if fields["latest_only"]:
+                    flags |= medium.LATEST_ONLY
+                if receivers is None:
+                    audience = -1
+                else:
+                    audience = len(receivers)
+                    listed.extend(receivers)
+                if sender > top:
+                    top = sender
+                rows.extend((sender, sequence - start, kind, flags, message.size_bytes, len(frames) // 3, audience))
+                spec.extend(frames)
+                sequence += 1
+        finally:
+            if rows:
+                self._enqueue(np.frombuffer(rows, dtype=np.int64), np.frombuffer(values),
+                              np.frombuffer(listed, dtype=np.int64), np.frombuffer(spec),
+                              max(top, max(listed, default=-1)), time_s, start)
+            else:
+                self._sequence = sequence
+
+    def _batch_template(self, batch: Broadcasts) -> tuple[np.ndarray, np.ndarray, int]:
+        """A ``Broadcasts`` item's rows for ``_enqueue`` (flat; sequences from 0), its frames' rows (flat), and
+        the highest robot it names: what ``send_all`` makes of its messages one by one. Kept per kind, size,
+        flags and count when every robot sends (the consensus, every tick)."""
+        senders = batch.senders
+        key = (batch.kind, batch.size_bytes, batch.latest_only, len(batch)) if senders is None else None
+        template = self._batch_templates.get(key)
+        if template is None:
+            count = len(batch)
+            frames = self._flat_frames.get(batch.size_bytes)
+            if frames is None:
+                frames = self._flat_frames[batch.size_bytes] = tuple(chain.from_iterable(
+                    self._frames(batch.size_bytes)))
+            flags = medium.AS_ARRAYS | (medium.LATEST_ONLY if batch.latest_only else 0)
+            # sender, sequence (from 0), kind, flags, size, frames, audience (-1: a broadcast)
+            block = np.array([(0, 0, self._kind(batch.kind), flags, batch.size_bytes, len(frames) // 3, -1)],
+                             dtype=np.int64).repeat(count, axis=0)
+            block[:, 0] = batch.sender_indices()
+            block[:, 1] = np.arange(count)
+            highest = int(block[:, 0].max(initial=-1))
+            template = (block.reshape(-1), np.tile(np.array(frames, dtype=float), count), highest)
+            if key is not None:
+                self._batch_templates[key] = template
+        robots = self._n
+        if robots is not None and (template[2] >= robots or (senders is not None and len(senders)
+                                                             and senders.min() < 0)):
+            raise ValueError(f"message {batch.kind!r} names a robot outside 0..{robots - 1}")
+        return template
+
+    def _enqueue(self, rows: np.ndarray, values: np.ndarray, listed: np.ndarray, spec: np.ndarray, top: int,
+                 time_s: float, first_sequence: int | None = None) -> None:
+        """``medium._enqueue`` of these rows sent at ``time_s``, their sequences from ``first_sequence`` (the
+        next one when None), the table made large enough first."""
+        if first_sequence is None:
+            first_sequence = self._sequence
+        messages = len(values)
+        self._sequence = first_sequence + messages
+        self._hold_robots(top + 1)
+        self._hold_slots(len(spec) // 3)
+        if len(self._dropped) < self._counts[medium.T_WAITING] + messages:
+            self._dropped = np.empty(2 * (self._counts[medium.T_WAITING] + messages), dtype=np.int64)
+        dropped = _enqueue_entry(self._ints, self._floats, self._listed, self._queue_rows, self._free,
+                                 self._counts, self._kind_rows, rows, values, listed, spec, first_sequence, time_s,
+                                 self._dropped)
+        if dropped and self._objects:
+            for sequence in self._dropped[:dropped].tolist():
+                self._objects.pop(sequence, None)
+
+    # --- one control period ------------------------------------------------------------------------
+
+    def queued(self, sender: int | None = None) -> int:
+        if not self._tabled:
+            return super().queued(sender)
+        if sender is None:
+            return int(self._counts[medium.T_WAITING])
+        return int(self._queue_rows[sender, medium.Q_WAITING]) if 0 <= sender < self._robots_held else 0
+
+    def _queues_busy(self) -> bool:
+        if not self._tabled:
+            return super()._queues_busy()
+        return self._counts[medium.T_WAITING] > 0
+
+    def step(self, time_s: float, link: LinkState | None) -> list[list[Delivery]]:
+        if not self._tabled:
+            return super().step(time_s, link)
+        self._arrivals = {}
+        if not self._counts[medium.T_WAITING]:  # nothing queued, nothing in flight
+            self._elapsed_s += self.control_period_s
+            self._last = None  # an empty period at self._idle_s, built only when read
+            self._idle_s = time_s
+            n = self._robot_count(link) if link is not None else self._n or 0
+            return [[] for _ in range(n)]
+        if link is None:
+            raise ValueError(f"the {self.params.name!r} bus needs this tick's link state")
+        n = self._robot_count(link)
+        sense = np.ascontiguousarray(link.carrier_sense, dtype=bool)
+        snr = np.ascontiguousarray(link.snr_db, dtype=float)
+        if sense.shape != (n, n) or snr.shape != (n, n):
+            raise ValueError(f"the link's arrays must be ({n}, {n})")
+        self._hold_robots(n)
+        (sent, packets, addressed, delivered, columns, values, latencies, bounds,
+         finished) = self._period(float(time_s), sense, snr, n)
+        self._elapsed_s += self.control_period_s
+        deliveries: list[list[Delivery]] = [[] for _ in range(n)]
+        if len(latencies):
+            columns.flags.writeable = False  # before the views: they inherit it
+            values.flags.writeable = False
+            bounds = bounds.tolist()
+            arrivals = self._arrivals
+            for kind, name in enumerate(self._kind_names):
+                start, end = bounds[kind], bounds[kind + 1]
+                if end > start:
+                    columns_of_kind = _new_object(Arrivals)
+                    columns_of_kind.__dict__.update(
+                        receiver=columns[0, start:end], sender=columns[1, start:end], arrival_s=values[0, start:end],
+                        sent_s=values[1, start:end], sequence=columns[2, start:end], payload=values[2, start:end])
+                    arrivals[name] = columns_of_kind
+            start, end = bounds[-2], bounds[-1]  # the messages not sent as_arrays, in the rows' order
+            if end > start:
+                objects = self._objects
+                for receiver, sequence, arrival_s in zip(columns[0, start:end].tolist(),
+                                                         columns[2, start:end].tolist(), values[0, start:end].tolist()):
+                    deliveries[receiver].append(_delivery(objects[sequence], receiver, arrival_s))
+            # numpy.mean's own sum and division, without its wrapper (this runs every tick)
+            latency_mean_s = float(np.add.reduce(latencies) / latencies.size)
+        else:
+            latency_mean_s = math.nan
+        if len(finished):
+            for sequence in finished.tolist():
+                del self._objects[sequence]
+        # TickStats(...) without the frozen dataclass's per-field __setattr__
+        self._last = last = _new_object(TickStats)
+        last.__dict__.update(time_s=float(time_s), packets_sent=packets, packets_delivered=delivered,
+                             delivery_ratio=delivered / addressed if addressed else math.nan,
+                             latency_mean_s=latency_mean_s, queued=int(self._counts[medium.T_WAITING]))
+        return deliveries
+
+    def _period(self, start_s: float, sense: np.ndarray, snr: np.ndarray, n: int) -> tuple:
+        """The medium's period over the frame table (``medium._period``), numpy deciding the draws the kernel
+        leaves to its exact PER."""
+        constants = self._medium_constants
+        if constants is None:
+            constants = self._medium_constants = self._constants_of_medium()
+        # Scratch for the frames a period can gather: per sender those whose airtime before them fits, and one
+        reach_s = self.control_period_s + 1e-6
+        sizes, per_sender = self._per_sender
+        if sizes != len(self._frames_of_size):  # a new frame size since: its airtime may be the shortest
+            shortest = self._shortest_airtime_s
+            per_sender = int(reach_s / shortest) + 2 if shortest > 0 else -1
+            self._per_sender = (len(self._frames_of_size), per_sender)
+        if per_sender < 0:
+            per_sender = self._slots
+        gathered = min(self._slots - int(self._counts[medium.T_FREE]), n * per_sender)
+        width = max(4 * gathered, gathered * n, n) + 1
+        held = self._scratch_rows
+        if held is None or held[0].shape[1] < width:
+            width = max(width, 256)
+            held = self._scratch_rows = (np.empty((8, width), dtype=np.int64), np.empty((6, width)),
+                                         np.empty((2, width), dtype=np.bool_))
+        integers, reals, flags = held
+        self._hold_log(gathered * max(n - 1, 0))
+        arguments = (start_s, start_s + self.control_period_s, self._EPS_S, reach_s, sense, snr, self._ints,
+                     self._floats, self._listed, self._queue_rows, self._alive, self._free, self._counts,
+                     self._kind_rows, self._kind_airtime, self._log_latency, self._log_kind, *constants)
+        result = _period_entry(arguments, self.rng, self._pointers(), (integers, reals, flags, self._tally))
+        if result[0] >= 0:
+            return result
+        # Some draws' SNR with fading lies too near the PER's edge for the kernel: numpy's exact PER decides them
+        sent = result[1]
+        draws = int(integers[2, sent])
+        unsure = np.flatnonzero(flags[0, :draws])
+        level = reals[2][unsure]
+        if constants[0] != _NO_DRAW or self.params.fading_model != "none":
+            fading_db = np.maximum(reals[4][unsure], np.finfo(float).tiny)
+            np.log10(fading_db, out=fading_db)
+            fading_db *= 10.0
+            level = level + fading_db
+        per = channel.packet_error_rate_at_snr(self.params.modulation, level, self.params.bandwidth_hz,
+                                               self.params.bitrate_bps, reals[3][unsure])
+        flags[1][unsure] = reals[5][unsure] >= per
+        return medium.book(n, self._ints, self._floats, self._queue_rows, self._alive, self._free, self._counts,
+                           self._kind_rows, self._kind_airtime, self._log_latency, self._log_kind, integers, reals,
+                           flags, sent)
+
+    @property
+    def _shortest_airtime_s(self) -> float:
+        """The shortest airtime of a frame queued under these parameters or earlier ones (bounds a period's
+        frames per sender)."""
+        shortest = min((frame[1] for frames in self._frames_of_size.values() for frame in frames), default=np.inf)
+        held = getattr(self, "_shortest_held_s", np.inf)
+        if shortest < held:
+            self._shortest_held_s = held = shortest
+        return held
+
+    def _constants_of_medium(self) -> tuple[int, float, float, float, bool]:
+        """The scheduling kernel's arguments that only the parameters set: how it draws the fading gain, the
+        Rician noncentrality and the gain's divisor, the zero-BER SNR and whether it computes 802.15.4 PERs."""
+        fading_code, gain_scale = self._fading_draw
+        modulation = self.params.modulation
+        return (int(fading_code), float(2.0 * self.params.rician_k), float(gain_scale),
+                float(_ZERO_BER_SNR_DB.get(modulation, np.inf)), modulation == "oqpsk_dsss_802154")
+
+    def _pointers(self) -> tuple[int, ...] | None:
+        """``sim.compiled.generator_pointers`` of ``self.rng`` (None for a generator that is not numpy's),
+        kept with the generator they belong to."""
+        held = self._rng_pointers
+        if held is None or held[0] is not self.rng:
+            pointers = generator_pointers(self.rng) if isinstance(self.rng, np.random.Generator) else None
+            held = self._rng_pointers = (self.rng, pointers)
+        return held[1]
+
+    @property
+    def _fading_draw(self) -> tuple[int, float]:
+        """How ``_schedule_frames`` draws the fading gain of this bus's model, and the gain's divisor."""
+        fading, rician_k = self.params.fading_model, self.params.rician_k
+        if fading == "none" or (fading == "rician" and math.isinf(rician_k)):
+            return _NO_DRAW, 1.0
+        if fading == "rayleigh" or (fading == "rician" and rician_k == 0):
+            return _EXPONENTIAL, 1.0
+        if fading == "rician":
+            if rician_k < 0:
+                raise ValueError("the Rician K-factor must be >= 0")
+            return _NONCENTRAL_CHISQUARE, 2.0 * (rician_k + 1.0)
+        raise ValueError(f"unknown fading model {fading!r}; known: {', '.join(channel.FADING_MODELS)}")
+
+
+    # --- metrics -----------------------------------------------------------------------------------
+
+    def summary(self) -> dict[str, float | int]:
+        return self._summary_of(self._table_counters() if self._tabled else self._kinds)
+
+
+# The kernels' compiled entry points once the dispatcher has compiled them: calling one skips the
+# dispatcher's typing of every argument each call.
+_ENTRIES: dict[tuple, Any] = {}
+
+
+def _compiled_entry(dispatcher: Any, arguments: tuple, key: tuple) -> Any:
+    """``dispatcher(*arguments)``, through its compiled entry point after the first call with this ``key``
+    (the callers pass arrays C-contiguous and scalars of fixed Python types: one signature per key)."""
+    entry = _ENTRIES.get(key)
+    if entry is not None:
+        return entry(*arguments)
+    result = dispatcher(*arguments)
+    overloads = getattr(dispatcher, "overloads", None)
+    if overloads is not None:
+        signature = tuple(dispatcher.typeof_pyval(argument) for argument in arguments)
+        if signature in overloads:
+            _ENTRIES[key] = overloads[signature].entry_point
+    return result
+
+
+def _enqueue_entry(*arguments: Any) -> int:
+    return _compiled_entry(medium._enqueue, arguments, ("enqueue",))
+
+
+def _period_entry(arguments: tuple, rng: Any, pointers: tuple[int, ...] | None, scratch: tuple) -> tuple:
+    """``medium._period``: with compiled kernels through ``_period_at`` with the Generator's ``pointers``
+    (numba's unboxing of the Generator itself costs about 15 us a call)."""
+    if pointers is None or getattr(medium._period_at, "overloads", None) is None:  # numba's JIT disabled
+        return medium._period(*arguments, rng, *scratch)
+    # one signature per writeability of the link's arrays (a caller's read-only matrices are typed apart)
+    key = ("period", arguments[4].flags.writeable, arguments[5].flags.writeable)
+    return _compiled_entry(medium._period_at, pointers + arguments + scratch, key)

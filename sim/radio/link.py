@@ -23,7 +23,7 @@ from sim.compiled import generator_at, generator_pointers, kernel
 from sim.geometry import Boxes
 from sim.radio import channel
 from sim.radio.config import RadioConfig
-from sim.radio.walls import SceneWalls
+from sim.radio.walls import SceneWalls, _pair_crossings
 from sim.types import Links, RadioState
 
 
@@ -43,6 +43,7 @@ class RadioChannel:
         self._shadowing_time = -np.inf
         self._step: tuple[float, float, float] = (np.nan, 0.0, 0.0)  # dt, rho, innovation std of the last step
         self._rng_pointers: tuple | None = None  # (rng, sim.compiled.generator_pointers of it)
+        self._figure_constants: tuple | None = None  # ``_walls_and_figures``' arguments that never change
         if not config.is_ideal:
             self._certain = self._certain_snr_db()
 
@@ -142,6 +143,36 @@ class RadioChannel:
             delivery[uncertain] = self.delivery_at_snr(snr[uncertain])
         return {"rx_power_dbm": rx, "snr_db": snr, "shadowing_db": shadowing_db, "delivery": delivery}
 
+    def _walls_and_figures(self, positions: np.ndarray, first: np.ndarray, second: np.ndarray, distance: np.ndarray,
+                           shadowing_db: np.ndarray, computed: dict) -> dict[str, np.ndarray]:
+        """``pair_figures`` over the walls ``SceneWalls.crossed_pairs`` finds (put in ``computed["walls"]``), and
+        the bus's matrices of them (``"link_matrices"``: the SNR (N, N), NaN on the diagonal, and carrier sense,
+        mean received power >= ``carrier_sense_dbm``, as ``sim.radio.bus.link_from_pairs`` makes them), in one
+        compiled call: the same values, without three calls' arguments and arrays each tick."""
+        n, pairs = len(positions), len(first)
+        log_ratio = np.maximum(distance[first, second], 1.0)  # (pair_figures': the logarithm with numpy)
+        np.log10(log_ratio, out=log_ratio)
+        wall_loss, rx, snr, delivery = np.empty((4, pairs))  # one block, four rows
+        count = np.empty(pairs, dtype=np.int64)
+        uncertain = np.empty(pairs, dtype=np.bool_)
+        snr_matrix = np.empty((n, n))
+        sense = np.empty((n, n), dtype=np.bool_)
+        constants = self._figure_constants
+        if constants is None:  # the scene's boxes and the formulas' figures: the same every tick
+            config, walls, (below, above) = self.config, self.walls, self._certain
+            constants = self._figure_constants = (
+                walls.centers, walls.halves, walls.rotations, walls.extents, walls.losses,
+                10.0 * config.path_loss_exponent, float(config.reference_loss_db), float(config.tx_power_dbm),
+                float(config.noise_floor_dbm), below, above, float(config.carrier_sense_dbm))
+        some = _walls_and_pair_figures(positions, first, second, log_ratio, shadowing_db, *constants, count, wall_loss,
+                                       rx, snr, delivery, uncertain, snr_matrix, sense)
+        if some:
+            delivery[uncertain] = self.delivery_at_snr(snr[uncertain])
+        computed["walls"] = {"count": count, "loss_db": wall_loss}
+        snr_matrix.flags.writeable = False
+        return {"rx_power_dbm": rx, "snr_db": snr, "shadowing_db": shadowing_db, "delivery": delivery,
+                "link_matrices": (snr_matrix, sense)}
+
     def state(self, time_s: float, positions: np.ndarray, links: Links, extra_loss_db: np.ndarray | None = None,
               silent: np.ndarray | None = None) -> RadioState:
         """The channel of every pair of robots at ``positions`` ((N, 3), m) at ``time_s`` (s).
@@ -179,6 +210,8 @@ class RadioChannel:
             return computed["walls"]
 
         def figures() -> dict[str, np.ndarray]:
+            if "walls" not in computed and extra_loss_db is None and silent is None:
+                return self._walls_and_figures(positions, first, second, distance, shadowing, computed)
             wall_loss = walls_once()["loss_db"]
             if extra_loss_db is not None:
                 wall_loss = wall_loss + extra_loss_db  # a blackout adds to the path loss, as a wall does
@@ -207,6 +240,36 @@ def _pair_figures(log_ratio, wall_loss_db, shadowing_db, distance_coefficient, r
         delivery[p] = 1.0 if snr[p] >= above else 0.0
         uncertain[p] = snr[p] > below and snr[p] < above
         inside += uncertain[p]
+    return inside
+
+
+@kernel
+def _walls_and_pair_figures(positions, first, second, log_ratio, shadowing_db, centers, halves, rotations, extents,
+                            losses, distance_coefficient, reference_loss_db, tx_power_dbm, noise_floor_dbm,
+                            below, above, carrier_sense_dbm, count, wall_loss_db, rx, snr, delivery, uncertain,
+                            snr_matrix, sense):
+    """``walls._pair_crossings`` (into ``count`` and ``wall_loss_db``, zeroed here), ``_pair_figures`` over
+    them, and the bus's (N, N) matrices of the figures: the SNR of both triangles with NaN on the diagonal,
+    carrier sense where ``rx`` reaches ``carrier_sense_dbm`` (False on the diagonal). Returns
+    ``_pair_figures``' count of pairs inside the uncertain band."""
+    count[:] = 0
+    wall_loss_db[:] = 0.0
+    if centers.shape[0]:
+        _pair_crossings(positions, first, second, centers, halves, rotations, extents, losses, count, wall_loss_db)
+    inside = _pair_figures(log_ratio, wall_loss_db, shadowing_db, distance_coefficient, reference_loss_db,
+                           tx_power_dbm, noise_floor_dbm, below, above, rx, snr, delivery, uncertain)
+    n = snr_matrix.shape[0]
+    for i in range(n):
+        for j in range(n):
+            sense[i, j] = False
+        snr_matrix[i, i] = np.nan
+    for p in range(first.shape[0]):
+        i, j = first[p], second[p]
+        snr_matrix[i, j] = snr[p]
+        snr_matrix[j, i] = snr[p]
+        heard = rx[p] >= carrier_sense_dbm
+        sense[i, j] = heard
+        sense[j, i] = heard
     return inside
 
 

@@ -340,6 +340,8 @@ class HeartbeatMonitor:
         # Per sender, the times at which a first robot declared it silent while none did: when its silence
         # was detected (a failure's detection time is the first of these after it).
         self.silence_detected_s: list[list[float]] = [[] for _ in range(n_robots)]
+        self._back = np.empty(64, dtype=np.int64)  # step's scratch: the entries heard again
+        self._quiet = np.empty((2, n_robots * n_robots), dtype=np.int64)  # and the quiet pairs
 
     def step(self, time_s: float, inbox: tuple[tuple[Delivery, ...], ...], arrivals: Any = None
              ) -> list[tuple[int, int]]:
@@ -363,11 +365,17 @@ class HeartbeatMonitor:
                 self.withdrawn.append((time_s, int(columns.receiver[k]), int(columns.sender[k])))
         if kinds:  # the last kind's columns read in the same compiled call as the search for quiet pairs
             columns = kinds[-1]
-            back = np.empty(len(columns), dtype=np.int64)
-            heard_again, quiet = _hear_columns_then_quiet_pairs(columns.receiver, columns.sender, columns.arrival_s,
-                                                                last, silent, back, time_s - self.timeout_s)
-            for k in (back[:heard_again] if heard_again else ()):
+            if len(self._back) < len(columns):
+                self._back = np.empty(2 * len(columns), dtype=np.int64)
+            back = self._back
+            heard_again, found = _hear_columns_then_quiet_pairs(columns.receiver, columns.sender, columns.arrival_s,
+                                                                last, silent, back, time_s - self.timeout_s,
+                                                                self._quiet)
+            for k in (back[:heard_again].tolist() if heard_again else ()):
                 self.withdrawn.append((time_s, int(columns.receiver[k]), int(columns.sender[k])))
+            if not found:
+                return []
+            quiet = self._quiet[:, :found]
         else:
             quiet = _quiet_pairs(last, silent, time_s - self.timeout_s)
         if not quiet.shape[1]:
@@ -399,11 +407,21 @@ def _hear_columns(receiver, sender, arrival_s, last_heard, silent, back):
 
 
 @kernel
-def _hear_columns_then_quiet_pairs(receiver, sender, arrival_s, last_heard, silent, back, before_s):
+def _hear_columns_then_quiet_pairs(receiver, sender, arrival_s, last_heard, silent, back, before_s, quiet):
     """``_hear_columns`` and then ``_quiet_pairs`` in one call (each compiled call costs microseconds of
-    arguments): (how many came back, the quiet pairs)."""
+    arguments), the quiet pairs written into ``quiet`` ((2, N M): a returned array costs its boxing each call):
+    (how many came back, how many pairs are quiet)."""
     heard_again = _hear_columns(receiver, sender, arrival_s, last_heard, silent, back)
-    return heard_again, _quiet_pairs(last_heard, silent, before_s)
+    n, m = last_heard.shape
+    found = 0
+    for i in range(n):
+        for j in range(m):
+            heard = last_heard[i, j]
+            if np.isfinite(heard) and heard < before_s and not silent[i, j]:
+                quiet[0, found] = i
+                quiet[1, found] = j
+                found += 1
+    return heard_again, found
 
 
 @kernel
