@@ -406,16 +406,8 @@ def link_from_pairs(n: int, pairs: tuple[np.ndarray, np.ndarray], snr_db: np.nda
 def _pair_matrices(n, first, second, snr_db, rx_power_dbm, carrier_sense_dbm):
     """``link_from_pairs``' two (N, N) matrices, both triangles from each pair."""
     snr = np.empty((n, n))
-    sense = np.zeros((n, n), dtype=np.bool_)
-    for p in range(first.shape[0]):
-        i, j = first[p], second[p]
-        snr[i, j] = snr_db[p]
-        snr[j, i] = snr_db[p]
-        heard = rx_power_dbm[p] >= carrier_sense_dbm
-        sense[i, j] = heard
-        sense[j, i] = heard
-    for i in range(n):
-        snr[i, i] = np.nan
+    sense = np.empty((n, n), dtype=np.bool_)
+    medium.write_pair_matrices(first, second, snr_db, rx_power_dbm, carrier_sense_dbm, snr, sense)
     return snr, sense
 
 

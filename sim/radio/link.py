@@ -23,6 +23,7 @@ from sim.compiled import generator_at, generator_pointers, kernel
 from sim.geometry import Boxes
 from sim.radio import channel
 from sim.radio.config import RadioConfig
+from sim.radio.medium import write_pair_matrices
 from sim.radio.walls import SceneWalls, _pair_crossings
 from sim.types import Links, RadioState
 
@@ -258,18 +259,7 @@ def _walls_and_pair_figures(positions, first, second, log_ratio, shadowing_db, c
         _pair_crossings(positions, first, second, centers, halves, rotations, extents, losses, count, wall_loss_db)
     inside = _pair_figures(log_ratio, wall_loss_db, shadowing_db, distance_coefficient, reference_loss_db,
                            tx_power_dbm, noise_floor_dbm, below, above, rx, snr, delivery, uncertain)
-    n = snr_matrix.shape[0]
-    for i in range(n):
-        for j in range(n):
-            sense[i, j] = False
-        snr_matrix[i, i] = np.nan
-    for p in range(first.shape[0]):
-        i, j = first[p], second[p]
-        snr_matrix[i, j] = snr[p]
-        snr_matrix[j, i] = snr[p]
-        heard = rx[p] >= carrier_sense_dbm
-        sense[i, j] = heard
-        sense[j, i] = heard
+    write_pair_matrices(first, second, snr, rx, carrier_sense_dbm, snr_matrix, sense)
     return inside
 
 

@@ -501,3 +501,22 @@ def book(n, ints, floats, queues, alive, free, counts, kinds, airtime, log_laten
         values[1, e] = floats[slot, F_SENT]
         values[2, e] = floats[slot, F_VALUE]
     return sent, packets, addressed, delivered, columns, values, latencies, bounds, finished[:finished_count]
+
+
+@kernel
+def write_pair_matrices(first, second, snr_db, rx_power_dbm, carrier_sense_dbm, snr, sense):
+    """The medium's (N, N) view of the channel from its pairs' figures, into ``snr`` and ``sense``: the
+    SNR in both triangles with NaN on the diagonal, carrier sense where the received power reaches
+    ``carrier_sense_dbm`` (False elsewhere)."""
+    n = snr.shape[0]
+    for i in range(n):
+        for j in range(n):
+            sense[i, j] = False
+        snr[i, i] = np.nan
+    for p in range(first.shape[0]):
+        i, j = first[p], second[p]
+        snr[i, j] = snr_db[p]
+        snr[j, i] = snr_db[p]
+        heard = rx_power_dbm[p] >= carrier_sense_dbm
+        sense[i, j] = heard
+        sense[j, i] = heard

@@ -408,10 +408,17 @@ def _hear_columns(receiver, sender, arrival_s, last_heard, silent, back):
 
 @kernel
 def _hear_columns_then_quiet_pairs(receiver, sender, arrival_s, last_heard, silent, back, before_s, quiet):
-    """``_hear_columns`` and then ``_quiet_pairs`` in one call (each compiled call costs microseconds of
+    """``_hear_columns`` and then ``_write_quiet_pairs`` in one call (each compiled call costs microseconds of
     arguments), the quiet pairs written into ``quiet`` ((2, N M): a returned array costs its boxing each call):
     (how many came back, how many pairs are quiet)."""
     heard_again = _hear_columns(receiver, sender, arrival_s, last_heard, silent, back)
+    return heard_again, _write_quiet_pairs(last_heard, silent, before_s, quiet)
+
+
+@kernel
+def _write_quiet_pairs(last_heard, silent, before_s, quiet):
+    """The pairs (receiver, sender), row-major as ``numpy.nonzero`` lists them, heard at least once, last
+    before ``before_s`` and not yet silent, written into the columns of ``quiet`` ((2, N M)): how many."""
     n, m = last_heard.shape
     found = 0
     for i in range(n):
@@ -421,27 +428,11 @@ def _hear_columns_then_quiet_pairs(receiver, sender, arrival_s, last_heard, sile
                 quiet[0, found] = i
                 quiet[1, found] = j
                 found += 1
-    return heard_again, found
+    return found
 
 
 @kernel
 def _quiet_pairs(last_heard, silent, before_s):
-    """The pairs (receiver, sender), row-major as ``numpy.nonzero`` lists them, heard at least once, last
-    before ``before_s`` and not yet silent: (2, Q) int64."""
-    n, m = last_heard.shape
-    count = 0
-    for i in range(n):
-        for j in range(m):
-            heard = last_heard[i, j]
-            if np.isfinite(heard) and heard < before_s and not silent[i, j]:
-                count += 1
-    pairs = np.empty((2, count), dtype=np.int64)
-    k = 0
-    for i in range(n):
-        for j in range(m):
-            heard = last_heard[i, j]
-            if np.isfinite(heard) and heard < before_s and not silent[i, j]:
-                pairs[0, k] = i
-                pairs[1, k] = j
-                k += 1
-    return pairs
+    """``_write_quiet_pairs``' pairs as a new (2, Q) int64 array."""
+    quiet = np.empty((2, last_heard.size), dtype=np.int64)
+    return quiet[:, :_write_quiet_pairs(last_heard, silent, before_s, quiet)].copy()
