@@ -255,6 +255,7 @@ class TuningSession:
         self.figures: dict[str, float] = {}
         self.overlay = ""  # the video's overlay line (time, links, the strategy's figures)
         self.legend: list[dict[str, str]] = []  # the strategy's decorations' legend: what the view's colours mean
+        self._scenery: tuple | None = None  # (the model, its obstacles' legend entries): made once per simulation
         self.real_time_factor: float | None = None
         self._jpeg: bytes | None = None
         self.frame_seq = 0
@@ -403,9 +404,11 @@ class TuningSession:
         from viz.scenery import scenery_legend
         from viz.video import overlay_text
 
+        model = self.sim.world.model
+        if self._scenery is None or self._scenery[0] is not model:  # once per simulation (a reset builds a new one)
+            self._scenery = (model, scenery_legend(model))
         self.legend = [{"label": str(label), "color": _css_color(rgba)}
-                       for label, rgba in frame_legend(frame, self.sim.world.robot_kinds,
-                                                       scenery_legend(self.sim.world.model))]
+                       for label, rgba in frame_legend(frame, self.sim.world.robot_kinds, self._scenery[1])]
         self.overlay = overlay_text(frame)
         self._seq += 1
         self._series.append((self._seq, t, values))

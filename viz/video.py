@@ -349,12 +349,65 @@ def add_sphere(scene: mujoco.MjvScene, p: np.ndarray, radius: float, rgba: np.nd
     scene.ngeom += 1
 
 
-def draw_decorations(canvas, frame: Frame, halo_radius_m: float = GROUND_HALO_RADIUS_M) -> None:
+class DecorationCanvas:
+    """What :func:`draw_decorations` draws into: a MuJoCo scene (``mjv_scene``) of the ``world``, at
+    ``metres_per_px`` (the scale of the markers' minimum sizes), under the scene's ``light_gain``
+    (:func:`viz.scenery.top_light_gain`). The video's frame, its close-up and the viewer's user scene are one."""
+
+    world: World
+    metres_per_px: float
+    light_gain: np.ndarray
+
+    def mjv_scene(self) -> mujoco.MjvScene:
+        raise NotImplementedError
+
+    def at_least(self, size_m: float, pixels: float) -> float:
+        """``size_m``, or ``pixels`` of the view when that is larger: markers stay visible in a 70 m
+        scene as in a 10 m one."""
+        return max(size_m, pixels * self.metres_per_px)
+
+    def _add_capsule(self, a: np.ndarray, b: np.ndarray, width: float, rgba: np.ndarray) -> None:
+        add_capsule(self.mjv_scene(), a, b, width, rgba, self.light_gain)
+
+    def _add_sphere(self, p: np.ndarray, radius: float, rgba: np.ndarray) -> None:
+        add_sphere(self.mjv_scene(), p, radius, rgba, self.light_gain)
+
+
+def offscreen_renderer(model: mujoco.MjModel, height: int, width: int,
+                       shadows: bool = False) -> tuple[mujoco.Renderer, mujoco.MjvOption]:
+    """A ``height`` x ``width`` offscreen renderer of ``model`` (its planes' grids coarse) and the options
+    it draws with: the scene (group 0), robot visuals (2) and targets (3), not the collision shells (1)
+    nor sites; no reflection, shadows as asked."""
+    with coarse_planes(model):
+        renderer = mujoco.Renderer(model, height, width)
+    options = mujoco.MjvOption()
+    options.geomgroup[:] = (1, 0, 1, 1, 0, 0)
+    options.sitegroup[:] = 0
+    renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = int(bool(shadows))
+    renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+    return renderer, options
+
+
+def update_scene(renderer: mujoco.Renderer, data: mujoco.MjData, camera, options: mujoco.MjvOption,
+                 ortho_height_m: float | None = None) -> None:
+    """``renderer``'s scene from ``data`` through ``camera``; an orthographic free camera reads its view
+    height (``ortho_height_m``, m) from the model's free-camera fovy, set for the call and put back."""
+    if ortho_height_m is None:
+        renderer.update_scene(data, camera, options)
+        return
+    vis = renderer.model.vis.global_
+    fovy, vis.fovy = vis.fovy, ortho_height_m
+    try:
+        renderer.update_scene(data, camera, options)
+    finally:
+        vis.fovy = fovy
+
+
+def draw_decorations(canvas: DecorationCanvas, frame: Frame, halo_radius_m: float = GROUND_HALO_RADIUS_M) -> None:
     """Links coloured by weight, references, robot halos (role / team
     colours) and the strategy's decorations (paths, meeting points, target
-    estimates, markers) into ``canvas``: a :class:`FrameRenderer`, or
-    anything with its ``world``, ``metres_per_px``, ``at_least``,
-    ``_add_capsule`` and ``_add_sphere`` (MuJoCo's viewer, viz.viewer). ``halo_radius_m``: a
+    estimates, markers) into ``canvas`` (the video's frame or close-up, MuJoCo's viewer:
+    viz.viewer). ``halo_radius_m``: a
     ground robot's halo (a close-up, where the robots are large, draws a smaller one)."""
     positions = frame.observation.position
     link_width = canvas.at_least(LINK_WIDTH_M, LINK_MIN_PX)
@@ -422,34 +475,22 @@ def emptiest_corner(points_px: np.ndarray, width: int, height: int, side: int) -
     return min(corners, key=count)
 
 
-class _CloseUp:
+class _CloseUp(DecorationCanvas):
     """A second, small renderer looking straight down (orthographic) on a close-up of the
-    robots: the canvas of :func:`draw_decorations` at its own scale."""
+    robots, at its own scale."""
 
     def __init__(self, world: World, side: int, light_gain: np.ndarray):
         self.world = world
         self.side = side
         self.light_gain = light_gain
-        with coarse_planes(world.model):
-            self.renderer = mujoco.Renderer(world.model, side, side)
-        self.options = mujoco.MjvOption()
-        self.options.geomgroup[:] = (1, 0, 1, 1, 0, 0)
-        self.options.sitegroup[:] = 0
-        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
-        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+        self.renderer, self.options = offscreen_renderer(world.model, side, side)
         self.camera = mujoco.MjvCamera()
         self.camera.orthographic = 1
         self.camera.elevation, self.camera.azimuth = -90.0, 90.0
         self.metres_per_px = 1.0
 
-    def at_least(self, size_m: float, pixels: float) -> float:
-        return max(size_m, pixels * self.metres_per_px)
-
-    def _add_capsule(self, a, b, width, rgba) -> None:
-        add_capsule(self.renderer.scene, a, b, width, rgba, self.light_gain)
-
-    def _add_sphere(self, p, radius, rgba) -> None:
-        add_sphere(self.renderer.scene, p, radius, rgba, self.light_gain)
+    def mjv_scene(self) -> mujoco.MjvScene:
+        return self.renderer.scene
 
     def render(self, data: mujoco.MjData, frame: Frame, centre: np.ndarray, half_m: float,
                spacing_m: float) -> np.ndarray:
@@ -457,12 +498,7 @@ class _CloseUp:
         self.metres_per_px = 2.0 * half_m / self.side
         self.camera.lookat[:] = (centre[0], centre[1], lo[2])
         self.camera.distance = 2.0 * float(np.linalg.norm(hi - lo))
-        vis = self.world.model.vis.global_
-        fovy, vis.fovy = vis.fovy, 2.0 * half_m  # an orthographic free camera's view height (m)
-        try:
-            self.renderer.update_scene(data, self.camera, self.options)
-        finally:
-            vis.fovy = fovy
+        update_scene(self.renderer, data, self.camera, self.options, 2.0 * half_m)
         draw_decorations(self, frame, halo_radius_m=min(GROUND_HALO_RADIUS_M, CLOSEUP_HALO_SHARE * spacing_m))
         return self.renderer.render()
 
@@ -470,7 +506,7 @@ class _CloseUp:
         self.renderer.close()
 
 
-class FrameRenderer:
+class FrameRenderer(DecorationCanvas):
     """Renders one tick's frame to an (H, W, 3) uint8 image: the scene from
     the configured camera, links, references, ground-robot halos and the
     overlay band. Its GL context belongs to the thread that renders."""
@@ -490,17 +526,7 @@ class FrameRenderer:
         # mission draws hundreds of path, link and marker geoms a frame (the coarser mesh shows no difference).
         model.vis.quality.numslices = min(model.vis.quality.numslices, MESH_SLICES)
         model.vis.quality.numstacks = min(model.vis.quality.numstacks, MESH_STACKS)
-        with coarse_planes(model):
-            self.renderer = mujoco.Renderer(model, config.height, self.scene_width)
-        self.options = mujoco.MjvOption()
-        # Show scene (0), robot visuals (2) and targets (3); hide collision shells (1).
-        self.options.geomgroup[:] = (1, 0, 1, 1, 0, 0)
-        self.options.sitegroup[:] = 0
-        if config.shadows:
-            self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 1
-        else:
-            self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
-        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+        self.renderer, self.options = offscreen_renderer(model, config.height, self.scene_width, config.shadows)
         lo, hi = world.bounds
         # Metres per pixel of a view of the whole floor: the scale of the minimum marker sizes.
         self.metres_per_px = TOP_MARGIN * max((hi[0] - lo[0]) / self.scene_width, (hi[1] - lo[1]) / config.height)
@@ -515,22 +541,11 @@ class FrameRenderer:
         self._ortho_height_m = None
         self.camera = self._camera(self.camera_name)
 
-    def at_least(self, size_m: float, pixels: float) -> float:
-        """``size_m``, or ``pixels`` of the frame when that is larger: markers
-        stay visible in a 70 m scene as in a 10 m one."""
-        return max(size_m, pixels * self.metres_per_px)
+    def mjv_scene(self) -> mujoco.MjvScene:
+        return self.renderer.scene
 
     def _update_scene(self, data: mujoco.MjData) -> None:
-        vis = self.world.model.vis.global_
-        if self._ortho_height_m is None:
-            self.renderer.update_scene(data, self.camera, self.options)
-        else:
-            # An orthographic free camera reads its view height (m) from the model's free-camera fovy.
-            fovy, vis.fovy = vis.fovy, self._ortho_height_m
-            try:
-                self.renderer.update_scene(data, self.camera, self.options)
-            finally:
-                vis.fovy = fovy
+        update_scene(self.renderer, data, self.camera, self.options, self._ortho_height_m)
 
     def _data_of(self, frame: Frame) -> mujoco.MjData:
         """The MuJoCo state to draw: ``frame.state`` in the renderer's own MjData
@@ -578,12 +593,6 @@ class FrameRenderer:
             cam.distance = 1.6 * span
             cam.elevation = -60
         return cam
-
-    def _add_capsule(self, a: np.ndarray, b: np.ndarray, width: float, rgba: np.ndarray) -> None:
-        add_capsule(self.renderer.scene, a, b, width, rgba, self.light_gain)
-
-    def _add_sphere(self, p: np.ndarray, radius: float, rgba: np.ndarray) -> None:
-        add_sphere(self.renderer.scene, p, radius, rgba, self.light_gain)
 
     def render_scene(self, frame: Frame) -> np.ndarray:
         """``frame``'s MuJoCo state (``frame.state``; ``world.data`` for a frame
@@ -653,15 +662,23 @@ class FrameRenderer:
 
 def _label(image: np.ndarray, xy, text: str, size: int) -> None:
     """``text`` at ``xy`` (column, row) of ``image`` in the panel's colours, on a band of the panel's background."""
+    x, y = xy
+    pixels = _label_band(text, max(size, 8))[: image.shape[0] - y, : image.shape[1] - x]
+    image[y:y + pixels.shape[0], x:x + pixels.shape[1]] = pixels
+
+
+@functools.lru_cache(maxsize=16)
+def _label_band(text: str, size: int) -> np.ndarray:
+    """``text`` drawn once on a band of the panel's background (a close-up's label repeats frame after frame)."""
     from PIL import Image, ImageDraw
 
-    font = _font(max(size, 8))
+    font = _font(size)
     _, _, right, bottom = ImageDraw.Draw(Image.new("RGB", (1, 1))).textbbox((0, 0), text, font=font)
     band = Image.new("RGB", (int(right) + 6, int(bottom) + 4), PANEL_RGB)
     ImageDraw.Draw(band).text((3, 1), text, fill=PANEL_TEXT_RGB, font=font)
-    x, y = xy
-    pixels = np.asarray(band)[: image.shape[0] - y, : image.shape[1] - x]
-    image[y:y + pixels.shape[0], x:x + pixels.shape[1]] = pixels
+    pixels = np.asarray(band)
+    pixels.flags.writeable = False
+    return pixels
 
 
 @dataclass(frozen=True)

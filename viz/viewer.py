@@ -45,7 +45,7 @@ from sim.scenario import Scenario
 from sim.strategy import Status
 from viz.decorations import frame_legend
 from viz.scenery import scenery_legend, top_light_gain
-from viz.video import TOP_MARGIN, add_capsule, add_sphere, draw_decorations, overlay_text, side_panel
+from viz.video import TOP_MARGIN, DecorationCanvas, draw_decorations, overlay_text, side_panel
 
 KEY_SPACE = 32  # GLFW key codes, as MuJoCo's viewer hands them to key_callback
 KEY_RIGHT = 262
@@ -85,7 +85,7 @@ class ViewerControl:
             return False
 
 
-class UserScene:
+class UserScene(DecorationCanvas):
     """The viewer's ``user_scn`` as a canvas for :func:`viz.video.draw_decorations`."""
 
     def __init__(self, world, scene: mujoco.MjvScene):
@@ -95,14 +95,8 @@ class UserScene:
         lo, hi = world.bounds
         self.metres_per_px = TOP_MARGIN * float(max(hi[0] - lo[0], hi[1] - lo[1])) / VIEW_PIXELS
 
-    def at_least(self, size_m: float, pixels: float) -> float:
-        return max(size_m, pixels * self.metres_per_px)
-
-    def _add_capsule(self, a, b, width, rgba) -> None:
-        add_capsule(self.scene, a, b, width, rgba, self.light_gain)
-
-    def _add_sphere(self, p, radius, rgba) -> None:
-        add_sphere(self.scene, p, radius, rgba, self.light_gain)
+    def mjv_scene(self) -> mujoco.MjvScene:
+        return self.scene
 
     def draw(self, frame: Frame) -> None:
         self.scene.ngeom = 0
