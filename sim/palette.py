@@ -131,7 +131,8 @@ def closest_pair(legend) -> tuple[float, str, str]:
 
 # Every colour's plain name, for pictures whose legend is text (the viewer's, the recording's).
 NAMES = {**OKABE_ITO, **TOL_MUTED, "magenta": "#EE3377", "white": "#FFFFFF", "pale grey": "#BBBBBB",
-         "grey": "#777777", "charcoal": "#333333"}
+         "grey": "#777777", "charcoal": "#333333",
+         "blue grey": "#96A0AF"}  # the recording's see-through obstacles (named "pale grey", a weak link's, before)
 
 
 def colour_name(rgba) -> str:

@@ -115,6 +115,10 @@ def test_recording_has_entities_rows_and_a_blueprint(hover_run):
                             (palette.TARGET_TRUE, "target (true)")):
         line = f"**{palette.colour_name(colour)}** `{palette.hex_code(colour)}`: {meaning}"
         assert line in str(text), line
+    # Each colour by a name of its own (the obstacles' blue grey was called "pale grey", as a weak link is).
+    (document,) = text  # the column's one TextDocument
+    names = [line.split("**")[1] for line in document.splitlines() if line.startswith("- **")]
+    assert "blue grey" in names and len(set(names)) == len(names), names
 
 
 def test_same_seed_same_run_and_observers_do_not_perturb(tmp_path):
