@@ -19,6 +19,7 @@ from __future__ import annotations
 from typing import Callable
 
 import numba
+import numpy as np
 
 
 def kernel(function: Callable) -> Callable:
@@ -123,3 +124,78 @@ def _generator_at_intrinsic():
 
 
 generator_at = _generator_at_intrinsic()
+
+
+
+@kernel
+def _pairwise_block(values, start, count):
+    """numpy's pairwise summation (``pairwise_sum`` in numpy's loops_utils) of at most 128 values:
+    sequential below 8, else eight running sums, combined in pairs, then the rest in order."""
+    if count < 8:
+        total = 0.0
+        for i in range(start, start + count):
+            total += values[i]
+        return total
+    r0, r1, r2, r3 = values[start], values[start + 1], values[start + 2], values[start + 3]
+    r4, r5, r6, r7 = values[start + 4], values[start + 5], values[start + 6], values[start + 7]
+    i = start + 8
+    whole = start + count - count % 8
+    while i < whole:
+        r0 += values[i]
+        r1 += values[i + 1]
+        r2 += values[i + 2]
+        r3 += values[i + 3]
+        r4 += values[i + 4]
+        r5 += values[i + 5]
+        r6 += values[i + 6]
+        r7 += values[i + 7]
+        i += 8
+    total = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < start + count:
+        total += values[i]
+        i += 1
+    return total
+
+
+@kernel
+def numpy_sum(values):
+    """``numpy.add.reduce`` of a contiguous float64 vector, bit for bit (tests/test_compiled.py): inside a
+    kernel, a sum that must equal the one numpy would give the same values. Above 128 values numpy
+    splits in halves (at a multiple of 8) and adds the halves' sums; that recursion is walked here with a
+    stack (numba's on-disk cache cannot link a recursive kernel into another module's)."""
+    n = values.shape[0]
+    if n <= 128:
+        return 0.0 + _pairwise_block(values, 0, n)
+    depth = 64  # halves of at least 64 values: far more levels than any array has
+    start = np.empty(depth, dtype=np.int64)
+    count = np.empty(depth, dtype=np.int64)
+    stage = np.zeros(depth, dtype=np.int64)  # 0 left to sum, 1 summing it, 2 right to sum, 3 summing it
+    left = np.empty(depth)
+    right = np.empty(depth)
+    start[0], count[0], stage[0] = 0, n, 0
+    top = 1
+    total = 0.0
+    while top > 0:
+        f = top - 1
+        if count[f] <= 128:
+            done = _pairwise_block(values, start[f], count[f])
+        elif stage[f] == 0 or stage[f] == 2:
+            half = count[f] // 2
+            half -= half % 8
+            child = top
+            start[child], count[child], stage[child] = (start[f], half, 0) if stage[f] == 0 else (
+                start[f] + half, count[f] - half, 0)
+            stage[f] += 1
+            top += 1
+            continue
+        else:
+            done = left[f] + right[f]
+        top -= 1
+        if top == 0:
+            total = done
+        elif stage[top - 1] == 1:
+            left[top - 1] = done
+            stage[top - 1] = 2
+        else:
+            right[top - 1] = done
+    return 0.0 + total

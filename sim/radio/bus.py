@@ -820,10 +820,12 @@ class _QueueBus:
 
     def _robot_count(self, link: LinkState | None) -> int:
         if link is not None:
-            n = int(np.shape(link.snr_db)[0])
-            if self._n is not None and n != self._n:
-                raise ValueError(f"the link has {n} robots, the bus {self._n}")
-            self._n = n
+            n = len(link.snr_db)
+            if n != self._n:
+                if self._n is not None:
+                    raise ValueError(f"the link has {n} robots, the bus {self._n}")
+                self._n = n
+            return n
         if self._n is None:
             senders = max(self._queues, default=-1)
             receivers = max((max(f.message.receivers or (-1,)) for q in self._queues.values() for f in q),
@@ -1401,8 +1403,8 @@ class MessageBus(_QueueBus):
         if sense.shape != (n, n) or snr.shape != (n, n):
             raise ValueError(f"the link's arrays must be ({n}, {n})")
         self._hold_robots(n)
-        (sent, packets, addressed, delivered, columns, values, latencies, bounds,
-         finished) = self._period(float(time_s), sense, snr, n)
+        (sent, packets, addressed, delivered, columns, values, latencies, bounds, finished,
+         latency_total_s) = self._period(float(time_s), sense, snr, n)
         self._elapsed_s += self.control_period_s
         deliveries: list[list[Delivery]] = [[] for _ in range(n)]
         if len(latencies):
@@ -1424,8 +1426,7 @@ class MessageBus(_QueueBus):
                 for receiver, sequence, arrival_s in zip(columns[0, start:end].tolist(),
                                                          columns[2, start:end].tolist(), values[0, start:end].tolist()):
                     deliveries[receiver].append(_delivery(objects[sequence], receiver, arrival_s))
-            # numpy.mean's own sum and division, without its wrapper (this runs every tick)
-            latency_mean_s = float(np.add.reduce(latencies) / latencies.size)
+            latency_mean_s = latency_total_s / latencies.size  # numpy.mean's sum (the kernel's) and division
         else:
             latency_mean_s = math.nan
         if len(finished):

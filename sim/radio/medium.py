@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.compiled import generator_at, kernel
+from sim.compiled import generator_at, kernel, numpy_sum
 from sim.radio import channel
 
 # How ``_schedule_frames`` draws each receiver's fading gain: none, Exp(1) (Rayleigh, Rician K = 0), or a
@@ -336,7 +336,7 @@ def _period(start_s, end_s, eps, reach_s, sense, snr, ints, floats, listed, queu
                             flags[1], tally)
     if tally[0] > 0:
         return (-1, sent, 0, 0, np.empty((3, 0), dtype=np.int64), np.empty((3, 0)), np.empty(0),
-                np.zeros(kinds.shape[0] + 2, dtype=np.int64), np.empty(0, dtype=np.int64))
+                np.zeros(kinds.shape[0] + 2, dtype=np.int64), np.empty(0, dtype=np.int64), 0.0)
     return book(n, ints, floats, queues, alive, free, counts, kinds, airtime, log_latency, log_kind, integers,
                 reals, flags, sent)
 
@@ -368,7 +368,7 @@ def book(n, ints, floats, queues, alive, free, counts, kinds, airtime, log_laten
     within a group in the rows' order (by receiver, then arrival and sequence); ``entries`` (3, D): receiver,
     sender, sequence; ``values`` (3, D): arrival, send time, value; ``latencies`` every entry's latency in the
     rows' order over all groups; ``finished`` the sequences of the messages not sent as_arrays whose last
-    frame went."""
+    frame went; the latencies' sum as ``numpy.add.reduce`` gives it."""
     gathered, sent_frame, sent_draws, draw_receiver = integers[0], integers[1], integers[2], integers[3]
     sent_finish = reals[1]
     draw_alive = flags[1]
@@ -500,7 +500,8 @@ def book(n, ints, floats, queues, alive, free, counts, kinds, airtime, log_laten
         values[0, e] = message_finish[m]
         values[1, e] = floats[slot, F_SENT]
         values[2, e] = floats[slot, F_VALUE]
-    return sent, packets, addressed, delivered, columns, values, latencies, bounds, finished[:finished_count]
+    return (sent, packets, addressed, delivered, columns, values, latencies, bounds, finished[:finished_count],
+            numpy_sum(latencies))
 
 
 @kernel
