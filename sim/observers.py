@@ -250,12 +250,10 @@ def link_figures(observation: Observation, failed: np.ndarray | None = None) -> 
         n = adjacency.shape[0]
         near_pairs = (int(np.count_nonzero(radio.distance <= radio.comm_range_m)) - n) // 2
         return LinkFigures(edges, sensing, sensing, edges / near_pairs if near_pairs else float("nan"))
-    first, second = radio.pairs
-    pair_delivery = radio.channel_pairs["delivery"]
+    channel = radio.channel_pairs
     # The graph of radio.comm_adjacency, read from the pairs (this runs every tick under a real radio).
-    comm = pairs_graph_lambda2(adjacency.shape[0], radio.pairs, pair_delivery >= radio.delivery_threshold)
-    near = radio.distance[first, second] <= radio.comm_range_m
-    near_delivery = pair_delivery[near]
+    comm = pairs_graph_lambda2(adjacency.shape[0], radio.pairs, channel["linked"])
+    near_delivery = channel["delivery"][channel["in_range"]]
     # ndarray.mean's own sum and division, without its wrapper (this runs every tick under a real radio).
     delivery = float(np.add.reduce(near_delivery) / near_delivery.size) if near_delivery.size else float("nan")
     return LinkFigures(edges, sensing, comm, delivery)

@@ -100,8 +100,9 @@ class RadioState:
     delivery_threshold: float  # a pair is in the communication graph at this delivery probability
     comm_range_m: float  # the scenario's sensing.comm_range_m (the ideal radio's disk)
     distance: np.ndarray  # centre distance, m (the links')
-    # Per-pair values on first read: the channel's (rx_power_dbm, snr_db, shadowing_db, delivery) and the walls'
-    # (count, loss_db), each (P,) over the pairs (first[p], second[p]).
+    # Per-pair values on first read: the channel's (rx_power_dbm, snr_db, shadowing_db, delivery; linked:
+    # delivery >= delivery_threshold, in_range: distance <= comm_range_m, bool) and the walls' (count, loss_db),
+    # each (P,) over the pairs (first[p], second[p]); the channel's also the (N, N) comm_adjacency.
     channel_of: Callable[[], dict[str, np.ndarray]] = field(repr=False, compare=False)
     walls_of: Callable[[], dict[str, np.ndarray]] = field(repr=False, compare=False)
     pairs: tuple[np.ndarray, np.ndarray] = field(repr=False, compare=False, default=None)
@@ -157,15 +158,9 @@ class RadioState:
 
     @_lazy
     def comm_adjacency(self) -> np.ndarray:
-        """bool: the communication graph, delivery >= delivery_threshold, no self-loops. Read from the pairs
-        (a strategy reads it every tick under a real radio): ``delivery``'s matrix is not built for it."""
-        n = self.distance.shape[0]
-        first, second = self.pairs
-        linked = self.channel_pairs["delivery"] >= self.delivery_threshold
-        out = np.full((n, n), 0.0 >= self.delivery_threshold)  # the diagonal, as delivery's 0 there compares
-        out[first, second] = linked
-        out[second, first] = linked
-        return readonly(out)
+        """bool: the communication graph, delivery >= delivery_threshold (the diagonal as delivery's 0 there
+        compares). Made with the channel's figures (a strategy reads it every tick under a real radio)."""
+        return self.channel_pairs["comm_adjacency"]
 
     @_lazy
     def in_range(self) -> np.ndarray:

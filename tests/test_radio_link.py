@@ -358,14 +358,16 @@ def test_the_compiled_shadowing_step_is_numpys(seed, pairs, steps):
 
 @settings(max_examples=60, deadline=None)
 @given(_boxes(), st.integers(2, 9), st.integers(0, 2**32 - 1), st.sampled_from(["ieee802154", "nrf24", "wifi"]),
-       st.floats(-100.0, -60.0))
-def test_the_walls_and_figures_in_one_call_are_the_separate_passes(boxes, n, seed, preset, carrier_sense_dbm):
+       st.floats(-100.0, -60.0), st.sampled_from([0.05, 0.3, 0.9, 1.0]))
+def test_the_walls_and_figures_in_one_call_are_the_separate_passes(boxes, n, seed, preset, carrier_sense_dbm,
+                                                                   threshold):
     """``RadioChannel._walls_and_figures``' one compiled call gives what ``SceneWalls.crossed_pairs``,
     ``pair_figures`` and ``sim.radio.bus.link_from_pairs`` give one after the other, bit for bit."""
     from sim.radio.bus import link_from_pairs
 
-    config = build(RadioConfig, {"preset": preset, "carrier_sense_dbm": carrier_sense_dbm}, "radio")
-    channel = RadioChannel(config, boxes, None, 10.0, np.random.default_rng(0))
+    config = build(RadioConfig, {"preset": preset, "carrier_sense_dbm": carrier_sense_dbm,
+                                 "delivery_threshold": threshold}, "radio")
+    channel = RadioChannel(config, boxes, None, 5.0, np.random.default_rng(0))
     rng = np.random.default_rng(seed)
     positions = rng.uniform(-4.0, 4.0, (n, 3))
     positions[0] = positions[1]  # two robots at one place: a distance below the reference's 1 m
@@ -377,9 +379,11 @@ def test_the_walls_and_figures_in_one_call_are_the_separate_passes(boxes, n, see
     walls = channel.walls.crossed_pairs(positions, first, second)
     np.testing.assert_array_equal(computed["walls"]["count"], walls.count)
     np.testing.assert_array_equal(computed["walls"]["loss_db"], walls.loss_db)
-    expected = channel.pair_figures(distance[first, second], walls.loss_db, shadowing)
-    for key in ("rx_power_dbm", "snr_db", "shadowing_db", "delivery"):
+    expected = channel.graph_figures(channel.pair_figures(distance[first, second], walls.loss_db, shadowing),
+                                     distance[first, second], n)
+    for key in ("rx_power_dbm", "snr_db", "shadowing_db", "delivery", "linked", "in_range", "comm_adjacency"):
         np.testing.assert_array_equal(got[key], expected[key])
+    assert not got["comm_adjacency"].flags.writeable
     link = link_from_pairs(n, (first, second), expected["snr_db"], expected["rx_power_dbm"], carrier_sense_dbm)
     snr, sense = got["link_matrices"]
     np.testing.assert_array_equal(snr, link.snr_db)

@@ -146,33 +146,59 @@ class RadioChannel:
 
     def _walls_and_figures(self, positions: np.ndarray, first: np.ndarray, second: np.ndarray, distance: np.ndarray,
                            shadowing_db: np.ndarray, computed: dict) -> dict[str, np.ndarray]:
-        """``pair_figures`` over the walls ``SceneWalls.crossed_pairs`` finds (put in ``computed["walls"]``), and
-        the bus's matrices of them (``"link_matrices"``: the SNR (N, N), NaN on the diagonal, and carrier sense,
-        mean received power >= ``carrier_sense_dbm``, as ``sim.radio.bus.link_from_pairs`` makes them), in one
-        compiled call: the same values, without three calls' arguments and arrays each tick."""
+        """``pair_figures`` over the walls ``SceneWalls.crossed_pairs`` finds (put in ``computed["walls"]``), the
+        graphs ``graph_figures`` adds, and the bus's matrices of them (``"link_matrices"``: the SNR (N, N), NaN
+        on the diagonal, and carrier sense, mean received power >= ``carrier_sense_dbm``, as
+        ``sim.radio.bus.link_from_pairs`` makes them), in one compiled call: the same values, without
+        several calls' arguments and arrays each tick."""
         n, pairs = len(positions), len(first)
-        log_ratio = np.maximum(distance[first, second], 1.0)  # (pair_figures': the logarithm with numpy)
+        # pair_figures' logarithm with numpy, over the whole matrix: no gather in Python (the kernel's)
+        log_ratio = np.maximum(distance, 1.0)
         np.log10(log_ratio, out=log_ratio)
         wall_loss, rx, snr, delivery = np.empty((4, pairs))  # one block, four rows
         count = np.empty(pairs, dtype=np.int64)
-        uncertain = np.empty(pairs, dtype=np.bool_)
+        uncertain, linked, in_range = np.empty((3, pairs), dtype=np.bool_)
         snr_matrix = np.empty((n, n))
-        sense = np.empty((n, n), dtype=np.bool_)
+        sense, comm = np.empty((2, n, n), dtype=np.bool_)
         constants = self._figure_constants
         if constants is None:  # the scene's boxes and the formulas' figures: the same every tick
             config, walls, (below, above) = self.config, self.walls, self._certain
             constants = self._figure_constants = (
                 walls.centers, walls.halves, walls.rotations, walls.extents, walls.losses,
                 10.0 * config.path_loss_exponent, float(config.reference_loss_db), float(config.tx_power_dbm),
-                float(config.noise_floor_dbm), below, above, float(config.carrier_sense_dbm))
-        some = _walls_and_pair_figures(positions, first, second, log_ratio, shadowing_db, *constants, count, wall_loss,
-                                       rx, snr, delivery, uncertain, snr_matrix, sense)
+                float(config.noise_floor_dbm), below, above, float(config.carrier_sense_dbm),
+                float(config.delivery_threshold), float(self.comm_range_m))
+        some = _walls_and_pair_figures(positions, first, second, log_ratio, distance, shadowing_db, *constants, count,
+                                       wall_loss, rx, snr, delivery, uncertain, linked, in_range, snr_matrix, sense,
+                                       comm)
         if some:
-            delivery[uncertain] = self.delivery_at_snr(snr[uncertain])
+            which = np.flatnonzero(uncertain)
+            delivery[which] = self.delivery_at_snr(snr[which])
+            now = delivery[which] >= self.config.delivery_threshold
+            linked[which] = now
+            comm[first[which], second[which]] = now
+            comm[second[which], first[which]] = now
         computed["walls"] = {"count": count, "loss_db": wall_loss}
         snr_matrix.flags.writeable = False
+        comm.flags.writeable = False
         return {"rx_power_dbm": rx, "snr_db": snr, "shadowing_db": shadowing_db, "delivery": delivery,
-                "link_matrices": (snr_matrix, sense)}
+                "linked": linked, "in_range": in_range, "comm_adjacency": comm, "link_matrices": (snr_matrix, sense)}
+
+    def graph_figures(self, figures: dict[str, np.ndarray], pair_distance_m: np.ndarray, n: int
+                      ) -> dict[str, np.ndarray]:
+        """``figures`` (a tick's per-pair figures of ``n`` robots, with their ``"delivery"``) with the graphs
+        read from them:
+        ``"linked"`` (P,) bool, delivery >= ``delivery_threshold`` (the communication graph's pairs),
+        ``"in_range"`` (P,) bool, ``pair_distance_m`` <= the comm range, and ``"comm_adjacency"`` (N, N)
+        bool, read-only, the communication graph (its diagonal as a delivery of 0 compares)."""
+        first, second = self._pairs(n)
+        threshold = self.config.delivery_threshold
+        linked = figures["delivery"] >= threshold
+        comm = np.full((n, n), 0.0 >= threshold)
+        comm[first, second] = linked
+        comm[second, first] = linked
+        comm.flags.writeable = False
+        return {**figures, "linked": linked, "in_range": pair_distance_m <= self.comm_range_m, "comm_adjacency": comm}
 
     def state(self, time_s: float, positions: np.ndarray, links: Links, extra_loss_db: np.ndarray | None = None,
               silent: np.ndarray | None = None) -> RadioState:
@@ -196,8 +222,9 @@ class RadioChannel:
 
             def ideal() -> dict[str, np.ndarray]:
                 nan = np.full(len(first), np.nan)
-                return {"rx_power_dbm": nan, "snr_db": nan, "shadowing_db": nan,
-                        "delivery": adjacency[first, second].astype(float)}
+                return self.graph_figures({"rx_power_dbm": nan, "snr_db": nan, "shadowing_db": nan,
+                                           "delivery": adjacency[first, second].astype(float)},
+                                          links.distance[first, second], n)
 
             return RadioState(config.preset, config.delivery_threshold, self.comm_range_m, links.distance,
                               ideal, walls, (first, second))
@@ -216,12 +243,13 @@ class RadioChannel:
             wall_loss = walls_once()["loss_db"]
             if extra_loss_db is not None:
                 wall_loss = wall_loss + extra_loss_db  # a blackout adds to the path loss, as a wall does
-            figures = self.pair_figures(distance[first, second], wall_loss, shadowing)
+            pair_distance = distance[first, second]
+            figures = self.pair_figures(pair_distance, wall_loss, shadowing)
             if silent is not None:
                 dead = silent[first] | silent[second]
                 for key, value in (("rx_power_dbm", -np.inf), ("snr_db", -np.inf), ("delivery", 0.0)):
                     figures[key] = np.where(dead, value, figures[key])
-            return figures
+            return self.graph_figures(figures, pair_distance, n)
 
         return RadioState(config.preset, config.delivery_threshold, self.comm_range_m, distance, figures,
                           walls_once, (first, second))
@@ -245,21 +273,35 @@ def _pair_figures(log_ratio, wall_loss_db, shadowing_db, distance_coefficient, r
 
 
 @kernel
-def _walls_and_pair_figures(positions, first, second, log_ratio, shadowing_db, centers, halves, rotations, extents,
-                            losses, distance_coefficient, reference_loss_db, tx_power_dbm, noise_floor_dbm,
-                            below, above, carrier_sense_dbm, count, wall_loss_db, rx, snr, delivery, uncertain,
-                            snr_matrix, sense):
+def _walls_and_pair_figures(positions, first, second, log_ratio_matrix, distance, shadowing_db, centers, halves,
+                            rotations, extents, losses, distance_coefficient, reference_loss_db, tx_power_dbm,
+                            noise_floor_dbm, below, above, carrier_sense_dbm, delivery_threshold, comm_range_m, count,
+                            wall_loss_db, rx, snr, delivery, uncertain, linked, in_range, snr_matrix, sense, comm):
     """``walls._pair_crossings`` (into ``count`` and ``wall_loss_db``, zeroed here), ``_pair_figures`` over
-    them, and the bus's (N, N) matrices of the figures: the SNR of both triangles with NaN on the diagonal,
-    carrier sense where ``rx`` reaches ``carrier_sense_dbm`` (False on the diagonal). Returns
-    ``_pair_figures``' count of pairs inside the uncertain band."""
+    them with each pair's entry of ``log_ratio_matrix`` ((N, N): log10(max(d, d0) / d0)), the graphs of
+    ``RadioChannel.graph_figures`` (``linked``, ``in_range`` and ``comm``; a pair in the uncertain band is
+    linked as a delivery of 0 compares, until its delivery is known), and the bus's (N, N) matrices of the
+    figures: the SNR of both triangles with NaN on the diagonal, carrier sense where ``rx`` reaches
+    ``carrier_sense_dbm`` (False on the diagonal). Returns ``_pair_figures``' count of pairs inside the
+    uncertain band."""
     count[:] = 0
     wall_loss_db[:] = 0.0
     if centers.shape[0]:
         _pair_crossings(positions, first, second, centers, halves, rotations, extents, losses, count, wall_loss_db)
+    pairs = first.shape[0]
+    log_ratio = np.empty(pairs)
+    for p in range(pairs):
+        log_ratio[p] = log_ratio_matrix[first[p], second[p]]
     inside = _pair_figures(log_ratio, wall_loss_db, shadowing_db, distance_coefficient, reference_loss_db,
                            tx_power_dbm, noise_floor_dbm, below, above, rx, snr, delivery, uncertain)
     write_pair_matrices(first, second, snr, rx, carrier_sense_dbm, snr_matrix, sense)
+    comm[:] = 0.0 >= delivery_threshold
+    for p in range(pairs):
+        i, j = first[p], second[p]
+        linked[p] = delivery[p] >= delivery_threshold
+        comm[i, j] = linked[p]
+        comm[j, i] = linked[p]
+        in_range[p] = distance[i, j] <= comm_range_m
     return inside
 
 
