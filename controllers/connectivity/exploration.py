@@ -54,7 +54,6 @@ targets.py. Here:
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -393,12 +392,14 @@ def split_consensus(inbox, n_robots: int, arrivals=None) -> tuple[np.ndarray, np
     """``heard_estimates``' two arrays, and per robot its other deliveries (in order): the consensus's
     columns (``arrivals``, sent as arrays) in one numpy pass, and one pass over the inbox for consensus
     messages delivered as rows, so the role machine's readers never walk them."""
-    heard = np.full((n_robots, n_robots), math.nan)
-    arrived = np.zeros((n_robots, n_robots), dtype=bool)
+    heard = np.empty((n_robots, n_robots))
+    arrived = np.empty((n_robots, n_robots), dtype=bool)
     columns = arrivals.get(CONSENSUS_KIND) if arrivals else None
-    if columns is not None and len(columns):
+    if columns is None:
+        _heard_cells(_NO_ENTRIES, _NO_ENTRIES, _NO_VALUES, heard, arrived)
+    else:
         _heard_cells(columns.receiver, columns.sender, columns.payload, heard, arrived)
-    if not any(delivery.message.kind == CONSENSUS_KIND for row in inbox if row for delivery in row):
+    if not any(inbox) or not any(delivery.message.kind == CONSENSUS_KIND for row in inbox if row for delivery in row):
         return heard, arrived, inbox
     rest: list[list] = [[] for _ in range(n_robots)]
     for robot, deliveries in enumerate(inbox):
@@ -413,10 +414,16 @@ def split_consensus(inbox, n_robots: int, arrivals=None) -> tuple[np.ndarray, np
     return heard, arrived, rest
 
 
+_NO_ENTRIES = np.empty(0, dtype=np.int64)
+_NO_VALUES = np.empty(0)
+
+
 @kernel
 def _heard_cells(receiver, sender, payload, heard, arrived):
-    """heard[r, s] = the payload, arrived[r, s] = True for each entry in order (by arrival per receiver,
-    so the latest of a pair wins)."""
+    """heard = NaN and arrived = False, then heard[r, s] = the payload, arrived[r, s] = True for each entry
+    in order (by arrival per receiver, so the latest of a pair wins)."""
+    heard[:] = np.nan
+    arrived[:] = False
     for d in range(receiver.shape[0]):
         heard[receiver[d], sender[d]] = payload[d]
         arrived[receiver[d], sender[d]] = True
