@@ -1459,7 +1459,7 @@ class MessageBus(_QueueBus):
         held = self._scratch_rows
         if held is None or held[0].shape[1] < width:
             width = max(width, 256)
-            held = self._scratch_rows = (np.empty((8, width), dtype=np.int64), np.empty((6, width)),
+            held = self._scratch_rows = (np.empty((15, width), dtype=np.int64), np.empty((9, width)),
                                          np.empty((2, width), dtype=np.bool_))
         integers, reals, flags = held
         self._hold_log(gathered * max(n - 1, 0))

@@ -54,7 +54,8 @@ def _per_802154(snr_db, bits):
 @kernel
 def _schedule_frames(start_s, end_s, eps, sense, snr, queued, numbers, listed, fading_code,
                      noncentrality, gain_scale, sure_snr_db, decide, rng, popped, sent_frame, sent_finish, sent_draws,
-                     draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally):
+                     draw_receiver, draw_snr, draw_bits, draw_gain, draw_uniform, draw_unsure, draw_alive, tally,
+                     work_integers, work_reals):
     """One period of the shared medium (``ReferenceMessageBus._step_medium``'s loop, step for step).
 
     Sender s offers frames first[s] .. first[s] + count[s] - 1 in order (``queued``'s rows: first, count);
@@ -74,26 +75,27 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, queued, numbers, listed, f
     it can lie from numpy's (``_per_802154``): a uniform outside PER +- bound decides the frame
     (``draw_alive``) and the draw is no longer unsure; only a uniform within the bound, which numpy's exact
     PER must decide, stays unsure. Without it every draw is alive here and numpy decides the unsure ones.
-    ``tally`` gets (unsure draws, draws lost here).
+    ``tally`` gets (unsure draws, draws lost here). ``work_integers`` (3, >= max(frames, N)) and
+    ``work_reals`` (3, >= N) are scratch.
     """
     n = sense.shape[0]
     first, count = queued[0], queued[1]
     frames = numbers.reshape((-1, 4))
     sent_s, airtime_s, error_bits = frames[:, 0], frames[:, 1], frames[:, 2]
-    audience_count = np.empty(frames.shape[0], dtype=np.int64)
-    audience_start = np.empty(frames.shape[0], dtype=np.int64)  # where each frame's receivers are listed
+    audience_count = work_integers[0]
+    audience_start = work_integers[1]  # where each frame's receivers are listed
     at = 0
     for f in range(frames.shape[0]):
         audience_count[f] = int(frames[f, 3])
         audience_start[f] = at
         at += max(audience_count[f], 0)
     largest = 1.7976931348623157e308  # numpy.finfo(float).max, what nan_to_num puts for +inf
-    on_air_until = np.full(n, -np.inf)
-    medium_free = np.full(n, -np.inf)  # per sender: the latest end of a frame of anyone it senses
-    done = np.zeros(n, dtype=np.bool_)
-    ready = np.full(n, np.inf)
-    start = np.empty(n)
-    tied = np.empty(n, dtype=np.int64)
+    medium_free = work_reals[0, :n]  # per sender: the latest end of a frame of anyone it senses
+    medium_free[:] = -np.inf
+    ready = work_reals[1, :n]
+    ready[:] = np.inf
+    start = work_reals[2, :n]
+    tied = work_integers[2]
     for s in range(n):
         if count[s] > 0 and sent_s[first[s]] < end_s - eps:
             ready[s] = max(start_s, sent_s[first[s]])
@@ -121,11 +123,9 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, queued, numbers, listed, f
         frame = first[sender] + popped[sender]
         finish = earliest + airtime_s[frame]
         if finish > end_s + eps:
-            done[sender] = True
             ready[sender] = np.inf
             continue
         popped[sender] += 1
-        on_air_until[sender] = finish
         for s in range(n):
             if (s == sender or sense[s, sender]) and finish > medium_free[s]:
                 medium_free[s] = finish
@@ -164,7 +164,10 @@ def _schedule_frames(start_s, end_s, eps, sense, snr, queued, numbers, listed, f
             else:
                 gain = 1.0
             draw_gain[d] = gain
-            draw_unsure[d] = not level + 10.0 * np.log10(max(gain, 1e-300)) >= sure_snr_db + 0.5
+            if fading_code == 0:  # a gain of 1: 0 dB
+                draw_unsure[d] = not level >= sure_snr_db + 0.5
+            else:
+                draw_unsure[d] = not level + 10.0 * np.log10(max(gain, 1e-300)) >= sure_snr_db + 0.5
         for d in range(first_draw, draws):
             draw_uniform[d] = rng.random()
         for d in range(first_draw, draws):
@@ -297,8 +300,9 @@ def _period(start_s, end_s, eps, reach_s, sense, snr, ints, floats, listed, queu
     """One period of the medium over the frame table: gathers the head of each queue that can go out (frames
     while the airtime before them fits, and one more, which cannot: the loop must meet it to stop that sender,
     drawing as it does), schedules them (``_schedule_frames``) and, unless some draw is left for numpy's exact
-    PER (``tally[0]``: the caller decides those and calls ``book``), books them (``book``). ``integers``,
-    ``reals`` and ``flags`` are scratch rows (see ``book``). Returns ``book``'s outputs, or its empty ones
+    PER (``tally[0]``: the caller decides those and calls ``book``), books them (``book``). ``integers``
+    (15, W), ``reals`` (9, W) and ``flags`` (2, W) are scratch rows (see ``book``; W >= 4 frames gathered, >= N
+    + 1, >= the draws). Returns ``book``'s outputs, or its empty ones
     with -1 then the frames sent when the caller must decide draws first."""
     n = sense.shape[0]
     gathered = integers[0]
@@ -333,7 +337,7 @@ def _period(start_s, end_s, eps, reach_s, sense, snr, ints, floats, listed, queu
     sent = _schedule_frames(start_s, end_s, eps, sense, snr, queued, numbers, receivers_listed[:listed_total],
                             fading_code, noncentrality, gain_scale, sure_snr_db, decide, rng, popped, integers[1],
                             reals[1], integers[2], integers[3], reals[2], reals[3], reals[4], reals[5], flags[0],
-                            flags[1], tally)
+                            flags[1], tally, integers[8:11], reals[6:9])
     if tally[0] > 0:
         return (-1, sent, 0, 0, np.empty((3, 0), dtype=np.int64), np.empty((3, 0)), np.empty(0),
                 np.zeros(kinds.shape[0] + 2, dtype=np.int64), np.empty(0, dtype=np.int64), 0.0)
@@ -357,8 +361,8 @@ def _period_at(state_address, state, next_uint64, next_uint32, next_double, star
 def book(n, ints, floats, queues, alive, free, counts, kinds, airtime, log_latency, log_kind, integers, reals,
          flags, sent):
     """Book the ``sent`` frames ``_schedule_frames`` put on the air (scratch rows: ``integers`` 0 the gathered
-    slots, 1 the frames gone, 2 their draws' bounds, 3 the draws' receivers; ``reals[1]`` their ends;
-    ``flags[1]`` each draw's survival), as ``ReferenceMessageBus._transmit`` does: pop them, keep the
+    slots, 1 the frames gone, 2 their draws' bounds, 3 the draws' receivers, 8-14 this kernel's; ``reals[1]``
+    their ends, ``reals[6]`` this kernel's; ``flags[1]`` each draw's survival), as ``ReferenceMessageBus._transmit`` does: pop them, keep the
     in-flight receivers of a message of several frames, add the kinds' counters, airtimes and latencies
     (logged with their kind, in booking order), and make the period's arrivals.
 
@@ -372,11 +376,10 @@ def book(n, ints, floats, queues, alive, free, counts, kinds, airtime, log_laten
     gathered, sent_frame, sent_draws, draw_receiver = integers[0], integers[1], integers[2], integers[3]
     sent_finish = reals[1]
     draw_alive = flags[1]
-    draws = sent_draws[sent] if sent > 0 else 0
-    message_finish = np.empty(sent)
-    message_slot = np.empty(sent, dtype=np.int64)  # the slot of its last frame (its numbers)
-    message_first = np.empty(sent + 1, dtype=np.int64)  # where its entries start
-    entry_receiver = np.empty(max(draws, 1), dtype=np.int64)
+    message_finish = reals[6]
+    message_slot = integers[8]  # the slot of its last frame (its numbers)
+    message_first = integers[9]  # where its entries start
+    entry_receiver = integers[10]
     finished = np.empty(sent, dtype=np.int64)
     finished_count = 0
     messages = 0
@@ -447,7 +450,9 @@ def book(n, ints, floats, queues, alive, free, counts, kinds, airtime, log_laten
     counts[T_LOGGED] = logged
     message_first[messages] = entries
     # The messages by (arrival, sequence): insertion sort, they come nearly in order of arrival
-    order = np.arange(messages)
+    order = integers[11]
+    for a in range(messages):
+        order[a] = a
     for a in range(1, messages):
         m = order[a]
         b = a - 1
@@ -461,13 +466,14 @@ def book(n, ints, floats, queues, alive, free, counts, kinds, airtime, log_laten
     robots = n
     for e in range(entries):
         robots = max(robots, entry_receiver[e] + 1)
-    at = np.zeros(robots + 1, dtype=np.int64)
+    at = integers[12, :robots + 1]
+    at[:] = 0
     for e in range(entries):
         at[entry_receiver[e] + 1] += 1
     for r in range(robots):
         at[r + 1] += at[r]
-    row_receiver = np.empty(entries, dtype=np.int64)
-    row_message = np.empty(entries, dtype=np.int64)
+    row_receiver = integers[13]
+    row_message = integers[14]
     for a in range(messages):
         m = order[a]
         for e in range(message_first[m], message_first[m + 1]):
