@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import textwrap
+from types import SimpleNamespace
 
 import mujoco
 import numpy as np
@@ -374,11 +375,10 @@ def test_the_walls_and_figures_in_one_call_are_the_separate_passes(boxes, n, see
     distance = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
     first, second = channel.pairs(n)
     shadowing = rng.normal(0.0, 8.0, len(first))
-    computed: dict = {}
-    got = channel._walls_and_figures(positions, first, second, distance, shadowing, computed)
+    got, wall_pairs = channel._walls_and_figures(positions, first, second, distance, shadowing)
     walls = channel.walls.crossed_pairs(positions, first, second)
-    np.testing.assert_array_equal(computed["walls"]["count"], walls.count)
-    np.testing.assert_array_equal(computed["walls"]["loss_db"], walls.loss_db)
+    np.testing.assert_array_equal(wall_pairs["count"], walls.count)
+    np.testing.assert_array_equal(wall_pairs["loss_db"], walls.loss_db)
     expected = channel.graph_figures(channel.pair_figures(distance[first, second], walls.loss_db, shadowing),
                                      distance[first, second], n)
     for key in ("rx_power_dbm", "snr_db", "shadowing_db", "delivery", "linked", "in_range", "comm_adjacency"):
@@ -389,3 +389,29 @@ def test_the_walls_and_figures_in_one_call_are_the_separate_passes(boxes, n, see
     np.testing.assert_array_equal(snr, link.snr_db)
     np.testing.assert_array_equal(sense, link.carrier_sense)
     assert not snr.flags.writeable and sense.dtype == bool
+
+
+@settings(max_examples=20, deadline=None)
+@given(_boxes(), st.integers(2, 9), st.integers(0, 2**32 - 1),
+       st.lists(st.sampled_from([0.0, 0.01, 0.02, 0.3]), min_size=1, max_size=6))
+def test_a_ticks_channel_in_one_call_is_the_step_by_step_channel(boxes, n, seed, steps):
+    """``RadioChannel.state`` takes the shadowing's step inside its one compiled call; the path faults take
+    (the step alone, then the figures of the pairs; here with a blackout of 0 dB) gives the same figures,
+    walls and shadowing tick after tick, and leaves the generator in the same state."""
+    config = build(RadioConfig, {"preset": "ieee802154"}, "radio")
+    fused, stepwise = (RadioChannel(config, boxes, None, 5.0, np.random.default_rng(seed)) for _ in range(2))
+    rng = np.random.default_rng(seed + 1)
+    first, _ = fused.pairs(n)
+    no_blackout = np.zeros(len(first))
+    time_s = 0.0
+    for dt in [0.0, *steps]:
+        time_s += dt
+        positions = rng.uniform(-4.0, 4.0, (n, 3))
+        links = SimpleNamespace(distance=np.linalg.norm(positions[:, None] - positions[None], axis=-1))
+        one = fused.state(time_s, positions, links)
+        other = stepwise.state(time_s, positions, links, extra_loss_db=no_blackout)
+        for key in ("rx_power_dbm", "snr_db", "shadowing_db", "delivery", "linked", "in_range", "comm_adjacency"):
+            np.testing.assert_array_equal(one.channel_pairs[key], other.channel_pairs[key])
+        for key in ("count", "loss_db"):
+            np.testing.assert_array_equal(one.wall_pairs[key], other.wall_pairs[key])
+        assert fused.rng.bit_generator.state == stepwise.rng.bit_generator.state

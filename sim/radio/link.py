@@ -85,10 +85,15 @@ class RadioChannel:
             self._shadowing = None
         return self._upper
 
-    def _advance_shadowing(self, time_s: float, pairs: int) -> np.ndarray:
-        """The shadowing at ``time_s``: drawn stationary at the first tick, one AR(1) step per later tick
-        (``channel.shadowing_step_db``, its coefficients kept while the step length stays)."""
+    def _shadowing_step(self, time_s: float, pairs: int) -> tuple[float, float] | None:
+        """Bring the shadowing to ``time_s``: drawn stationary at the first tick, one AR(1) step per later tick
+        (``channel.shadowing_step_db``, its coefficients kept while the step length stays). Returns the step's
+        (rho, innovation) where a compiled pass must take it now (``_shadowing_step_at``, or the channel's
+        tick in ``_walls_and_pair_figures``), None where ``self._shadowing`` is already the shadowing at
+        ``time_s`` (the first draw, the same time again, or a step taken here with numpy where the kernels
+        are not compiled)."""
         config = self.config
+        step = None
         if self._shadowing is None:
             self._shadowing = channel.shadowing_initial_db(config.shadowing_sigma_db, pairs, rng=self.rng)
         elif time_s > self._shadowing_time:
@@ -100,17 +105,24 @@ class RadioChannel:
                                                              config.shadowing_correlation_s, standard_normal=1.0))
                 self._step = (dt, rho, innovation)
             _, rho, innovation = self._step
-            pointers = self._pointers()
-            if pointers is None:
+            if self._pointers() is None:
                 innovations = self.rng.standard_normal(pairs)
                 innovations *= innovation
                 stepped = rho * self._shadowing
                 stepped += innovations  # rho X + sigma_innovation z, as one expression would round it
-            else:  # the same draws and operations in one compiled pass
-                stepped = np.empty(pairs)
-                _shadowing_step_at(*pointers, self._shadowing, float(rho), float(innovation), stepped)
-            self._shadowing = stepped
+                self._shadowing = stepped
+            else:
+                step = (rho, innovation)
         self._shadowing_time = time_s
+        return step
+
+    def _advance_shadowing(self, time_s: float, pairs: int) -> np.ndarray:
+        """The shadowing at ``time_s`` (``_shadowing_step``, its step taken in one compiled pass)."""
+        step = self._shadowing_step(time_s, pairs)
+        if step is not None:  # the same draws and operations as numpy's, in one compiled pass
+            stepped = np.empty(pairs)
+            _shadowing_step_at(*self._pointers(), self._shadowing, step[0], step[1], stepped)
+            self._shadowing = stepped
         return self._shadowing
 
     def _pointers(self) -> tuple[int, ...] | None:
@@ -145,12 +157,15 @@ class RadioChannel:
         return {"rx_power_dbm": rx, "snr_db": snr, "shadowing_db": shadowing_db, "delivery": delivery}
 
     def _walls_and_figures(self, positions: np.ndarray, first: np.ndarray, second: np.ndarray, distance: np.ndarray,
-                           shadowing_db: np.ndarray, computed: dict) -> dict[str, np.ndarray]:
-        """``pair_figures`` over the walls ``SceneWalls.crossed_pairs`` finds (put in ``computed["walls"]``), the
-        graphs ``graph_figures`` adds, and the bus's matrices of them (``"link_matrices"``: the SNR (N, N), NaN
-        on the diagonal, and carrier sense, mean received power >= ``carrier_sense_dbm``, as
-        ``sim.radio.bus.link_from_pairs`` makes them), in one compiled call: the same values, without
-        several calls' arguments and arrays each tick."""
+                           shadowing_db: np.ndarray, step: tuple[float, float] | None = None
+                           ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """``pair_figures`` over the walls ``SceneWalls.crossed_pairs`` finds, the graphs ``graph_figures``
+        adds, and the bus's matrices of them (``"link_matrices"``: the SNR (N, N), NaN on the diagonal, and
+        carrier sense, mean received power >= ``carrier_sense_dbm``, as ``sim.radio.bus.link_from_pairs``
+        makes them), in one compiled call: the same values, without several calls' arguments and arrays each
+        tick. With ``step`` (``_shadowing_step``'s), the shadowing's AR(1) step from ``shadowing_db`` is
+        taken first in the same call, as ``_advance_shadowing`` takes it. Returns the figures and the walls'
+        per-pair (count, loss_db)."""
         n, pairs = len(positions), len(first)
         # pair_figures' logarithm with numpy, over the whole matrix: no gather in Python (the kernel's)
         log_ratio = np.maximum(distance, 1.0)
@@ -160,6 +175,10 @@ class RadioChannel:
         uncertain, linked, in_range = np.empty((3, pairs), dtype=np.bool_)
         snr_matrix = np.empty((n, n))
         sense, comm = np.empty((2, n, n), dtype=np.bool_)
+        if step is None:
+            shadowed, pointers, rho, innovation = shadowing_db, _NO_POINTERS, 0.0, 0.0
+        else:
+            shadowed, pointers, (rho, innovation) = np.empty(pairs), self._pointers(), step
         constants = self._figure_constants
         if constants is None:  # the scene's boxes and the formulas' figures: the same every tick
             config, walls, (below, above) = self.config, self.walls, self._certain
@@ -168,9 +187,9 @@ class RadioChannel:
                 10.0 * config.path_loss_exponent, float(config.reference_loss_db), float(config.tx_power_dbm),
                 float(config.noise_floor_dbm), below, above, float(config.carrier_sense_dbm),
                 float(config.delivery_threshold), float(self.comm_range_m))
-        some = _walls_and_pair_figures(positions, first, second, log_ratio, distance, shadowing_db, *constants, count,
-                                       wall_loss, rx, snr, delivery, uncertain, linked, in_range, snr_matrix, sense,
-                                       comm)
+        some = _walls_and_pair_figures(step is not None, *pointers, shadowing_db, rho, innovation, shadowed, positions,
+                                       first, second, log_ratio, distance, *constants, count, wall_loss, rx, snr,
+                                       delivery, uncertain, linked, in_range, snr_matrix, sense, comm)
         if some:
             which = np.flatnonzero(uncertain)
             delivery[which] = self.delivery_at_snr(snr[which])
@@ -178,11 +197,11 @@ class RadioChannel:
             linked[which] = now
             comm[first[which], second[which]] = now
             comm[second[which], first[which]] = now
-        computed["walls"] = {"count": count, "loss_db": wall_loss}
         snr_matrix.flags.writeable = False
         comm.flags.writeable = False
-        return {"rx_power_dbm": rx, "snr_db": snr, "shadowing_db": shadowing_db, "delivery": delivery,
-                "linked": linked, "in_range": in_range, "comm_adjacency": comm, "link_matrices": (snr_matrix, sense)}
+        return ({"rx_power_dbm": rx, "snr_db": snr, "shadowing_db": shadowed, "delivery": delivery, "linked": linked,
+                 "in_range": in_range, "comm_adjacency": comm, "link_matrices": (snr_matrix, sense)},
+                {"count": count, "loss_db": wall_loss})
 
     def graph_figures(self, figures: dict[str, np.ndarray], pair_distance_m: np.ndarray, n: int
                       ) -> dict[str, np.ndarray]:
@@ -228,8 +247,14 @@ class RadioChannel:
 
             return RadioState(config.preset, config.delivery_threshold, self.comm_range_m, links.distance,
                               ideal, walls, (first, second))
-        shadowing = self._advance_shadowing(time_s, len(first))
         distance = links.distance
+        if extra_loss_db is None and silent is None:  # the tick's channel in one compiled call
+            step = self._shadowing_step(time_s, len(first))
+            figures, wall_pairs = self._walls_and_figures(positions, first, second, distance, self._shadowing, step)
+            self._shadowing = figures["shadowing_db"]
+            return RadioState(config.preset, config.delivery_threshold, self.comm_range_m, distance,
+                              lambda: figures, lambda: wall_pairs, (first, second))
+        shadowing = self._advance_shadowing(time_s, len(first))
         computed: dict[str, dict[str, np.ndarray]] = {}  # the walls, once, for whichever reads first
 
         def walls_once() -> dict[str, np.ndarray]:
@@ -237,9 +262,7 @@ class RadioChannel:
                 computed["walls"] = walls()
             return computed["walls"]
 
-        def figures() -> dict[str, np.ndarray]:
-            if "walls" not in computed and extra_loss_db is None and silent is None:
-                return self._walls_and_figures(positions, first, second, distance, shadowing, computed)
+        def figures_with_faults() -> dict[str, np.ndarray]:
             wall_loss = walls_once()["loss_db"]
             if extra_loss_db is not None:
                 wall_loss = wall_loss + extra_loss_db  # a blackout adds to the path loss, as a wall does
@@ -251,7 +274,7 @@ class RadioChannel:
                     figures[key] = np.where(dead, value, figures[key])
             return self.graph_figures(figures, pair_distance, n)
 
-        return RadioState(config.preset, config.delivery_threshold, self.comm_range_m, distance, figures,
+        return RadioState(config.preset, config.delivery_threshold, self.comm_range_m, distance, figures_with_faults,
                           walls_once, (first, second))
 
 
@@ -273,17 +296,24 @@ def _pair_figures(log_ratio, wall_loss_db, shadowing_db, distance_coefficient, r
 
 
 @kernel
-def _walls_and_pair_figures(positions, first, second, log_ratio_matrix, distance, shadowing_db, centers, halves,
-                            rotations, extents, losses, distance_coefficient, reference_loss_db, tx_power_dbm,
+def _walls_and_pair_figures(step, state_address, state, next_uint64, next_uint32, next_double, shadowing_before, rho,
+                            innovation, shadowing_db, positions, first, second, log_ratio_matrix, distance, centers,
+                            halves, rotations, extents, losses, distance_coefficient, reference_loss_db, tx_power_dbm,
                             noise_floor_dbm, below, above, carrier_sense_dbm, delivery_threshold, comm_range_m, count,
                             wall_loss_db, rx, snr, delivery, uncertain, linked, in_range, snr_matrix, sense, comm):
-    """``walls._pair_crossings`` (into ``count`` and ``wall_loss_db``, zeroed here), ``_pair_figures`` over
-    them with each pair's entry of ``log_ratio_matrix`` ((N, N): log10(max(d, d0) / d0)), the graphs of
-    ``RadioChannel.graph_figures`` (``linked``, ``in_range`` and ``comm``; a pair in the uncertain band is
-    linked as a delivery of 0 compares, until its delivery is known), and the bus's (N, N) matrices of the
-    figures: the SNR of both triangles with NaN on the diagonal, carrier sense where ``rx`` reaches
-    ``carrier_sense_dbm`` (False on the diagonal). Returns ``_pair_figures``' count of pairs inside the
-    uncertain band."""
+    """One tick of the channel. With ``step``, the shadowing's AR(1) step from ``shadowing_before`` into
+    ``shadowing_db``, drawn from the Generator of these ``sim.compiled.generator_pointers`` as
+    ``_shadowing_step_at`` draws it (without, ``shadowing_db`` is the tick's shadowing and the pointers
+    are not read). Then ``walls._pair_crossings`` (into ``count`` and ``wall_loss_db``, zeroed here),
+    ``_pair_figures`` over them with each pair's entry of ``log_ratio_matrix`` ((N, N): log10(max(d, d0)
+    / d0)), the graphs of ``RadioChannel.graph_figures`` (``linked``, ``in_range`` and ``comm``; a pair
+    in the uncertain band is linked as a delivery of 0 compares, until its delivery is known), and the
+    bus's (N, N) matrices of the figures: the SNR of both triangles with NaN on the diagonal, carrier
+    sense where ``rx`` reaches ``carrier_sense_dbm`` (False on the diagonal). Returns ``_pair_figures``'
+    count of pairs inside the uncertain band."""
+    if step:
+        _shadowing_step_at(state_address, state, next_uint64, next_uint32, next_double, shadowing_before, rho,
+                           innovation, shadowing_db)
     count[:] = 0
     wall_loss_db[:] = 0.0
     if centers.shape[0]:
@@ -303,6 +333,9 @@ def _walls_and_pair_figures(positions, first, second, log_ratio_matrix, distance
         comm[j, i] = linked[p]
         in_range[p] = distance[i, j] <= comm_range_m
     return inside
+
+
+_NO_POINTERS = (0, 0, 0, 0, 0)  # ``_walls_and_pair_figures`` without a shadowing step reads no Generator
 
 
 @kernel
