@@ -16,7 +16,7 @@ documents units.
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import numba
 import numpy as np
@@ -29,6 +29,27 @@ def kernel(function: Callable) -> Callable:
         return numba.njit(cache=True, error_model="numpy")(function)
     except RuntimeError:  # "cannot cache function ...: no locator available"
         return numba.njit(error_model="numpy")(function)
+
+
+# The kernels' compiled entry points once the dispatcher has compiled them (``compiled_call``).
+_ENTRIES: dict[tuple, Any] = {}
+
+
+def compiled_call(dispatcher: Any, arguments: tuple, key: tuple) -> Any:
+    """``dispatcher(*arguments)``, through its compiled entry point after the first call with this ``key``:
+    the dispatcher types every argument at each call, microseconds for a kernel of many arrays. The key
+    must fix the signature: the caller passes arrays of one dtype, layout and writeability and scalars of
+    one Python type under it (a key per variant, e.g. a caller's read-only array)."""
+    entry = _ENTRIES.get(key)
+    if entry is not None:
+        return entry(*arguments)
+    result = dispatcher(*arguments)
+    overloads = getattr(dispatcher, "overloads", None)
+    if overloads is not None:  # None: numba's JIT disabled
+        signature = tuple(dispatcher.typeof_pyval(argument) for argument in arguments)
+        if signature in overloads:
+            _ENTRIES[key] = overloads[signature].entry_point
+    return result
 
 
 class CompileWatch:

@@ -62,7 +62,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from sim.compiled import generator_pointers, kernel
+from sim.compiled import compiled_call, generator_pointers, kernel
 from sim.radio import channel, medium
 from sim.radio.medium import _NO_DRAW, _EXPONENTIAL, _NONCENTRAL_CHISQUARE, _ZERO_BER_SNR_DB, _per_802154  # noqa: F401
 from sim.radio.presets import IdealDisk, RadioPreset
@@ -1534,28 +1534,8 @@ class MessageBus(_QueueBus):
         return self._summary_of(self._table_counters() if self._tabled else self._kinds)
 
 
-# The kernels' compiled entry points once the dispatcher has compiled them: calling one skips the
-# dispatcher's typing of every argument each call.
-_ENTRIES: dict[tuple, Any] = {}
-
-
-def _compiled_entry(dispatcher: Any, arguments: tuple, key: tuple) -> Any:
-    """``dispatcher(*arguments)``, through its compiled entry point after the first call with this ``key``
-    (the callers pass arrays C-contiguous and scalars of fixed Python types: one signature per key)."""
-    entry = _ENTRIES.get(key)
-    if entry is not None:
-        return entry(*arguments)
-    result = dispatcher(*arguments)
-    overloads = getattr(dispatcher, "overloads", None)
-    if overloads is not None:
-        signature = tuple(dispatcher.typeof_pyval(argument) for argument in arguments)
-        if signature in overloads:
-            _ENTRIES[key] = overloads[signature].entry_point
-    return result
-
-
 def _enqueue_entry(*arguments: Any) -> int:
-    return _compiled_entry(medium._enqueue, arguments, ("enqueue",))
+    return compiled_call(medium._enqueue, arguments, ("enqueue",))
 
 
 def _period_entry(arguments: tuple, rng: Any, pointers: tuple[int, ...] | None, scratch: tuple) -> tuple:
@@ -1565,4 +1545,4 @@ def _period_entry(arguments: tuple, rng: Any, pointers: tuple[int, ...] | None, 
         return medium._period(*arguments, rng, *scratch)
     # one signature per writeability of the link's arrays (a caller's read-only matrices are typed apart)
     key = ("period", arguments[4].flags.writeable, arguments[5].flags.writeable)
-    return _compiled_entry(medium._period_at, pointers + arguments + scratch, key)
+    return compiled_call(medium._period_at, pointers + arguments + scratch, key)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.compiled import generator_at, generator_pointers, kernel
+from sim.compiled import compiled_call, generator_at, generator_pointers, kernel
 from sim.geometry import Boxes
 from sim.radio import channel
 from sim.radio.config import RadioConfig
@@ -45,6 +45,7 @@ class RadioChannel:
         self._step: tuple[float, float, float] = (np.nan, 0.0, 0.0)  # dt, rho, innovation std of the last step
         self._rng_pointers: tuple | None = None  # (rng, sim.compiled.generator_pointers of it)
         self._figure_constants: tuple | None = None  # ``_walls_and_figures``' arguments that never change
+        self._uncertain = np.empty(0, dtype=np.bool_)  # its scratch: the pairs in the uncertain band
         if not config.is_ideal:
             self._certain = self._certain_snr_db()
 
@@ -170,11 +171,14 @@ class RadioChannel:
         # pair_figures' logarithm with numpy, over the whole matrix: no gather in Python (the kernel's)
         log_ratio = np.maximum(distance, 1.0)
         np.log10(log_ratio, out=log_ratio)
-        wall_loss, rx, snr, delivery = np.empty((4, pairs))  # one block, four rows
+        wall_loss, rx, snr, delivery = np.empty(pairs), np.empty(pairs), np.empty(pairs), np.empty(pairs)
         count = np.empty(pairs, dtype=np.int64)
-        uncertain, linked, in_range = np.empty((3, pairs), dtype=np.bool_)
+        linked, in_range = np.empty(pairs, dtype=np.bool_), np.empty(pairs, dtype=np.bool_)
+        uncertain = self._uncertain
+        if len(uncertain) != pairs:  # scratch: read here only
+            uncertain = self._uncertain = np.empty(pairs, dtype=np.bool_)
         snr_matrix = np.empty((n, n))
-        sense, comm = np.empty((2, n, n), dtype=np.bool_)
+        sense, comm = np.empty((n, n), dtype=np.bool_), np.empty((n, n), dtype=np.bool_)
         if step is None:
             shadowed, pointers, rho, innovation = shadowing_db, _NO_POINTERS, 0.0, 0.0
         else:
@@ -187,9 +191,12 @@ class RadioChannel:
                 10.0 * config.path_loss_exponent, float(config.reference_loss_db), float(config.tx_power_dbm),
                 float(config.noise_floor_dbm), below, above, float(config.carrier_sense_dbm),
                 float(config.delivery_threshold), float(self.comm_range_m))
-        some = _walls_and_pair_figures(step is not None, *pointers, shadowing_db, rho, innovation, shadowed, positions,
-                                       first, second, log_ratio, distance, *constants, count, wall_loss, rx, snr,
-                                       delivery, uncertain, linked, in_range, snr_matrix, sense, comm)
+        # one signature per layout of the caller's distances (the rest is made here)
+        key = ("channel tick", distance.dtype.num, distance.flags.c_contiguous, distance.flags.writeable)
+        some = compiled_call(_walls_and_pair_figures, (
+            step is not None, *pointers, shadowing_db, rho, innovation, shadowed, positions, first, second, log_ratio,
+            distance, *constants, count, wall_loss, rx, snr, delivery, uncertain, linked, in_range, snr_matrix, sense,
+            comm), key)
         if some:
             which = np.flatnonzero(uncertain)
             delivery[which] = self.delivery_at_snr(snr[which])
