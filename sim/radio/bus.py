@@ -1080,6 +1080,8 @@ class MessageBus(_QueueBus):
         self._objects: dict[int, Message] = {}  # the queued messages not sent as_arrays, by sequence
         self._dropped = np.empty(64, dtype=np.int64)
         self._scratch_rows: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._bounds = np.empty(0, dtype=np.int64)  # the period's groups' bounds (scratch)
+        self._arrival_columns: tuple[np.ndarray, np.ndarray] | None = None  # the last period's arrivals
         self._tally = np.zeros(2, dtype=np.int64)  # _schedule_frames' (unsure draws, draws lost in it)
         self._hold_robots(robots)
         self._hold_slots(64)
@@ -1403,17 +1405,17 @@ class MessageBus(_QueueBus):
         if sense.shape != (n, n) or snr.shape != (n, n):
             raise ValueError(f"the link's arrays must be ({n}, {n})")
         self._hold_robots(n)
-        (sent, packets, addressed, delivered, columns, values, latencies, bounds, finished,
-         latency_total_s) = self._period(float(time_s), sense, snr, n)
+        sent, packets, addressed, delivered, entries, finished, latency_total_s = self._period(
+            float(time_s), sense, snr, n)
         self._elapsed_s += self.control_period_s
         deliveries: list[list[Delivery]] = [[] for _ in range(n)]
-        if len(latencies):
+        if entries:
+            columns, values = self._arrival_columns
             columns.flags.writeable = False  # before the views: they inherit it
             values.flags.writeable = False
-            bounds = bounds.tolist()
+            bounds = self._bounds[:len(self._kind_rows) + 2].tolist()
             arrivals = self._arrivals
-            for kind, name in enumerate(self._kind_names):
-                start, end = bounds[kind], bounds[kind + 1]
+            for name, start, end in zip(self._kind_names, bounds, bounds[1:]):
                 if end > start:
                     columns_of_kind = _new_object(Arrivals)
                     columns_of_kind.__dict__.update(
@@ -1426,11 +1428,11 @@ class MessageBus(_QueueBus):
                 for receiver, sequence, arrival_s in zip(columns[0, start:end].tolist(),
                                                          columns[2, start:end].tolist(), values[0, start:end].tolist()):
                     deliveries[receiver].append(_delivery(objects[sequence], receiver, arrival_s))
-            latency_mean_s = latency_total_s / latencies.size  # numpy.mean's sum (the kernel's) and division
+            latency_mean_s = latency_total_s / entries  # numpy.mean's sum (the kernel's) and division
         else:
             latency_mean_s = math.nan
-        if len(finished):
-            for sequence in finished.tolist():
+        if finished:
+            for sequence in self._scratch_rows[0][15, :finished].tolist():
                 del self._objects[sequence]
         # TickStats(...) without the frozen dataclass's per-field __setattr__
         self._last = last = _new_object(TickStats)
@@ -1459,14 +1461,22 @@ class MessageBus(_QueueBus):
         held = self._scratch_rows
         if held is None or held[0].shape[1] < width:
             width = max(width, 256)
-            held = self._scratch_rows = (np.empty((15, width), dtype=np.int64), np.empty((9, width)),
+            held = self._scratch_rows = (np.empty((16, width), dtype=np.int64), np.empty((9, width)),
                                          np.empty((2, width), dtype=np.bool_))
         integers, reals, flags = held
+        if len(self._bounds) < len(self._kind_rows) + 2:
+            self._bounds = np.empty(len(self._kind_rows) + 2, dtype=np.int64)
+        bounds = self._bounds[:len(self._kind_rows) + 2]
+        # the arrivals' columns: new each period (their views go out as ``arrivals``)
+        columns = np.empty((3, integers.shape[1]), dtype=np.int64)  # receiver, sender, sequence
+        values = np.empty((3, integers.shape[1]))  # arrival, send time, value
+        self._arrival_columns = (columns, values)
         self._hold_log(gathered * max(n - 1, 0))
         arguments = (start_s, start_s + self.control_period_s, self._EPS_S, reach_s, sense, snr, self._ints,
                      self._floats, self._listed, self._queue_rows, self._alive, self._free, self._counts,
                      self._kind_rows, self._kind_airtime, self._log_latency, self._log_kind, *constants)
-        result = _period_entry(arguments, self.rng, self._pointers(), (integers, reals, flags, self._tally))
+        result = _period_entry(arguments, self.rng, self._pointers(),
+                               (integers, reals, flags, self._tally, columns, values, bounds))
         if result[0] >= 0:
             return result
         # Some draws' SNR with fading lies too near the PER's edge for the kernel: numpy's exact PER decides them
@@ -1484,7 +1494,7 @@ class MessageBus(_QueueBus):
         flags[1][unsure] = reals[5][unsure] >= per
         return medium.book(n, self._ints, self._floats, self._queue_rows, self._alive, self._free, self._counts,
                            self._kind_rows, self._kind_airtime, self._log_latency, self._log_kind, integers, reals,
-                           flags, sent)
+                           flags, sent, columns, values, bounds)
 
     @property
     def _shortest_airtime_s(self) -> float:
