@@ -34,7 +34,7 @@ import numpy as np
 from sim.config import ConfigError
 from sim.faults import FaultState
 from sim.observers import EstimationError, Frame, Observer, PhysicsState, estimation_error
-from sim.radio.bus import Broadcasts, LinkConditions, Message, MessageBus, link_conditions, link_from_pairs
+from sim.radio.bus import Broadcasts, LinkState, Message, MessageBus, link_conditions, link_from_pairs
 from sim.radio.config import RadioConfig
 from sim.radio.link import RadioChannel
 from sim.scenario import Scenario, StrategyConfig
@@ -389,7 +389,7 @@ class Simulation:
         self._arrivals = MappingProxyType(arrivals) if arrivals else NO_ARRIVALS
         self._bus_flowed = True
 
-    def bus_link(self, observation: Observation) -> LinkConditions:
+    def bus_link(self, observation: Observation) -> LinkState:
         """The bus's view of the tick's channel: the mean SNR of every pair and who shares the air.
 
         Carrier sense: the pairs whose mean received power reaches ``radio.carrier_sense_dbm``.
@@ -401,7 +401,7 @@ class Simulation:
         channel = radio.channel_pairs
         made = channel.get("link_matrices")  # the channel's own, made with its figures (RadioChannel.state)
         if made is not None:
-            return LinkConditions(*made)
+            return made
         return link_from_pairs(len(radio.distance), radio.pairs, channel["snr_db"], channel["rx_power_dbm"],
                                self.scenario.radio.carrier_sense_dbm)
 

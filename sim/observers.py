@@ -193,7 +193,7 @@ def graph_lambda2(adjacency: np.ndarray) -> float:
 def pairs_graph_lambda2(n: int, pairs: tuple[np.ndarray, np.ndarray], edges: np.ndarray) -> float:
     """``graph_lambda2`` of the graph on ``n`` robots whose pair ``(pairs[0][p], pairs[1][p])`` is linked
     where ``edges[p]`` (bool, (P,)), without building the (N, N) adjacency unless the graph is new."""
-    key = (n, "pairs", np.packbits(edges).tobytes())
+    key = (n, "pairs", edges.tobytes())  # a byte per pair: one call where packing the bits takes two
     value = _LAMBDA2_SEEN.get(key)
     if value is None:
         adjacency = np.zeros((n, n), dtype=bool)

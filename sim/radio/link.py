@@ -23,7 +23,7 @@ from sim.compiled import compiled_call, generator_at, generator_pointers, kernel
 from sim.geometry import Boxes
 from sim.radio import channel
 from sim.radio.config import RadioConfig
-from sim.radio.medium import write_pair_matrices
+from sim.radio.medium import LinkMatrices, write_pair_matrices
 from sim.radio.walls import SceneWalls, _pair_crossings
 from sim.types import Links, RadioState
 
@@ -45,7 +45,8 @@ class RadioChannel:
         self._step: tuple[float, float, float] = (np.nan, 0.0, 0.0)  # dt, rho, innovation std of the last step
         self._rng_pointers: tuple | None = None  # (rng, sim.compiled.generator_pointers of it)
         self._figure_constants: tuple | None = None  # ``_walls_and_figures``' arguments that never change
-        self._uncertain = np.empty(0, dtype=np.bool_)  # its scratch: the pairs in the uncertain band
+        # its scratch: the pairs in the uncertain band, the walls' count and loss
+        self._scratch = (np.empty(0, dtype=np.bool_), np.empty(0, dtype=np.int64), np.empty(0))
         if not config.is_ideal:
             self._certain = self._certain_snr_db()
 
@@ -166,17 +167,17 @@ class RadioChannel:
         makes them), in one compiled call: the same values, without several calls' arguments and arrays each
         tick. With ``step`` (``_shadowing_step``'s), the shadowing's AR(1) step from ``shadowing_db`` is
         taken first in the same call, as ``_advance_shadowing`` takes it. Returns the figures and the walls'
-        per-pair (count, loss_db)."""
+        per-pair (count, loss_db), these in scratch that the next call overwrites (``state`` counts the walls
+        again where they are read: nothing reads them every tick)."""
         n, pairs = len(positions), len(first)
         # pair_figures' logarithm with numpy, over the whole matrix: no gather in Python (the kernel's)
         log_ratio = np.maximum(distance, 1.0)
         np.log10(log_ratio, out=log_ratio)
-        wall_loss, rx, snr, delivery = np.empty(pairs), np.empty(pairs), np.empty(pairs), np.empty(pairs)
-        count = np.empty(pairs, dtype=np.int64)
+        rx, snr, delivery = np.empty(pairs), np.empty(pairs), np.empty(pairs)
         linked, in_range = np.empty(pairs, dtype=np.bool_), np.empty(pairs, dtype=np.bool_)
-        uncertain = self._uncertain
-        if len(uncertain) != pairs:  # scratch: read here only
-            uncertain = self._uncertain = np.empty(pairs, dtype=np.bool_)
+        if len(self._scratch[0]) != pairs:
+            self._scratch = (np.empty(pairs, dtype=np.bool_), np.empty(pairs, dtype=np.int64), np.empty(pairs))
+        uncertain, count, wall_loss = self._scratch
         snr_matrix = np.empty((n, n))
         sense, comm = np.empty((n, n), dtype=np.bool_), np.empty((n, n), dtype=np.bool_)
         if step is None:
@@ -207,7 +208,7 @@ class RadioChannel:
         snr_matrix.flags.writeable = False
         comm.flags.writeable = False
         return ({"rx_power_dbm": rx, "snr_db": snr, "shadowing_db": shadowed, "delivery": delivery, "linked": linked,
-                 "in_range": in_range, "comm_adjacency": comm, "link_matrices": (snr_matrix, sense)},
+                 "in_range": in_range, "comm_adjacency": comm, "link_matrices": LinkMatrices(snr_matrix, sense)},
                 {"count": count, "loss_db": wall_loss})
 
     def graph_figures(self, figures: dict[str, np.ndarray], pair_distance_m: np.ndarray, n: int
@@ -257,10 +258,10 @@ class RadioChannel:
         distance = links.distance
         if extra_loss_db is None and silent is None:  # the tick's channel in one compiled call
             step = self._shadowing_step(time_s, len(first))
-            figures, wall_pairs = self._walls_and_figures(positions, first, second, distance, self._shadowing, step)
+            figures, _ = self._walls_and_figures(positions, first, second, distance, self._shadowing, step)
             self._shadowing = figures["shadowing_db"]
             return RadioState(config.preset, config.delivery_threshold, self.comm_range_m, distance,
-                              lambda: figures, lambda: wall_pairs, (first, second))
+                              lambda: figures, walls, (first, second))
         shadowing = self._advance_shadowing(time_s, len(first))
         computed: dict[str, dict[str, np.ndarray]] = {}  # the walls, once, for whichever reads first
 

@@ -8,6 +8,8 @@ Python loop these are held to (tests/test_radio_bus_fast.py).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from sim.compiled import generator_at, kernel, numpy_sum
@@ -507,6 +509,14 @@ def book(n, ints, floats, queues, alive, free, counts, kinds, airtime, log_laten
         values[1, e] = floats[slot, F_SENT]
         values[2, e] = floats[slot, F_VALUE]
     return sent, packets, addressed, delivered, entries, finished_count, numpy_sum(latencies)
+
+
+class LinkMatrices(NamedTuple):
+    """The medium's view of one tick's channel (a ``sim.radio.bus.LinkState``) as the channel makes it with
+    its figures (``write_pair_matrices``), read-only: (N, N) each."""
+
+    snr_db: np.ndarray  # mean SNR from i to j, dB; NaN on the diagonal
+    carrier_sense: np.ndarray  # bool: i and j share the air
 
 
 @kernel
