@@ -378,14 +378,15 @@ class Simulation:
             self._inbox = self._no_inbox
             self._arrivals = NO_ARRIVALS
             return
-        rows = bus.step(time_s, self.bus_link(observation))
+        rows = bus.inbox(time_s, self.bus_link(observation))  # None: no delivery in the rows (most ticks)
         arrivals = bus.arrivals
         if self.faults is not None and self.faults.any_failed:  # a silent robot hears nothing
             failed = self.faults.failed
-            rows = [() if failed[robot] else row for robot, row in enumerate(rows)]
+            if rows is not None:
+                rows = tuple(() if failed[robot] else row for robot, row in enumerate(rows))
             arrivals = {kind: columns.where(~np.asarray(failed, dtype=bool)[columns.receiver])
                         for kind, columns in arrivals.items()}
-        self._inbox = tuple(map(tuple, rows)) if any(rows) else self._no_inbox  # (most ticks: columns only)
+        self._inbox = rows if rows is not None and any(rows) else self._no_inbox
         self._arrivals = MappingProxyType(arrivals) if arrivals else NO_ARRIVALS
         self._bus_flowed = True
 

@@ -348,3 +348,30 @@ def test_broadcasts_item_is_its_messages_and_keeps_the_working_senders():
     assert [(m.sender, m.payload) for m in kept.messages()] == [(0, 0.5), (2, 1.0)]
     single = Message("election", 1, None, 3, 4)
     assert list(each_message((single, kept))) == [single, *kept.messages()]
+
+
+def test_the_inbox_is_the_steps_rows_as_tuples():
+    """``inbox``, what the loop takes each tick, is ``step``'s rows as tuples, None where they hold nothing
+    (a tick of columns only), with the same arrivals, on the compiled bus and on the reference."""
+    n, period_s = 6, 0.01
+    for cls in (MessageBus, ReferenceMessageBus):
+        buses = [cls(BusParameters.from_preset(IEEE802154), np.random.default_rng(3), period_s, robot_count=n)
+                 for _ in range(2)]
+        snr = np.full((n, n), 12.0)
+        np.fill_diagonal(snr, np.nan)
+        link = link_conditions(snr, True)
+        seen = set()
+        for tick in range(40):
+            for bus in buses:
+                bus.send_all(broadcasts("estimate", np.arange(n) * 0.5 + tick, 8, as_arrays=True), tick * period_s)
+                if tick % 7 == 0:
+                    bus.send(Message("records", tick % n, ((tick + 2) % n,), tick, 60), tick * period_s)
+            rows, inbox = buses[0].step(tick * period_s, link), buses[1].inbox(tick * period_s, link)
+            expected = tuple(map(tuple, rows)) if any(rows) else None
+            assert (inbox is None) == (expected is None)
+            if inbox is not None:
+                assert [[(d.receiver, d.message.sequence, d.arrival_s) for d in row] for row in inbox] == \
+                       [[(d.receiver, d.message.sequence, d.arrival_s) for d in row] for row in expected]
+            assert buses[0].arrivals.keys() == buses[1].arrivals.keys()
+            seen.add(inbox is None)
+        assert seen == {True, False}  # ticks with rows and ticks of columns only

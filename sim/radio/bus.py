@@ -805,6 +805,12 @@ class _QueueBus:
                              latency_mean_s=latency_mean_s, queued=self._waiting_total)
         return deliveries
 
+    def inbox(self, time_s: float, link: LinkState | None) -> tuple[tuple[Delivery, ...], ...] | None:
+        """``step``, its rows as an observation's inbox (a tuple per robot), or None where no row holds a
+        delivery (what the loop takes each tick: most ticks' messages arrive as ``arrivals``)."""
+        rows = self.step(time_s, link)
+        return tuple(map(tuple, rows)) if any(rows) else None
+
     @property
     def arrivals(self) -> dict[str, Arrivals]:
         """The last ``step``'s arrivals of the messages sent ``as_arrays``, per kind (only kinds that arrived)."""
@@ -1080,7 +1086,7 @@ class MessageBus(_QueueBus):
         self._objects: dict[int, Message] = {}  # the queued messages not sent as_arrays, by sequence
         self._dropped = np.empty(64, dtype=np.int64)
         self._scratch_rows: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._bounds = np.empty(0, dtype=np.int64)  # the period's groups' bounds (scratch)
+        self._present = np.empty(0, dtype=np.int64)  # the period's groups with arrivals (scratch)
         self._arrival_columns: tuple[np.ndarray, np.ndarray] | None = None  # the last period's arrivals
         self._tally = np.zeros(2, dtype=np.int64)  # _schedule_frames' (unsure draws, draws lost in it)
         self._hold_robots(robots)
@@ -1390,13 +1396,23 @@ class MessageBus(_QueueBus):
     def step(self, time_s: float, link: LinkState | None) -> list[list[Delivery]]:
         if not self._tabled:
             return super().step(time_s, link)
+        n, rows = self._table_step(time_s, link)
+        return [[] for _ in range(n)] if rows is None else rows
+
+    def inbox(self, time_s: float, link: LinkState | None) -> tuple[tuple[Delivery, ...], ...] | None:
+        if not self._tabled:
+            return super().inbox(time_s, link)
+        _, rows = self._table_step(time_s, link)
+        return None if rows is None else tuple(map(tuple, rows))
+
+    def _table_step(self, time_s: float, link: LinkState | None) -> tuple[int, list[list[Delivery]] | None]:
+        """``step`` over the frame table: the robots, and their rows (None when no row holds a delivery)."""
         self._arrivals = {}
         if not self._counts[medium.T_WAITING]:  # nothing queued, nothing in flight
             self._elapsed_s += self.control_period_s
             self._last = None  # an empty period at self._idle_s, built only when read
             self._idle_s = time_s
-            n = self._robot_count(link) if link is not None else self._n or 0
-            return [[] for _ in range(n)]
+            return (self._robot_count(link) if link is not None else self._n or 0), None
         if link is None:
             raise ValueError(f"the {self.params.name!r} bus needs this tick's link state")
         n = self._robot_count(link)
@@ -1405,29 +1421,30 @@ class MessageBus(_QueueBus):
         if sense.shape != (n, n) or snr.shape != (n, n):
             raise ValueError(f"the link's arrays must be ({n}, {n})")
         self._hold_robots(n)
-        sent, packets, addressed, delivered, entries, finished, latency_total_s = self._period(
+        sent, packets, addressed, delivered, entries, finished, present, latency_total_s = self._period(
             float(time_s), sense, snr, n)
         self._elapsed_s += self.control_period_s
-        deliveries: list[list[Delivery]] = [[] for _ in range(n)]
+        deliveries = None
         if entries:
             columns, values = self._arrival_columns
             columns.flags.writeable = False  # before the views: they inherit it
             values.flags.writeable = False
-            bounds = self._bounds[:len(self._kind_rows) + 2].tolist()
-            arrivals = self._arrivals
-            for name, start, end in zip(self._kind_names, bounds, bounds[1:]):
-                if end > start:
+            arrivals, names, others = self._arrivals, self._kind_names, len(self._kind_rows)
+            groups = iter(self._present[:3 * present].tolist())
+            for group, start, end in zip(groups, groups, groups):  # (group, first entry, end) triples
+                if group < others:
                     columns_of_kind = _new_object(Arrivals)
                     columns_of_kind.__dict__.update(
                         receiver=columns[0, start:end], sender=columns[1, start:end], arrival_s=values[0, start:end],
                         sent_s=values[1, start:end], sequence=columns[2, start:end], payload=values[2, start:end])
-                    arrivals[name] = columns_of_kind
-            start, end = bounds[-2], bounds[-1]  # the messages not sent as_arrays, in the rows' order
-            if end > start:
-                objects = self._objects
-                for receiver, sequence, arrival_s in zip(columns[0, start:end].tolist(),
-                                                         columns[2, start:end].tolist(), values[0, start:end].tolist()):
-                    deliveries[receiver].append(_delivery(objects[sequence], receiver, arrival_s))
+                    arrivals[names[group]] = columns_of_kind
+                else:  # the messages not sent as_arrays, in the rows' order
+                    deliveries = [[] for _ in range(n)]
+                    objects = self._objects
+                    for receiver, sequence, arrival_s in zip(columns[0, start:end].tolist(),
+                                                             columns[2, start:end].tolist(),
+                                                             values[0, start:end].tolist()):
+                        deliveries[receiver].append(_delivery(objects[sequence], receiver, arrival_s))
             latency_mean_s = latency_total_s / entries  # numpy.mean's sum (the kernel's) and division
         else:
             latency_mean_s = math.nan
@@ -1439,7 +1456,7 @@ class MessageBus(_QueueBus):
         last.__dict__.update(time_s=float(time_s), packets_sent=packets, packets_delivered=delivered,
                              delivery_ratio=delivered / addressed if addressed else math.nan,
                              latency_mean_s=latency_mean_s, queued=int(self._counts[medium.T_WAITING]))
-        return deliveries
+        return n, deliveries
 
     def _period(self, start_s: float, sense: np.ndarray, snr: np.ndarray, n: int) -> tuple:
         """The medium's period over the frame table (``medium._period``), numpy deciding the draws the kernel
@@ -1464,19 +1481,19 @@ class MessageBus(_QueueBus):
             held = self._scratch_rows = (np.empty((16, width), dtype=np.int64), np.empty((9, width)),
                                          np.empty((2, width), dtype=np.bool_))
         integers, reals, flags = held
-        if len(self._bounds) < len(self._kind_rows) + 2:
-            self._bounds = np.empty(len(self._kind_rows) + 2, dtype=np.int64)
-        bounds = self._bounds[:len(self._kind_rows) + 2]
+        if len(self._present) < 3 * (len(self._kind_rows) + 1):
+            self._present = np.empty(3 * (len(self._kind_rows) + 1), dtype=np.int64)
         # the arrivals' columns: new each period (their views go out as ``arrivals``)
         columns = np.empty((3, integers.shape[1]), dtype=np.int64)  # receiver, sender, sequence
         values = np.empty((3, integers.shape[1]))  # arrival, send time, value
         self._arrival_columns = (columns, values)
-        self._hold_log(gathered * max(n - 1, 0))
+        if self._counts[medium.T_LOGGED] + gathered * n > len(self._log_latency):
+            self._hold_log(gathered * n)
         arguments = (start_s, start_s + self.control_period_s, self._EPS_S, reach_s, sense, snr, self._ints,
                      self._floats, self._listed, self._queue_rows, self._alive, self._free, self._counts,
                      self._kind_rows, self._kind_airtime, self._log_latency, self._log_kind, *constants)
         result = _period_entry(arguments, self.rng, self._pointers(),
-                               (integers, reals, flags, self._tally, columns, values, bounds))
+                               (integers, reals, flags, self._tally, columns, values, self._present))
         if result[0] >= 0:
             return result
         # Some draws' SNR with fading lies too near the PER's edge for the kernel: numpy's exact PER decides them
@@ -1494,7 +1511,7 @@ class MessageBus(_QueueBus):
         flags[1][unsure] = reals[5][unsure] >= per
         return medium.book(n, self._ints, self._floats, self._queue_rows, self._alive, self._free, self._counts,
                            self._kind_rows, self._kind_airtime, self._log_latency, self._log_kind, integers, reals,
-                           flags, sent, columns, values, bounds)
+                           flags, sent, columns, values, self._present)
 
     @property
     def _shortest_airtime_s(self) -> float:

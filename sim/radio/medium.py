@@ -298,13 +298,13 @@ def _enqueue(ints, floats, listed, queues, free, counts, kinds, message_ints, me
 @kernel
 def _period(start_s, end_s, eps, reach_s, sense, snr, ints, floats, listed, queues, alive, free, counts, kinds,
             airtime, log_latency, log_kind, fading_code, noncentrality, gain_scale, sure_snr_db, decide, rng,
-            integers, reals, flags, tally, columns, values, bounds):
+            integers, reals, flags, tally, columns, values, present):
     """One period of the medium over the frame table: gathers the head of each queue that can go out (frames
     while the airtime before them fits, and one more, which cannot: the loop must meet it to stop that sender,
     drawing as it does), schedules them (``_schedule_frames``) and, unless some draw is left for numpy's exact
     PER (``tally[0]``: the caller decides those and calls ``book``), books them (``book``). ``integers``
     (16, W), ``reals`` (9, W) and ``flags`` (2, W) are scratch rows (see ``book``; W >= 4 frames gathered, >= N
-    + 1, >= the draws); ``columns``, ``values`` and ``bounds`` ``book``'s outputs. Returns ``book``'s
+    + 1, >= the draws); ``columns``, ``values`` and ``present`` ``book``'s outputs. Returns ``book``'s
     figures, or (-1, the frames sent, 0, ...) when the caller must decide draws first."""
     n = sense.shape[0]
     gathered = integers[0]
@@ -341,42 +341,43 @@ def _period(start_s, end_s, eps, reach_s, sense, snr, ints, floats, listed, queu
                             reals[1], integers[2], integers[3], reals[2], reals[3], reals[4], reals[5], flags[0],
                             flags[1], tally, integers[8:11], reals[6:9])
     if tally[0] > 0:
-        return -1, sent, 0, 0, 0, 0, 0.0
+        return -1, sent, 0, 0, 0, 0, 0, 0.0
     return book(n, ints, floats, queues, alive, free, counts, kinds, airtime, log_latency, log_kind, integers,
-                reals, flags, sent, columns, values, bounds)
+                reals, flags, sent, columns, values, present)
 
 
 @kernel
 def _period_at(state_address, state, next_uint64, next_uint32, next_double, start_s, end_s, eps, reach_s, sense,
                snr, ints, floats, listed, queues, alive, free, counts, kinds, airtime, log_latency, log_kind,
                fading_code, noncentrality, gain_scale, sure_snr_db, decide, integers, reals, flags, tally, columns, values,
-               bounds):
+               present):
     """``_period`` drawing from the Generator of these ``sim.compiled.generator_pointers`` (numba's unboxing
     of a Generator argument costs about 15 us a call)."""
     rng = generator_at(state_address, state, next_uint64, next_uint32, next_double)
     return _period(start_s, end_s, eps, reach_s, sense, snr, ints, floats, listed, queues, alive, free, counts,
                    kinds, airtime, log_latency, log_kind, fading_code, noncentrality, gain_scale, sure_snr_db,
-                   decide, rng, integers, reals, flags, tally, columns, values, bounds)
+                   decide, rng, integers, reals, flags, tally, columns, values, present)
 
 
 @kernel
 def book(n, ints, floats, queues, alive, free, counts, kinds, airtime, log_latency, log_kind, integers, reals,
-         flags, sent, columns, values, bounds):
+         flags, sent, columns, values, present):
     """Book the ``sent`` frames ``_schedule_frames`` put on the air (scratch rows: ``integers`` 0 the gathered
     slots, 1 the frames gone, 2 their draws' bounds, 3 the draws' receivers, 8-15 this kernel's; ``reals[1]``
-    their ends, ``reals[6:8]`` this kernel's; ``flags[1]`` each draw's survival), as ``ReferenceMessageBus._transmit`` does: pop them, keep the
-    in-flight receivers of a message of several frames, add the kinds' counters, airtimes and latencies
-    (logged with their kind, in booking order), and make the period's arrivals.
+    their ends, ``reals[6:8]`` this kernel's; ``flags[1]`` each draw's survival), as
+    ``ReferenceMessageBus._transmit`` does: pop them, keep the in-flight receivers of a message of several
+    frames, add the kinds' counters, airtimes and latencies (logged with their kind, in booking order), and
+    make the period's arrivals.
 
-    Returns (frames sent, packets sent, pairs addressed, deliveries, entries, finished, the latencies' sum as
-    ``numpy.add.reduce`` gives it) and writes the arrivals into the caller's arrays (a returned array costs
-    its boxing each call): one entry per (message, receiver reached), by group (each kind's ``as_arrays``
-    messages in kind order, then every other message: ``bounds[g]:bounds[g + 1]`` is group g, group
-    len(kinds) the others; ``bounds`` (len(kinds) + 2,)), within a group in the rows' order (by receiver,
-    then arrival and sequence); ``columns`` (3, >= entries): receiver, sender, sequence; ``values`` (3,
-    >= entries): arrival, send time, value; ``integers[15, :finished]`` the sequences of the messages not
-    sent as_arrays whose last frame went. The latencies are every entry's, in the rows' order over all
-    groups."""
+    Returns (frames sent, packets sent, pairs addressed, deliveries, entries, finished, groups present, the
+    latencies' sum as ``numpy.add.reduce`` gives it) and writes the arrivals into the caller's arrays (a
+    returned array costs its boxing each call): one entry per (message, receiver reached), by group (each
+    kind's ``as_arrays`` messages in kind order, then every other message, group len(kinds)), within a
+    group in the rows' order (by receiver, then arrival and sequence); ``columns`` (3, >= entries):
+    receiver, sender, sequence; ``values`` (3, >= entries): arrival, send time, value; ``present`` (>= 3
+    (len(kinds) + 1)) the groups with entries, as (group, first entry, end) triples in group order;
+    ``integers[15, :finished]`` the sequences of the messages not sent as_arrays whose last frame went. The
+    latencies are every entry's, in the rows' order over all groups."""
     gathered, sent_frame, sent_draws, draw_receiver = integers[0], integers[1], integers[2], integers[3]
     sent_finish = reals[1]
     draw_alive = flags[1]
@@ -486,7 +487,7 @@ def book(n, ints, floats, queues, alive, free, counts, kinds, airtime, log_laten
             row_receiver[row] = entry_receiver[e]
             row_message[row] = m
     groups = kinds.shape[0] + 1
-    bounds[:] = 0
+    bounds = np.zeros(groups + 1, dtype=np.int64)
     latencies = reals[7, :entries]
     for row in range(entries):
         slot = message_slot[row_message[row]]
@@ -496,6 +497,13 @@ def book(n, ints, floats, queues, alive, free, counts, kinds, airtime, log_laten
     for g in range(groups):
         bounds[g + 1] += bounds[g]
     place = bounds[:groups].copy()
+    groups_present = 0
+    for g in range(groups):
+        if bounds[g + 1] > bounds[g]:
+            present[3 * groups_present] = g
+            present[3 * groups_present + 1] = bounds[g]
+            present[3 * groups_present + 2] = bounds[g + 1]
+            groups_present += 1
     for row in range(entries):
         m = row_message[row]
         slot = message_slot[m]
@@ -508,7 +516,7 @@ def book(n, ints, floats, queues, alive, free, counts, kinds, airtime, log_laten
         values[0, e] = message_finish[m]
         values[1, e] = floats[slot, F_SENT]
         values[2, e] = floats[slot, F_VALUE]
-    return sent, packets, addressed, delivered, entries, finished_count, numpy_sum(latencies)
+    return sent, packets, addressed, delivered, entries, finished_count, groups_present, numpy_sum(latencies)
 
 
 class LinkMatrices(NamedTuple):
