@@ -1054,6 +1054,8 @@ class MessageBus(_QueueBus):
         self._batch_templates: dict[tuple, tuple] = {}  # ``_batch_template``'s per batch shape
         self._medium_constants: tuple | None = None  # ``_constants_of_medium``, made at the next period
         self._per_sender = (-1, 0)  # (frame sizes known, frames a period can take per sender) for ``_period``
+        self._period_held: tuple | None = None  # ``_hold_period``'s, for the next period
+        self._table_generation = getattr(self, "_table_generation", 0) + 1  # the medium's constants changed
         if not hasattr(self, "_kinds"):  # still in __init__
             return
         if params.is_ideal and self._tabled:
@@ -1091,6 +1093,7 @@ class MessageBus(_QueueBus):
         self._tally = np.zeros(2, dtype=np.int64)  # _schedule_frames' (unsure draws, draws lost in it)
         self._hold_robots(robots)
         self._hold_slots(64)
+        self._table_generation += 1
         for name, counters in self._kinds.items():  # in the order they were made
             kind = self._kind(name)
             self._kind_rows[kind, :medium.K_RANK + 1] = (
@@ -1193,6 +1196,7 @@ class MessageBus(_QueueBus):
         self._free = free
         self._counts[medium.T_FREE] += slots - old
         self._slots = slots
+        self._table_generation += 1
 
     def _hold_robots(self, robots: int) -> None:
         """Room for senders and receivers 0 .. robots - 1."""
@@ -1213,6 +1217,7 @@ class MessageBus(_QueueBus):
         airtime[:, :self._kind_airtime.shape[1]] = self._kind_airtime
         self._kind_airtime = airtime
         self._robots_held = robots
+        self._table_generation += 1
 
     def _kind(self, name: str) -> int:
         """The table's number of a message kind (its row of counters)."""
@@ -1228,6 +1233,7 @@ class MessageBus(_QueueBus):
                 airtime = np.zeros((len(rows), self._kind_airtime.shape[1]))
                 airtime[:kind] = self._kind_airtime
                 self._kind_airtime = airtime
+                self._table_generation += 1
         return kind
 
     def _log(self, latencies: np.ndarray, kind: int) -> None:
@@ -1246,6 +1252,7 @@ class MessageBus(_QueueBus):
             latency[:logged] = self._log_latency[:logged]
             kinds[:logged] = self._log_kind[:logged]
             self._log_latency, self._log_kind = latency, kinds
+            self._table_generation += 1
 
     # --- sending -----------------------------------------------------------------------------------
 
@@ -1461,41 +1468,31 @@ class MessageBus(_QueueBus):
     def _period(self, start_s: float, sense: np.ndarray, snr: np.ndarray, n: int) -> tuple:
         """The medium's period over the frame table (``medium._period``), numpy deciding the draws the kernel
         leaves to its exact PER."""
-        constants = self._medium_constants
-        if constants is None:
-            constants = self._medium_constants = self._constants_of_medium()
-        # Scratch for the frames a period can gather: per sender those whose airtime before them fits, and one
-        reach_s = self.control_period_s + 1e-6
-        sizes, per_sender = self._per_sender
-        if sizes != len(self._frames_of_size):  # a new frame size since: its airtime may be the shortest
-            shortest = self._shortest_airtime_s
-            per_sender = int(reach_s / shortest) + 2 if shortest > 0 else -1
-            self._per_sender = (len(self._frames_of_size), per_sender)
-        if per_sender < 0:
-            per_sender = self._slots
-        gathered = min(self._slots - int(self._counts[medium.T_FREE]), n * per_sender)
-        width = max(4 * gathered, gathered * n, n) + 1
-        held = self._scratch_rows
-        if held is None or held[0].shape[1] < width:
-            width = max(width, 256)
-            held = self._scratch_rows = (np.empty((16, width), dtype=np.int64), np.empty((9, width)),
-                                         np.empty((2, width), dtype=np.bool_))
-        integers, reals, flags = held
-        if len(self._present) < 3 * (len(self._kind_rows) + 1):
-            self._present = np.empty(3 * (len(self._kind_rows) + 1), dtype=np.int64)
+        held = self._period_held
+        if (held is None or held[0] != self._table_generation or held[1] != n or held[2] is not self.rng
+                or held[3] != len(self._frames_of_size)):
+            held = self._hold_period(n)
+        counts, per_period = self._counts, held[4]
+        # at most the frames in the table, or per_period, go out, each to at most n - 1 receivers
+        most = min(self._slots - int(counts[medium.T_FREE]), per_period) * n + 1
+        if counts[medium.T_LOGGED] + most > len(self._log_latency):
+            self._hold_log(most)
+            held = self._hold_period(n)
+        fixed, compiled = held[5], held[6]
         # the arrivals' columns: new each period (their views go out as ``arrivals``)
-        columns = np.empty((3, integers.shape[1]), dtype=np.int64)  # receiver, sender, sequence
-        values = np.empty((3, integers.shape[1]))  # arrival, send time, value
+        columns = np.empty((3, most), dtype=np.int64)  # receiver, sender, sequence
+        values = np.empty((3, most))  # arrival, send time, value
         self._arrival_columns = (columns, values)
-        if self._counts[medium.T_LOGGED] + gathered * n > len(self._log_latency):
-            self._hold_log(gathered * n)
-        arguments = (start_s, start_s + self.control_period_s, self._EPS_S, reach_s, sense, snr, self._ints,
-                     self._floats, self._listed, self._queue_rows, self._alive, self._free, self._counts,
-                     self._kind_rows, self._kind_airtime, self._log_latency, self._log_kind, *constants)
-        result = _period_entry(arguments, self.rng, self._pointers(),
-                               (integers, reals, flags, self._tally, columns, values, self._present))
+        end_s = start_s + self.control_period_s
+        if compiled:  # one signature per writeability of the link's arrays (a caller's read-only ones apart)
+            result = compiled_call(medium._period_at, fixed + (start_s, end_s, sense, snr, columns, values),
+                                   ("period", sense.flags.writeable, snr.flags.writeable))
+        else:  # numba's JIT disabled, or a generator that is not numpy's
+            result = medium._period_with(self.rng, *fixed, start_s, end_s, sense, snr, columns, values)
         if result[0] >= 0:
             return result
+        integers, reals, flags = self._scratch_rows
+        constants = self._medium_constants
         # Some draws' SNR with fading lies too near the PER's edge for the kernel: numpy's exact PER decides them
         sent = result[1]
         draws = int(integers[2, sent])
@@ -1512,6 +1509,40 @@ class MessageBus(_QueueBus):
         return medium.book(n, self._ints, self._floats, self._queue_rows, self._alive, self._free, self._counts,
                            self._kind_rows, self._kind_airtime, self._log_latency, self._log_kind, integers, reals,
                            flags, sent, columns, values, self._present)
+
+    def _hold_period(self, n: int) -> tuple:
+        """What every period over ``n`` robots passes the period's kernel until the table next grows (its
+        arrays, the medium's constants, the Generator's pointers and scratch rows wide enough for the most
+        frames a period can gather), kept with what it depends on: (table generation, n, rng, frame sizes
+        known, the most frames a period can take, the kernel's fixed arguments, whether compiled)."""
+        constants = self._medium_constants
+        if constants is None:
+            constants = self._medium_constants = self._constants_of_medium()
+        # The frames a period can gather: per sender those whose airtime before them fits, and one more
+        reach_s = self.control_period_s + 1e-6
+        sizes, per_sender = self._per_sender
+        if sizes != len(self._frames_of_size):  # a new frame size since: its airtime may be the shortest
+            shortest = self._shortest_airtime_s
+            per_sender = int(reach_s / shortest) + 2 if shortest > 0 else -1
+            self._per_sender = (len(self._frames_of_size), per_sender)
+        per_period = self._slots if per_sender < 0 else n * per_sender
+        gathered = min(self._slots, per_period)
+        width = max(4 * gathered, gathered * n, n, 255) + 1
+        rows = self._scratch_rows
+        if rows is None or rows[0].shape[1] < width:
+            rows = self._scratch_rows = (np.empty((16, width), dtype=np.int64), np.empty((9, width)),
+                                         np.empty((2, width), dtype=np.bool_))
+        if len(self._present) < 3 * (len(self._kind_rows) + 1):
+            self._present = np.empty(3 * (len(self._kind_rows) + 1), dtype=np.int64)
+        pointers = self._pointers()
+        compiled = pointers is not None and getattr(medium._period_at, "overloads", None) is not None
+        fixed = ((pointers if compiled else ()) + (
+            self._EPS_S, reach_s, self._ints, self._floats, self._listed, self._queue_rows, self._alive, self._free,
+            self._counts, self._kind_rows, self._kind_airtime, self._log_latency, self._log_kind, *constants, *rows,
+            self._tally, self._present))
+        held = self._period_held = (self._table_generation, n, self.rng, len(self._frames_of_size), per_period,
+                                    fixed, compiled)
+        return held
 
     @property
     def _shortest_airtime_s(self) -> float:
@@ -1565,11 +1596,3 @@ def _enqueue_entry(*arguments: Any) -> int:
     return compiled_call(medium._enqueue, arguments, ("enqueue",))
 
 
-def _period_entry(arguments: tuple, rng: Any, pointers: tuple[int, ...] | None, scratch: tuple) -> tuple:
-    """``medium._period``: with compiled kernels through ``_period_at`` with the Generator's ``pointers``
-    (numba's unboxing of the Generator itself costs about 15 us a call)."""
-    if pointers is None or getattr(medium._period_at, "overloads", None) is None:  # numba's JIT disabled
-        return medium._period(*arguments, rng, *scratch)
-    # one signature per writeability of the link's arrays (a caller's read-only matrices are typed apart)
-    key = ("period", arguments[4].flags.writeable, arguments[5].flags.writeable)
-    return compiled_call(medium._period_at, pointers + arguments + scratch, key)

@@ -347,13 +347,24 @@ def _period(start_s, end_s, eps, reach_s, sense, snr, ints, floats, listed, queu
 
 
 @kernel
-def _period_at(state_address, state, next_uint64, next_uint32, next_double, start_s, end_s, eps, reach_s, sense,
-               snr, ints, floats, listed, queues, alive, free, counts, kinds, airtime, log_latency, log_kind,
-               fading_code, noncentrality, gain_scale, sure_snr_db, decide, integers, reals, flags, tally, columns, values,
-               present):
+def _period_at(state_address, state, next_uint64, next_uint32, next_double, eps, reach_s, ints, floats, listed,
+               queues, alive, free, counts, kinds, airtime, log_latency, log_kind, fading_code, noncentrality,
+               gain_scale, sure_snr_db, decide, integers, reals, flags, tally, present, start_s, end_s, sense, snr,
+               columns, values):
     """``_period`` drawing from the Generator of these ``sim.compiled.generator_pointers`` (numba's unboxing
-    of a Generator argument costs about 15 us a call)."""
+    of a Generator argument costs about 15 us a call), its arguments in the order the bus keeps them: those
+    that last until the table grows first, the period's own last."""
     rng = generator_at(state_address, state, next_uint64, next_uint32, next_double)
+    return _period(start_s, end_s, eps, reach_s, sense, snr, ints, floats, listed, queues, alive, free, counts,
+                   kinds, airtime, log_latency, log_kind, fading_code, noncentrality, gain_scale, sure_snr_db,
+                   decide, rng, integers, reals, flags, tally, columns, values, present)
+
+
+def _period_with(rng, eps, reach_s, ints, floats, listed, queues, alive, free, counts, kinds, airtime, log_latency,
+                 log_kind, fading_code, noncentrality, gain_scale, sure_snr_db, decide, integers, reals, flags, tally,
+                 present, start_s, end_s, sense, snr, columns, values):
+    """``_period_at``'s call with the Generator itself (where numba's JIT is disabled, or the generator has
+    no pointers)."""
     return _period(start_s, end_s, eps, reach_s, sense, snr, ints, floats, listed, queues, alive, free, counts,
                    kinds, airtime, log_latency, log_kind, fading_code, noncentrality, gain_scale, sure_snr_db,
                    decide, rng, integers, reals, flags, tally, columns, values, present)
