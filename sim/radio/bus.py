@@ -1373,15 +1373,17 @@ class MessageBus(_QueueBus):
         next one when None), the table made large enough first."""
         if first_sequence is None:
             first_sequence = self._sequence
-        messages = len(values)
+        messages, frames, counts = len(values), len(spec) // 3, self._counts
         self._sequence = first_sequence + messages
-        self._hold_robots(top + 1)
-        self._hold_slots(len(spec) // 3)
-        if len(self._dropped) < self._counts[medium.T_WAITING] + messages:
-            self._dropped = np.empty(2 * (self._counts[medium.T_WAITING] + messages), dtype=np.int64)
-        dropped = _enqueue_entry(self._ints, self._floats, self._listed, self._queue_rows, self._free,
-                                 self._counts, self._kind_rows, rows, values, listed, spec, first_sequence, time_s,
-                                 self._dropped)
+        if top >= self._robots_held:
+            self._hold_robots(top + 1)
+        if counts[medium.T_FREE] < frames:
+            self._hold_slots(frames)
+        if len(self._dropped) < counts[medium.T_WAITING] + messages:
+            self._dropped = np.empty(2 * (counts[medium.T_WAITING] + messages), dtype=np.int64)
+        dropped = compiled_call(medium._enqueue, (self._ints, self._floats, self._listed, self._queue_rows, self._free,
+                                                  counts, self._kind_rows, rows, values, listed, spec, first_sequence,
+                                                  time_s, self._dropped), ("enqueue",))
         if dropped and self._objects:
             for sequence in self._dropped[:dropped].tolist():
                 self._objects.pop(sequence, None)
@@ -1590,9 +1592,5 @@ class MessageBus(_QueueBus):
 
     def summary(self) -> dict[str, float | int]:
         return self._summary_of(self._table_counters() if self._tabled else self._kinds)
-
-
-def _enqueue_entry(*arguments: Any) -> int:
-    return compiled_call(medium._enqueue, arguments, ("enqueue",))
 
 
