@@ -220,3 +220,16 @@ def numpy_sum(values):
         else:
             right[top - 1] = done
     return 0.0 + total
+
+
+@kernel
+def numpy_sum_where(values, where):
+    """(``numpy.add.reduce(values[where])``, ``where``'s count): the sum of the values ``where`` marks
+    (bool, as long), bit for bit as numpy sums them once picked out, in one call."""
+    picked = np.empty(values.shape[0])
+    count = 0
+    for i in range(values.shape[0]):
+        if where[i]:
+            picked[count] = values[i]
+            count += 1
+    return numpy_sum(picked[:count]), count

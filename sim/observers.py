@@ -17,7 +17,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from sim.compiled import kernel
+from sim.compiled import kernel, numpy_sum_where
 from sim.types import Commands, Observation, TargetEstimate
 
 
@@ -253,9 +253,10 @@ def link_figures(observation: Observation, failed: np.ndarray | None = None) -> 
     channel = radio.channel_pairs
     # The graph of radio.comm_adjacency, read from the pairs (this runs every tick under a real radio).
     comm = pairs_graph_lambda2(adjacency.shape[0], radio.pairs, channel["linked"])
-    near_delivery = channel["delivery"][channel["in_range"]]
-    # ndarray.mean's own sum and division, without its wrapper (this runs every tick under a real radio).
-    delivery = float(np.add.reduce(near_delivery) / near_delivery.size) if near_delivery.size else float("nan")
+    # ndarray.mean's own sum and division over the pairs in range, in one compiled call (this runs every tick
+    # under a real radio)
+    total, near = numpy_sum_where(channel["delivery"], channel["in_range"])
+    delivery = total / near if near else float("nan")
     return LinkFigures(edges, sensing, comm, delivery)
 
 

@@ -3,7 +3,7 @@
 import numpy as np
 from hypothesis import given, settings, strategies as st
 
-from sim.compiled import numpy_sum
+from sim.compiled import numpy_sum, numpy_sum_where
 
 
 @settings(max_examples=300, deadline=None)
@@ -21,3 +21,14 @@ def test_numpy_sum_of_nothing_and_of_specials():
     assert numpy_sum(np.empty(0)) == 0.0
     assert np.isnan(numpy_sum(np.array([1.0, np.nan, 2.0])))
     assert numpy_sum(np.array([np.inf] * 9)) == np.inf
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 400), st.integers(0, 2**32 - 1), st.floats(0.0, 1.0))
+def test_numpy_sum_where_is_numpys_sum_of_the_picked(count, seed, share):
+    rng = np.random.default_rng(seed)
+    values = rng.standard_normal(count) * 10.0 ** rng.uniform(-6, 6, count)
+    where = rng.random(count) < share
+    total, picked = numpy_sum_where(values, where)
+    assert picked == int(where.sum())
+    assert total == np.add.reduce(values[where])

@@ -205,6 +205,8 @@ class BusFlooding:
 
     def receive(self, tick: int, inbox) -> None:
         """Read the election broadcasts among ``inbox[robot]`` (``Delivery``s of the bus) at ``tick``."""
+        if not any(inbox):  # no delivery in the rows (most ticks)
+            return
         due = tick + self.latency_ticks - 1
         for robot, deliveries in enumerate(inbox):
             for delivery in deliveries:
@@ -218,6 +220,8 @@ class BusFlooding:
 
     def delivered(self, tick: int) -> list[tuple[int, Message]]:
         """(receiver, message) pairs for messages a robot learns exactly at ``tick``; it forwards them from now."""
+        if not self._arriving:
+            return []
         now = [(robot, message) for due, robot, message in self._arriving if due == tick]
         self._arriving = [entry for entry in self._arriving if entry[0] > tick]
         for robot, message in now:
@@ -236,6 +240,8 @@ class BusFlooding:
 
     def outbox(self, tick: int) -> list[BusMessage]:
         """This tick's election broadcasts, one per robot that forwards anything."""
+        if not any(self._forwarding):  # nobody forwards anything (most ticks)
+            return []
         messages = []
         for robot, forwarding in enumerate(self._forwarding):
             if not forwarding:

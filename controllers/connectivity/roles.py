@@ -264,8 +264,9 @@ class RoleMachine:
         """Over the bus: each robot's reliable link and token side read its deliveries of the tick."""
         time_s = self._time_s
         holds = self.holds_token.tolist()
+        rows = inbox if inbox and any(inbox) else None  # None: no delivery in the rows (most ticks)
         for robot, token in enumerate(self.tokens):
-            if (not (inbox and inbox[robot]) and not token.link.pending and not token.token_maybe_lost
+            if ((rows is None or not rows[robot]) and not token.link.pending and not token.token_maybe_lost
                     and (holds[robot] or token.state != "holder")):
                 continue  # nothing to read, resend or take up: the poll would return no events, and nothing acts
             handing_over = token.state == "handing_over"
