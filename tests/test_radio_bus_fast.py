@@ -8,6 +8,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -375,3 +376,33 @@ def test_the_inbox_is_the_steps_rows_as_tuples():
             assert buses[0].arrivals.keys() == buses[1].arrivals.keys()
             seen.add(inbox is None)
         assert seen == {True, False}  # ticks with rows and ticks of columns only
+
+
+def test_broadcasts_handed_over_are_the_copied_ones():
+    """``Broadcasts.handed_over`` takes the caller's array as it is; the bus sends the same frames, draws
+    and arrivals as from the constructor's copy. An array it cannot take as it is gets the constructor."""
+    from sim.radio.bus import Broadcasts
+
+    n, period_s = 5, 0.01
+    buses = [MessageBus(BusParameters.from_preset(IEEE802154), np.random.default_rng(4), period_s, robot_count=n)
+             for _ in range(2)]
+    snr = np.full((n, n), 8.0)
+    np.fill_diagonal(snr, np.nan)
+    link = link_conditions(snr, True)
+    for tick in range(30):
+        values = np.arange(n) + 0.25 * tick
+        buses[0].send_all((Broadcasts("estimate", values, 8, latest_only=True),), tick * period_s)
+        handed = Broadcasts.handed_over("estimate", values, 8, latest_only=True)
+        assert handed.values is values
+        buses[1].send_all((handed,), tick * period_s)
+        for bus in buses:
+            bus.step(tick * period_s, link)
+        assert buses[0].arrivals.keys() == buses[1].arrivals.keys()
+        for kind, columns in buses[0].arrivals.items():
+            other = vars(buses[1].arrivals[kind]).values()
+            assert all(np.array_equal(a, b) for a, b in zip(vars(columns).values(), other))
+    assert buses[0].summary() == buses[1].summary()
+    strided = np.arange(2.0 * n)[::2]
+    assert Broadcasts.handed_over("estimate", strided, 8).values is not strided
+    with pytest.raises(ValueError):
+        Broadcasts.handed_over("estimate", np.zeros(3), 0)

@@ -352,7 +352,8 @@ class ExplorationController:
         outbox = ()
         if self.over_bus:
             # every robot's estimate as one outbox item (the bus takes it without a Message per robot)
-            outbox = (*self.role_machine.outbox, Broadcasts(CONSENSUS_KIND, estimates, FLOAT64_BYTES, latest_only=True))
+            outbox = (*self.role_machine.outbox,
+                      Broadcasts.handed_over(CONSENSUS_KIND, estimates, FLOAT64_BYTES, latest_only=True))
 
         self.tick += 1
         self.last_time = float(time)

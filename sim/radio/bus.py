@@ -176,6 +176,19 @@ class Broadcasts:
         self.kind, self.values, self.size_bytes = kind, values, int(size_bytes)
         self.latest_only, self.senders = bool(latest_only), senders
 
+    @classmethod
+    def handed_over(cls, kind: str, values: np.ndarray, size_bytes: int, latest_only: bool = False) -> Broadcasts:
+        """Robot i broadcasts ``values[i]``, every robot, from a float64 vector the caller hands over and no
+        longer changes (not copied, as the constructor copies; a strategy's per-tick array)."""
+        flags = values.flags
+        if (values.dtype != np.float64 or values.ndim != 1 or not flags.c_contiguous or not flags.writeable
+                or type(size_bytes) is not int or size_bytes <= 0):
+            return cls(kind, values, size_bytes, latest_only)  # the constructor's checks and copy
+        batch = _new_object(cls)
+        batch.kind, batch.values, batch.size_bytes, batch.latest_only, batch.senders = (
+            kind, values, size_bytes, bool(latest_only), None)
+        return batch
+
     def __len__(self) -> int:
         return len(self.values)
 
