@@ -1437,12 +1437,19 @@ class MessageBus(_QueueBus):
             return (self._robot_count(link) if link is not None else self._n or 0), None
         if link is None:
             raise ValueError(f"the {self.params.name!r} bus needs this tick's link state")
-        n = self._robot_count(link)
-        sense = np.ascontiguousarray(link.carrier_sense, dtype=bool)
-        snr = np.ascontiguousarray(link.snr_db, dtype=float)
-        if sense.shape != (n, n) or snr.shape != (n, n):
-            raise ValueError(f"the link's arrays must be ({n}, {n})")
-        self._hold_robots(n)
+        if type(link) is medium.LinkMatrices:  # the channel's own: C arrays of their types, (N, N) each
+            snr, sense = link.snr_db, link.carrier_sense
+            n = len(snr)
+            if n != self._n:
+                n = self._robot_count(link)
+        else:
+            n = self._robot_count(link)
+            sense = np.ascontiguousarray(link.carrier_sense, dtype=bool)
+            snr = np.ascontiguousarray(link.snr_db, dtype=float)
+            if sense.shape != (n, n) or snr.shape != (n, n):
+                raise ValueError(f"the link's arrays must be ({n}, {n})")
+        if n > self._robots_held:
+            self._hold_robots(n)
         sent, packets, addressed, delivered, entries, finished, present, latency_total_s = self._period(
             float(time_s), sense, snr, n)
         self._elapsed_s += self.control_period_s

@@ -532,7 +532,8 @@ def book(n, ints, floats, queues, alive, free, counts, kinds, airtime, log_laten
 
 class LinkMatrices(NamedTuple):
     """The medium's view of one tick's channel (a ``sim.radio.bus.LinkState``) as the channel makes it with
-    its figures (``write_pair_matrices``), read-only: (N, N) each."""
+    its figures (``write_pair_matrices``): (N, N) C arrays each, float64 and bool, the SNR read-only. The
+    bus takes them as they are (any other ``LinkState`` is converted and checked first)."""
 
     snr_db: np.ndarray  # mean SNR from i to j, dB; NaN on the diagonal
     carrier_sense: np.ndarray  # bool: i and j share the air
