@@ -44,9 +44,7 @@ class RadioChannel:
         self._shadowing_time = -np.inf
         self._step: tuple[float, float, float] = (np.nan, 0.0, 0.0)  # dt, rho, innovation std of the last step
         self._rng_pointers: tuple | None = None  # (rng, sim.compiled.generator_pointers of it)
-        self._figure_constants: tuple | None = None  # ``_walls_and_figures``' arguments that never change
-        # its scratch: the pairs in the uncertain band, the walls' count and loss
-        self._scratch = (np.empty(0, dtype=np.bool_), np.empty(0, dtype=np.int64), np.empty(0))
+        self._figure_held: tuple | None = None  # ``_hold_figures``', for the next tick
         if not config.is_ideal:
             self._certain = self._certain_snr_db()
 
@@ -175,29 +173,21 @@ class RadioChannel:
         np.log10(log_ratio, out=log_ratio)
         rx, snr, delivery = np.empty(pairs), np.empty(pairs), np.empty(pairs)
         linked, in_range = np.empty(pairs, dtype=np.bool_), np.empty(pairs, dtype=np.bool_)
-        if len(self._scratch[0]) != pairs:
-            self._scratch = (np.empty(pairs, dtype=np.bool_), np.empty(pairs, dtype=np.int64), np.empty(pairs))
-        uncertain, count, wall_loss = self._scratch
         snr_matrix = np.empty((n, n))
         sense, comm = np.empty((n, n), dtype=np.bool_), np.empty((n, n), dtype=np.bool_)
+        held = self._figure_held
+        if held is None or held[0] is not first or held[1] is not self.rng:
+            held = self._hold_figures(first, second)
+        fixed, uncertain, count, wall_loss = held[2:]
         if step is None:
-            shadowed, pointers, rho, innovation = shadowing_db, _NO_POINTERS, 0.0, 0.0
+            shadowed, rho, innovation = shadowing_db, 0.0, 0.0
         else:
-            shadowed, pointers, (rho, innovation) = np.empty(pairs), self._pointers(), step
-        constants = self._figure_constants
-        if constants is None:  # the scene's boxes and the formulas' figures: the same every tick
-            config, walls, (below, above) = self.config, self.walls, self._certain
-            constants = self._figure_constants = (
-                walls.centers, walls.halves, walls.rotations, walls.extents, walls.losses,
-                10.0 * config.path_loss_exponent, float(config.reference_loss_db), float(config.tx_power_dbm),
-                float(config.noise_floor_dbm), below, above, float(config.carrier_sense_dbm),
-                float(config.delivery_threshold), float(self.comm_range_m))
+            shadowed, (rho, innovation) = np.empty(pairs), step
         # one signature per layout of the caller's distances (the rest is made here)
         key = ("channel tick", distance.dtype.num, distance.flags.c_contiguous, distance.flags.writeable)
-        some = compiled_call(_walls_and_pair_figures, (
-            step is not None, *pointers, shadowing_db, rho, innovation, shadowed, positions, first, second, log_ratio,
-            distance, *constants, count, wall_loss, rx, snr, delivery, uncertain, linked, in_range, snr_matrix, sense,
-            comm), key)
+        some = compiled_call(_walls_and_pair_figures, fixed + (
+            step is not None, shadowing_db, rho, innovation, shadowed, positions, log_ratio, distance, rx, snr,
+            delivery, linked, in_range, snr_matrix, sense, comm), key)
         if some:
             which = np.flatnonzero(uncertain)
             delivery[which] = self.delivery_at_snr(snr[which])
@@ -210,6 +200,22 @@ class RadioChannel:
         return ({"rx_power_dbm": rx, "snr_db": snr, "shadowing_db": shadowed, "delivery": delivery, "linked": linked,
                  "in_range": in_range, "comm_adjacency": comm, "link_matrices": LinkMatrices(snr_matrix, sense)},
                 {"count": count, "loss_db": wall_loss})
+
+    def _hold_figures(self, first: np.ndarray, second: np.ndarray) -> tuple:
+        """What ``_walls_and_figures`` passes its kernel every tick for these pairs (the Generator's pointers,
+        the scene's boxes, the formulas' figures, the pairs and scratch), kept with the pairs and the
+        generator: (first, rng, the kernel's fixed arguments, uncertain, count, wall_loss)."""
+        config, walls, (below, above) = self.config, self.walls, self._certain
+        pairs = len(first)
+        pointers = self._pointers()
+        scratch = (np.empty(pairs, dtype=np.bool_), np.empty(pairs, dtype=np.int64), np.empty(pairs))
+        fixed = ((_NO_POINTERS if pointers is None else pointers) + (
+            walls.centers, walls.halves, walls.rotations, walls.extents, walls.losses,
+            10.0 * config.path_loss_exponent, float(config.reference_loss_db), float(config.tx_power_dbm),
+            float(config.noise_floor_dbm), below, above, float(config.carrier_sense_dbm),
+            float(config.delivery_threshold), float(self.comm_range_m), first, second, *scratch))
+        self._figure_held = (first, self.rng, fixed, *scratch)
+        return self._figure_held
 
     def graph_figures(self, figures: dict[str, np.ndarray], pair_distance_m: np.ndarray, n: int
                       ) -> dict[str, np.ndarray]:
@@ -304,11 +310,12 @@ def _pair_figures(log_ratio, wall_loss_db, shadowing_db, distance_coefficient, r
 
 
 @kernel
-def _walls_and_pair_figures(step, state_address, state, next_uint64, next_uint32, next_double, shadowing_before, rho,
-                            innovation, shadowing_db, positions, first, second, log_ratio_matrix, distance, centers,
-                            halves, rotations, extents, losses, distance_coefficient, reference_loss_db, tx_power_dbm,
-                            noise_floor_dbm, below, above, carrier_sense_dbm, delivery_threshold, comm_range_m, count,
-                            wall_loss_db, rx, snr, delivery, uncertain, linked, in_range, snr_matrix, sense, comm):
+def _walls_and_pair_figures(state_address, state, next_uint64, next_uint32, next_double, centers, halves, rotations,
+                            extents, losses, distance_coefficient, reference_loss_db, tx_power_dbm, noise_floor_dbm,
+                            below, above, carrier_sense_dbm, delivery_threshold, comm_range_m, first, second,
+                            uncertain, count, wall_loss_db, step, shadowing_before, rho, innovation, shadowing_db,
+                            positions, log_ratio_matrix, distance, rx, snr, delivery, linked, in_range, snr_matrix,
+                            sense, comm):
     """One tick of the channel. With ``step``, the shadowing's AR(1) step from ``shadowing_before`` into
     ``shadowing_db``, drawn from the Generator of these ``sim.compiled.generator_pointers`` as
     ``_shadowing_step_at`` draws it (without, ``shadowing_db`` is the tick's shadowing and the pointers
@@ -343,7 +350,7 @@ def _walls_and_pair_figures(step, state_address, state, next_uint64, next_uint32
     return inside
 
 
-_NO_POINTERS = (0, 0, 0, 0, 0)  # ``_walls_and_pair_figures`` without a shadowing step reads no Generator
+_NO_POINTERS = (0, 0, 0, 0, 0)  # where there are none: ``_walls_and_pair_figures`` without a step reads none
 
 
 @kernel
