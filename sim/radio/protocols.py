@@ -358,15 +358,16 @@ class HeartbeatMonitor:
                 if silent[receiver, sender]:
                     silent[receiver, sender] = False
                     self.withdrawn.append((time_s, receiver, sender))
-        kinds = list(arrivals.values()) if arrivals else []
-        for columns in kinds[:-1]:
-            back = np.empty(len(columns), dtype=np.int64)
-            for k in back[:_hear_columns(columns.receiver, columns.sender, columns.arrival_s, last, silent, back)]:
-                self.withdrawn.append((time_s, int(columns.receiver[k]), int(columns.sender[k])))
+        kinds = tuple(arrivals.values()) if arrivals else ()
+        if len(kinds) > 1:
+            for columns in kinds[:-1]:
+                back = np.empty(len(columns), dtype=np.int64)
+                for k in back[:_hear_columns(columns.receiver, columns.sender, columns.arrival_s, last, silent, back)]:
+                    self.withdrawn.append((time_s, int(columns.receiver[k]), int(columns.sender[k])))
         if kinds:  # the last kind's columns read in the same compiled call as the search for quiet pairs
             columns = kinds[-1]
-            if len(self._back) < len(columns):
-                self._back = np.empty(2 * len(columns), dtype=np.int64)
+            if len(self._back) < columns.receiver.shape[0]:
+                self._back = np.empty(2 * columns.receiver.shape[0], dtype=np.int64)
             back = self._back
             heard_again, found = _hear_columns_then_quiet_pairs(columns.receiver, columns.sender, columns.arrival_s,
                                                                 last, silent, back, time_s - self.timeout_s,
