@@ -1356,7 +1356,7 @@ class MessageBus(_QueueBus):
         the highest robot it names: what ``send_all`` makes of its messages one by one. Kept per kind, size,
         flags and count when every robot sends (the consensus, every tick)."""
         senders = batch.senders
-        key = (batch.kind, batch.size_bytes, batch.latest_only, len(batch)) if senders is None else None
+        key = (batch.kind, batch.size_bytes, batch.latest_only, len(batch.values)) if senders is None else None
         template = self._batch_templates.get(key)
         if template is None:
             count = len(batch)

@@ -105,7 +105,8 @@ class RadioChannel:
                                                              config.shadowing_correlation_s, standard_normal=1.0))
                 self._step = (dt, rho, innovation)
             _, rho, innovation = self._step
-            if self._pointers() is None:
+            held = self._rng_pointers
+            if (held[1] if held is not None and held[0] is self.rng else self._pointers()) is None:
                 innovations = self.rng.standard_normal(pairs)
                 innovations *= innovation
                 stepped = rho * self._shadowing
@@ -178,7 +179,7 @@ class RadioChannel:
         held = self._figure_held
         if held is None or held[0] is not first or held[1] is not self.rng:
             held = self._hold_figures(first, second)
-        fixed, uncertain, count, wall_loss = held[2:]
+        fixed, count, wall_loss = held[2], held[4], held[5]
         if step is None:
             shadowed, rho, innovation = shadowing_db, 0.0, 0.0
         else:
@@ -189,7 +190,7 @@ class RadioChannel:
             step is not None, shadowing_db, rho, innovation, shadowed, positions, log_ratio, distance, rx, snr,
             delivery, linked, in_range, snr_matrix, sense, comm), key)
         if some:
-            which = np.flatnonzero(uncertain)
+            which = np.flatnonzero(held[3])  # the pairs in the uncertain band
             delivery[which] = self.delivery_at_snr(snr[which])
             now = delivery[which] >= self.config.delivery_threshold
             linked[which] = now
