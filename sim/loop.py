@@ -370,16 +370,12 @@ class Simulation:
         """The tick's messages: ``commands.outbox`` to the bus at the tick's time, one bus step over
         [t, t + control period) with this tick's link state, its deliveries the next observation's inbox."""
         bus = self.bus
-        time_s = observation.time_s
-        if commands.outbox:
-            bus.send_all(commands.outbox, time_s)
-        if bus.idle:  # no message anywhere: no link state read, nothing drawn
-            bus.step(time_s, None)
+        rows = bus.exchange(commands.outbox, observation.time_s, lambda: self.bus_link(observation))
+        if rows is False:  # no message anywhere: no link state read, nothing drawn
             self._inbox = self._no_inbox
             self._arrivals = NO_ARRIVALS
             return
-        rows = bus.inbox(time_s, self.bus_link(observation))  # None: no delivery in the rows (most ticks)
-        arrivals = bus.arrivals
+        arrivals = bus.arrivals  # rows None: no delivery in the rows (most ticks)
         if self.faults is not None and self.faults.any_failed:  # a silent robot hears nothing
             failed = self.faults.failed
             if rows is not None:

@@ -406,3 +406,68 @@ def test_broadcasts_handed_over_are_the_copied_ones():
     assert Broadcasts.handed_over("estimate", strided, 8).values is not strided
     with pytest.raises(ValueError):
         Broadcasts.handed_over("estimate", np.zeros(3), 0)
+
+
+@st.composite
+def exchange_cases(draw):
+    n = draw(st.integers(2, 8))
+    preset = draw(st.sampled_from(sorted(PRESETS)))
+    fading, k = draw(st.sampled_from(FADINGS))
+    snr = np.array(draw(st.lists(st.sampled_from([-math.inf, -5.0, 1.5, 3.0, 6.0, 30.0]),
+                                 min_size=n * n, max_size=n * n))).reshape(n, n)
+    np.fill_diagonal(snr, np.nan)
+    sense = np.array(draw(st.lists(st.booleans(), min_size=n * n, max_size=n * n))).reshape(n, n)
+    # per tick: nothing, the whole team's batch, a batch of some senders, or a batch after a unicast
+    outbox = st.sampled_from(["none", "batch", "batch", "batch", "some", "unicast and batch"])
+    ticks = draw(st.lists(outbox, min_size=1, max_size=25))
+    matrices = draw(st.booleans())  # the channel's own LinkMatrices, or a plain LinkConditions
+    return PRESETS[preset], fading, k, snr, sense, ticks, matrices, draw(st.integers(0, 2**32 - 1))
+
+
+@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(exchange_cases())
+def test_exchange_is_send_all_then_inbox(case):
+    """``MessageBus.exchange``, the loop's one call a tick (an outbox of one batch entering the table and the
+    period in one compiled call), gives what ``send_all`` then ``inbox`` (or an idle ``step``) give: the same
+    rows, arrivals, figures, queues and draws, tick after tick."""
+    from sim.radio.bus import Broadcasts
+    from sim.radio.medium import LinkMatrices
+
+    preset, fading, k, snr, sense, ticks, matrices, seed = case
+    n, period_s = snr.shape[0], 0.01
+    params = replace(BusParameters.from_preset(preset), fading_model=fading, rician_k=k)
+    buses = [MessageBus(params, np.random.default_rng(seed), period_s, robot_count=n) for _ in range(2)]
+    plain = link_conditions(snr, sense)
+    link = LinkMatrices(plain.snr_db, plain.carrier_sense) if matrices else plain
+    for tick, plan in enumerate(ticks):
+        time_s = tick * period_s
+        values = np.arange(n) * 0.5 + tick
+        if plan == "none":
+            outbox = ()
+        elif plan == "some":
+            outbox = (Broadcasts("estimate", values[::2].copy(), 8, latest_only=True, senders=np.arange(0, n, 2)),)
+        else:
+            outbox = (Broadcasts.handed_over("estimate", values, 8, latest_only=True),)
+            if plan == "unicast and batch":
+                outbox = (Message("records", tick % n, ((tick + 1) % n,), tick, 120),) + outbox
+        got = buses[0].exchange(outbox, time_s, lambda: link)
+        if outbox:
+            buses[1].send_all(outbox, time_s)
+        if buses[1].idle:
+            buses[1].step(time_s, None)
+            expected = False
+        else:
+            expected = buses[1].inbox(time_s, link)
+        assert (got is False) == (expected is False) and (got is None) == (expected is None)
+        if got:
+            assert [[(d.receiver, d.message.sequence, d.arrival_s) for d in row] for row in got] == \
+                   [[(d.receiver, d.message.sequence, d.arrival_s) for d in row] for row in expected]
+        assert buses[0].arrivals.keys() == buses[1].arrivals.keys()
+        for kind, columns in buses[0].arrivals.items():
+            other = vars(buses[1].arrivals[kind]).values()
+            assert all(np.array_equal(a, b) for a, b in zip(vars(columns).values(), other))
+        assert buses[0].rng.bit_generator.state == buses[1].rng.bit_generator.state
+        assert all(_same(a, b) for a, b in zip(vars(buses[0].last_tick).values(), vars(buses[1].last_tick).values()))
+        assert [buses[0].queued(s) for s in range(n)] == [buses[1].queued(s) for s in range(n)]
+    summaries = [bus.summary() for bus in buses]
+    assert all(_same(summaries[0][key], summaries[1][key]) for key in summaries[0])

@@ -58,7 +58,7 @@ from array import array
 from collections import deque
 from itertools import chain
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
@@ -824,6 +824,18 @@ class _QueueBus:
         rows = self.step(time_s, link)
         return tuple(map(tuple, rows)) if any(rows) else None
 
+    def exchange(self, outbox: Any, time_s: float, link_of: Callable[[], LinkState]
+                 ) -> tuple[tuple[Delivery, ...], ...] | None | bool:
+        """A tick's messages, as the loop hands them over: ``send_all(outbox, time_s)``, then one period.
+        Where nothing waits it is ``step(time_s, None)`` and returns False (no link state read, nothing
+        drawn); else ``inbox(time_s, link_of())``."""
+        if outbox:
+            self.send_all(outbox, time_s)
+        if self.idle:
+            self.step(time_s, None)
+            return False
+        return self.inbox(time_s, link_of())
+
     @property
     def arrivals(self) -> dict[str, Arrivals]:
         """The last ``step``'s arrivals of the messages sent ``as_arrays``, per kind (only kinds that arrived)."""
@@ -1427,6 +1439,43 @@ class MessageBus(_QueueBus):
         _, rows = self._table_step(time_s, link)
         return None if rows is None else tuple(map(tuple, rows))
 
+    def exchange(self, outbox: Any, time_s: float, link_of: Callable[[], LinkState]
+                 ) -> tuple[tuple[Delivery, ...], ...] | None | bool:
+        if not self._tabled or type(outbox) is not tuple or len(outbox) != 1 or type(outbox[0]) is not Broadcasts:
+            return super().exchange(outbox, time_s, link_of)
+        # An outbox of one batch (the consensus alone, most ticks): it enters the table and the period runs in
+        # one compiled call, as send_all then inbox would
+        batch = outbox[0]
+        rows, frames, top = self._batch_template(batch)
+        held = self._period_held
+        if not len(batch) or held is None or not held[6]:  # nothing sent, or the kernels not compiled
+            return super().exchange(outbox, time_s, link_of)
+        time_s = float(time_s)
+        self._arrivals = {}
+        n, sense, snr = self._link_arrays(link_of())
+        values = batch.values
+        messages, frames_sent, counts = len(values), len(frames) // 3, self._counts
+        first_sequence = self._sequence
+        self._sequence = first_sequence + messages
+        if top >= self._robots_held:
+            self._hold_robots(top + 1)
+        if counts[medium.T_FREE] < frames_sent:
+            self._hold_slots(frames_sent)
+        if len(self._dropped) < counts[medium.T_WAITING] + messages:
+            self._dropped = np.empty(2 * (counts[medium.T_WAITING] + messages), dtype=np.int64)
+        held, columns, arrived = self._period_room(n, frames_sent)
+        superseded, result = compiled_call(medium._enqueue_then_period_at, held[5] + (
+            self._dropped, rows, values, _NO_ROBOTS, frames, first_sequence, time_s, time_s,
+            time_s + self.control_period_s, sense, snr, columns, arrived),
+            ("enqueue, period", sense.flags.writeable, snr.flags.writeable))
+        if superseded and self._objects:
+            for sequence in self._dropped[:superseded].tolist():
+                self._objects.pop(sequence, None)
+        if result[0] < 0:
+            result = self._finish_period(result, n, columns, arrived)
+        deliveries = self._take_period(n, time_s, result)
+        return None if deliveries is None else tuple(map(tuple, deliveries))
+
     def _table_step(self, time_s: float, link: LinkState | None) -> tuple[int, list[list[Delivery]] | None]:
         """``step`` over the frame table: the robots, and their rows (None when no row holds a delivery)."""
         self._arrivals = {}
@@ -1435,6 +1484,11 @@ class MessageBus(_QueueBus):
             self._last = None  # an empty period at self._idle_s, built only when read
             self._idle_s = time_s
             return (self._robot_count(link) if link is not None else self._n or 0), None
+        n, sense, snr = self._link_arrays(link)
+        return n, self._take_period(n, float(time_s), self._period(float(time_s), sense, snr, n))
+
+    def _link_arrays(self, link: LinkState | None) -> tuple[int, np.ndarray, np.ndarray]:
+        """(N, carrier sense, SNR) of a period's link state, checked, the table's robots made room for."""
         if link is None:
             raise ValueError(f"the {self.params.name!r} bus needs this tick's link state")
         if type(link) is medium.LinkMatrices:  # the channel's own: C arrays of their types, (N, N) each
@@ -1450,8 +1504,12 @@ class MessageBus(_QueueBus):
                 raise ValueError(f"the link's arrays must be ({n}, {n})")
         if n > self._robots_held:
             self._hold_robots(n)
-        sent, packets, addressed, delivered, entries, finished, present, latency_total_s = self._period(
-            float(time_s), sense, snr, n)
+        return n, sense, snr
+
+    def _take_period(self, n: int, time_s: float, result: tuple) -> list[list[Delivery]] | None:
+        """A period's kernel's figures (``medium.book``'s) into the bus: its arrivals, the rows of the messages
+        not sent as_arrays (None when there are none), the finished messages let go, the tick's figures."""
+        sent, packets, addressed, delivered, entries, finished, present, latency_total_s = result
         self._elapsed_s += self.control_period_s
         deliveries = None
         if entries:
@@ -1485,34 +1543,41 @@ class MessageBus(_QueueBus):
         last.__dict__.update(time_s=float(time_s), packets_sent=packets, packets_delivered=delivered,
                              delivery_ratio=delivered / addressed if addressed else math.nan,
                              latency_mean_s=latency_mean_s, queued=int(self._counts[medium.T_WAITING]))
-        return n, deliveries
+        return deliveries
 
     def _period(self, start_s: float, sense: np.ndarray, snr: np.ndarray, n: int) -> tuple:
         """The medium's period over the frame table (``medium._period``), numpy deciding the draws the kernel
         leaves to its exact PER."""
+        held, columns, values = self._period_room(n, 0)
+        end_s = start_s + self.control_period_s
+        if held[6]:  # one signature per writeability of the link's arrays (a caller's read-only ones apart)
+            result = compiled_call(medium._period_at, held[5] + (start_s, end_s, sense, snr, columns, values),
+                                   ("period", sense.flags.writeable, snr.flags.writeable))
+        else:  # numba's JIT disabled, or a generator that is not numpy's
+            result = medium._period_with(self.rng, *held[5], start_s, end_s, sense, snr, columns, values)
+        return result if result[0] >= 0 else self._finish_period(result, n, columns, values)
+
+    def _period_room(self, n: int, more_frames: int) -> tuple[tuple, np.ndarray, np.ndarray]:
+        """``_hold_period``'s kept arguments for a period over ``n`` robots with ``more_frames`` yet to enter the
+        table, room in the latency log for what it can deliver, and the arrivals' two blocks (new each period:
+        their views go out as ``arrivals``)."""
         held = self._period_held
         if (held is None or held[0] != self._table_generation or held[1] != n or held[2] is not self.rng
                 or held[3] != len(self._frames_of_size)):
             held = self._hold_period(n)
-        counts, per_period = self._counts, held[4]
-        # at most the frames in the table, or per_period, go out, each to at most n - 1 receivers
-        most = min(self._slots - int(counts[medium.T_FREE]), per_period) * n + 1
+        counts = self._counts
+        # at most the frames in the table, or a period's most, go out, each to at most n - 1 receivers
+        most = min(self._slots - int(counts[medium.T_FREE]) + more_frames, held[4]) * n + 1
         if counts[medium.T_LOGGED] + most > len(self._log_latency):
             self._hold_log(most)
             held = self._hold_period(n)
-        fixed, compiled = held[5], held[6]
-        # the arrivals' columns: new each period (their views go out as ``arrivals``)
         columns = np.empty((3, most), dtype=np.int64)  # receiver, sender, sequence
         values = np.empty((3, most))  # arrival, send time, value
         self._arrival_columns = (columns, values)
-        end_s = start_s + self.control_period_s
-        if compiled:  # one signature per writeability of the link's arrays (a caller's read-only ones apart)
-            result = compiled_call(medium._period_at, fixed + (start_s, end_s, sense, snr, columns, values),
-                                   ("period", sense.flags.writeable, snr.flags.writeable))
-        else:  # numba's JIT disabled, or a generator that is not numpy's
-            result = medium._period_with(self.rng, *fixed, start_s, end_s, sense, snr, columns, values)
-        if result[0] >= 0:
-            return result
+        return held, columns, values
+
+    def _finish_period(self, result: tuple, n: int, columns: np.ndarray, values: np.ndarray) -> tuple:
+        """A period whose kernel left draws to numpy's exact PER (``result[0]`` -1): decide them, then book."""
         integers, reals, flags = self._scratch_rows
         constants = self._medium_constants
         # Some draws' SNR with fading lies too near the PER's edge for the kernel: numpy's exact PER decides them

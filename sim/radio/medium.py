@@ -360,6 +360,22 @@ def _period_at(state_address, state, next_uint64, next_uint32, next_double, eps,
                    decide, rng, integers, reals, flags, tally, columns, values, present)
 
 
+@kernel
+def _enqueue_then_period_at(state_address, state, next_uint64, next_uint32, next_double, eps, reach_s, ints, floats,
+                            listed, queues, alive, free, counts, kinds, airtime, log_latency, log_kind, fading_code,
+                            noncentrality, gain_scale, sure_snr_db, decide, integers, reals, flags, tally, present,
+                            dropped, message_ints, message_values, message_listed, frame_spec, first_sequence, sent_s,
+                            start_s, end_s, sense, snr, columns, values):
+    """``_enqueue`` of a tick's outbox, then ``_period_at``, in one call (what the bus's ``exchange`` makes of
+    a tick whose outbox is one kept batch): (superseded, then ``_period``'s figures)."""
+    superseded = _enqueue(ints, floats, listed, queues, free, counts, kinds, message_ints, message_values,
+                          message_listed, frame_spec, first_sequence, sent_s, dropped)
+    rng = generator_at(state_address, state, next_uint64, next_uint32, next_double)
+    return superseded, _period(start_s, end_s, eps, reach_s, sense, snr, ints, floats, listed, queues, alive, free,
+                               counts, kinds, airtime, log_latency, log_kind, fading_code, noncentrality, gain_scale,
+                               sure_snr_db, decide, rng, integers, reals, flags, tally, columns, values, present)
+
+
 def _period_with(rng, eps, reach_s, ints, floats, listed, queues, alive, free, counts, kinds, airtime, log_latency,
                  log_kind, fading_code, noncentrality, gain_scale, sure_snr_db, decide, integers, reals, flags, tally,
                  present, start_s, end_s, sense, snr, columns, values):
