@@ -39,6 +39,7 @@ import functools
 import pickle
 import queue
 import time
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -349,7 +350,7 @@ def add_sphere(scene: mujoco.MjvScene, p: np.ndarray, radius: float, rgba: np.nd
     scene.ngeom += 1
 
 
-class DecorationCanvas:
+class DecorationCanvas(ABC):
     """What :func:`draw_decorations` draws into: a MuJoCo scene (``mjv_scene``) of the ``world``, at
     ``metres_per_px`` (the scale of the markers' minimum sizes), under the scene's ``light_gain``
     (:func:`viz.scenery.top_light_gain`). The video's frame, its close-up and the viewer's user scene are one."""
@@ -358,8 +359,9 @@ class DecorationCanvas:
     metres_per_px: float
     light_gain: np.ndarray
 
+    @abstractmethod
     def mjv_scene(self) -> mujoco.MjvScene:
-        raise NotImplementedError
+        """The scene the markers are appended to."""
 
     def at_least(self, size_m: float, pixels: float) -> float:
         """``size_m``, or ``pixels`` of the view when that is larger: markers stay visible in a 70 m

@@ -1396,21 +1396,31 @@ class MessageBus(_QueueBus):
                  time_s: float, first_sequence: int | None = None) -> None:
         """``medium._enqueue`` of these rows sent at ``time_s``, their sequences from ``first_sequence`` (the
         next one when None), the table made large enough first."""
+        first_sequence = self._room_to_enqueue(len(values), len(spec) // 3, top, first_sequence)
+        dropped = compiled_call(medium._enqueue, (self._ints, self._floats, self._listed, self._queue_rows, self._free,
+                                                  self._counts, self._kind_rows, rows, values, listed, spec,
+                                                  first_sequence, time_s, self._dropped), ("enqueue",))
+        self._forget_superseded(dropped)
+
+    def _room_to_enqueue(self, messages: int, frames: int, top: int, first_sequence: int | None) -> int:
+        """The first of ``messages`` sequences from ``first_sequence`` (the next one when None), taken, and room
+        in the table for them, their ``frames`` and senders up to ``top``, made first."""
         if first_sequence is None:
             first_sequence = self._sequence
-        messages, frames, counts = len(values), len(spec) // 3, self._counts
         self._sequence = first_sequence + messages
+        counts = self._counts
         if top >= self._robots_held:
             self._hold_robots(top + 1)
         if counts[medium.T_FREE] < frames:
             self._hold_slots(frames)
         if len(self._dropped) < counts[medium.T_WAITING] + messages:
             self._dropped = np.empty(2 * (counts[medium.T_WAITING] + messages), dtype=np.int64)
-        dropped = compiled_call(medium._enqueue, (self._ints, self._floats, self._listed, self._queue_rows, self._free,
-                                                  counts, self._kind_rows, rows, values, listed, spec, first_sequence,
-                                                  time_s, self._dropped), ("enqueue",))
-        if dropped and self._objects:
-            for sequence in self._dropped[:dropped].tolist():
+        return first_sequence
+
+    def _forget_superseded(self, count: int) -> None:
+        """Let go of the objects of the ``count`` messages ``medium._enqueue`` superseded (in ``_dropped``)."""
+        if count and self._objects:
+            for sequence in self._dropped[:count].tolist():
                 self._objects.pop(sequence, None)
 
     # --- one control period ------------------------------------------------------------------------
@@ -1453,24 +1463,14 @@ class MessageBus(_QueueBus):
         time_s = float(time_s)
         self._arrivals = {}
         n, sense, snr = self._link_arrays(link_of())
-        values = batch.values
-        messages, frames_sent, counts = len(values), len(frames) // 3, self._counts
-        first_sequence = self._sequence
-        self._sequence = first_sequence + messages
-        if top >= self._robots_held:
-            self._hold_robots(top + 1)
-        if counts[medium.T_FREE] < frames_sent:
-            self._hold_slots(frames_sent)
-        if len(self._dropped) < counts[medium.T_WAITING] + messages:
-            self._dropped = np.empty(2 * (counts[medium.T_WAITING] + messages), dtype=np.int64)
+        values, frames_sent = batch.values, len(frames) // 3
+        first_sequence = self._room_to_enqueue(len(values), frames_sent, top, None)
         held, columns, arrived = self._period_room(n, frames_sent)
         superseded, result = compiled_call(medium._enqueue_then_period_at, held[5] + (
             self._dropped, rows, values, _NO_ROBOTS, frames, first_sequence, time_s, time_s,
             time_s + self.control_period_s, sense, snr, columns, arrived),
             ("enqueue, period", sense.flags.writeable, snr.flags.writeable))
-        if superseded and self._objects:
-            for sequence in self._dropped[:superseded].tolist():
-                self._objects.pop(sequence, None)
+        self._forget_superseded(superseded)
         if result[0] < 0:
             result = self._finish_period(result, n, columns, arrived)
         deliveries = self._take_period(n, time_s, result)
