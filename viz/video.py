@@ -1045,7 +1045,7 @@ class _Helpers:
             self._alive(k)
         try:
             data = self.outboxes[k].recv_bytes()
-        except EOFError:
+        except (EOFError, OSError):  # OSError: it died while sending a frame ("got end of file during message")
             self.processes[k].join(WORKER_POLL_S)
             self._alive(k)
             raise RuntimeError(f"video renderer helper {k + 1} closed its pipe") from None
